@@ -1,0 +1,87 @@
+"""geoid-fit: fit a geoid grid (file or catalogue name) into a tile store."""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+import time
+
+import click
+
+from ._common import user_errors, verbosity_options
+
+log = logging.getLogger("geoidspline.cli")
+
+
+@click.command(name="fit", context_settings={"help_option_names": ["-h", "--help"]})
+@click.argument("source")
+@click.option("--out", "out", required=True, type=click.Path(file_okay=False),
+              help="Store directory to write (must not exist unless --overwrite).")
+@click.option("--region", nargs=4, type=float, metavar="S W N E", default=None,
+              help="Region in degrees: south west north east (default: global).")
+@click.option("--tolerance", type=float, default=0.5, show_default=True,
+              help="Largest |error| in metres accepted at the data nodes.")
+@click.option("--h0", type=float, default=None, help="Level-0 grid spacing on the unit sphere [default: 0.1].")
+@click.option("--max-level", type=int, default=None, help="Finest overlay level (h = h0 / 2**level) [default: 4].")
+@click.option("--order", type=int, default=4, show_default=True, help="Spline order (4 = cubic, C²).")
+@click.option("--workers", type=int, default=1, show_default=True, help="Worker processes solving tiles.")
+@click.option("--overwrite", is_flag=True, help="Replace an existing store at --out.")
+@click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
+@verbosity_options
+@user_errors
+def main(source, out, region, tolerance, h0, max_level, order, workers, overwrite, as_json, quiet):
+    """Fit SOURCE (a grid file: .gtx, .nc, WW15MGH.DAC, .pgm; or a catalogue name such
+    as egm96-15) into ambient B-spline tiles stored at --out."""
+    from geoidspline.build import build_store
+    from geoidspline.catalogue import resolve_source
+    from geoidspline.fit import FitParameters
+    from geoidspline.region import GLOBAL, Region
+
+    defaults = FitParameters()
+    params = FitParameters(
+        order=order, tolerance_m=tolerance,
+        h0=defaults.h0 if h0 is None else h0,
+        max_level=defaults.max_level if max_level is None else max_level,
+        workers=workers,
+    )
+    fit_region = Region.from_bounds(*region) if region else GLOBAL
+    grid = resolve_source(source)
+    log.info("source %s (%s), region %s", grid.provenance.source, grid.provenance.model, fit_region.as_tuple())
+    started = time.perf_counter()
+    bar = None
+    if not quiet:
+        from tqdm import tqdm
+
+        bar = tqdm(desc="solving", unit=" problems", file=sys.stderr, leave=False)
+    try:
+        result, info = build_store(grid, out, fit_region, params, progress=bar.update if bar is not None else None,
+                                   overwrite=overwrite)
+    finally:
+        if bar is not None:
+            bar.close()
+    info["wall_seconds"] = round(time.perf_counter() - started, 2)
+    if as_json:
+        click.echo(json.dumps(info, indent=1))
+        return
+    click.echo(f"store      {out}  ({info['tiles']} tiles, {info['bytes']:,} bytes)")
+    click.echo(f"source     {grid.provenance.source} ({grid.provenance.model})")
+    click.echo(f"region     S {fit_region.south:g}  W {fit_region.west:g}  N {fit_region.north:g}  E {fit_region.east:g}")
+    click.echo("level  h          coefficients  max|err| m  nodes>tol  seconds")
+    for r in result.levels:
+        click.echo(f"{r.level:5d}  {r.h:<9.6g}  {r.coefficients:12,d}  {r.max_error_m:10.4f}  "
+                   f"{r.nodes_above_tolerance:9d}  {r.seconds:7.1f}")
+    state = "reached" if result.converged else "NOT reached (raise --max-level)"
+    click.echo(f"total      {info['coefficients']:,} coefficients; tolerance {tolerance:g} m {state}")
+    click.echo(f"nodes      {info['nodes']:,}: max |error| {info['node_max_error_m']:.4f} m, "
+               f"RMS {info['node_rms_error_m']:.4f} m")
+    if info["check_points"]:
+        click.echo(f"check      {info['check_points']:,} points ({info['check_truth']}): "
+                   f"max {info['max_error_m']:.4f} m, RMS {info['rms_error_m']:.4f} m")
+    click.echo(f"time       {info['wall_seconds']:.1f} s")
+    if not result.converged:
+        sys.exit(3)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

@@ -1,0 +1,18 @@
+"""``python -m geoidspline fit|query|info ...``: the three commands under one name."""
+
+import click
+
+from geoidspline.cli import fit, info, query
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+def main():
+    """geoidspline: geoid undulations as C² ambient B-spline tiles."""
+
+
+main.add_command(fit.main, "fit")
+main.add_command(query.main, "query")
+main.add_command(info.main, "info")
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,541 @@
+"""Fitting: hierarchical overlays of ambient B-splines, solved tile by tile.
+
+The algorithm (Lehmann 2013, §3-4 and §5.2; summarised in METHOD.md):
+
+1. Level 0 takes every cell of spacing ``h0`` that meets the unit sphere over the
+   region ("active cells") and every B-spline touching one of them.
+2. Data sites are rays: each data direction ``u`` is sampled at radii ``1 + ρ h``
+   within the shell, all carrying the value N(u) (the constant radial extension).
+   Sites outside the active cells are dropped.
+3. The level is fitted to the residual of the levels before it by sparse least
+   squares, with a tiny second-difference penalty that only decides coefficients the
+   data leave free (cells the data rays miss at the finest levels).
+4. The residual on the sphere is measured at every data node of the region; level
+   ``ℓ + 1`` (spacing ``h0 / 2^(ℓ+1)``) takes the B-splines touching the cells that
+   hold nodes above the tolerance, and is fitted on every site where those B-splines
+   are non-zero, so each level is a C^(n-2) spline on all of R³.
+5. Each level is split into tiles (cubes of side ``tile_size``; a coefficient belongs
+   to the tile holding the centre of its support). A tile's local problem carries the
+   coefficients and sites within ``margin_cells`` cells around it and keeps only its
+   own coefficients, so tiles solve independently (in worker processes) and still form
+   one spline. Levels with few unknowns are solved whole.
+
+Refinement is a strategy object (:class:`OverlayRefinement`) so that the linearly
+independent hierarchical basis of thesis §5.3 can be added beside it.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field, asdict
+import multiprocessing
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from . import _kernels
+from .errors import FitError
+from .region import Region, GLOBAL
+from .spline import AmbientSpline, LevelSpline, directions
+
+__all__ = ["FitParameters", "LevelReport", "FitResult", "fit_source", "fit_nodes", "tile_of_indices"]
+
+log = logging.getLogger("geoidspline.fit")
+
+
+@dataclass(frozen=True)
+class FitParameters:
+    """Parameters of a fit. Lengths are on the unit sphere (1 = Earth radius).
+
+    ``h0`` is the level-0 grid spacing; level ℓ has ``h0 / 2**ℓ``. ``tolerance_m`` is the
+    largest |error| accepted at the data nodes; refinement stops there or at
+    ``max_level``. ``radial_offsets`` are the site radii ``1 + ρ h`` in units of the
+    level's spacing. ``rays_per_cell`` caps how many data directions a cell width holds
+    at coarse levels (more are thinned out: they would cost time, not accuracy).
+    ``regularization`` weighs the second-difference penalty relative to the mean
+    diagonal of the normal matrix.
+    """
+
+    order: int = 4
+    h0: float = 0.1
+    tolerance_m: float = 0.5
+    max_level: int = 4
+    tile_size: float = 0.4
+    margin_cells: int = 8
+    radial_offsets: tuple = (-1.5, -0.9, -0.3, 0.0, 0.3, 0.9, 1.5)
+    rays_per_cell: float = 5.0
+    regularization: float = 1e-6
+    untiled_max_unknowns: int = 60_000
+    workers: int = 1
+
+    def __post_init__(self):
+        if not 2 <= self.order <= 8:
+            raise FitError(f"spline order must be within 2..8 (4 = cubic, C²), got {self.order}")
+        if not 0.0 < self.h0 <= 0.5:
+            raise FitError(f"h0 must be within (0, 0.5] on the unit sphere, got {self.h0}")
+        if not self.tolerance_m > 0:
+            raise FitError(f"tolerance must be positive metres, got {self.tolerance_m}")
+        if not 0 <= self.max_level <= 12:
+            raise FitError(f"max level must be within 0..12, got {self.max_level}")
+        if self.h0 / 2 ** self.max_level * _kernels.MAX_INDEX < 1.5:
+            raise FitError("h0 / 2**max_level is too small for the coefficient index range")
+        if not self.tile_size >= self.h0:
+            raise FitError(f"tile size ({self.tile_size}) must be at least h0 ({self.h0})")
+        if self.margin_cells < self.order:
+            raise FitError(f"margin_cells must be at least the spline order ({self.order})")
+        if self.workers < 1:
+            raise FitError(f"workers must be at least 1, got {self.workers}")
+
+    def spacing(self, level: int) -> float:
+        return self.h0 / 2.0 ** level
+
+    def as_dict(self) -> dict:
+        data = asdict(self)
+        data["radial_offsets"] = list(self.radial_offsets)
+        return data
+
+
+@dataclass
+class LevelReport:
+    level: int
+    h: float
+    coefficients: int
+    marked_cells: int
+    sites: int
+    tiles_solved: int
+    max_error_m: float
+    rms_error_m: float
+    nodes_above_tolerance: int
+    seconds: float
+
+
+@dataclass
+class FitResult:
+    spline: AmbientSpline
+    parameters: FitParameters
+    region: Region
+    levels: list = field(default_factory=list)
+    node_count: int = 0
+    node_max_error_m: float = float("nan")
+    node_rms_error_m: float = float("nan")
+    converged: bool = False
+    seconds: float = 0.0
+    # per-node arrays kept for tile statistics (sphere directions and errors)
+    node_directions: np.ndarray | None = None
+    node_errors: np.ndarray | None = None
+
+
+# ---------------------------------------------------------------------------------
+# geometry helpers
+
+
+def _cube_offsets(lo, hi):
+    r = np.arange(lo, hi + 1)
+    return np.array(np.meshgrid(r, r, r, indexing="ij")).reshape(3, -1).T
+
+
+def tile_of_indices(indices, h, order, tile_size):
+    """Tile (integer triple) of each coefficient: the cube holding its support centre."""
+    centre = (np.asarray(indices, dtype=float) + order / 2.0) * h
+    return np.floor(centre / tile_size).astype(np.int64)
+
+
+def _sphere_samples(region: Region, spacing_rad: float):
+    """Directions covering ``region`` with neighbours closer than ``spacing_rad``."""
+    dlat = math.degrees(spacing_rad)
+    lats = np.arange(region.south, region.north + dlat, dlat)
+    lats = np.clip(lats, -90.0, 90.0)
+    out = []
+    for lat in lats:
+        dlon = dlat / max(math.cos(math.radians(lat)), 1e-3)
+        n = max(2, int(math.ceil(region.longitude_span / dlon)) + 1)
+        lons = np.linspace(region.west, region.east, n)
+        out.append(directions(np.full(n, lat), lons))
+    return np.concatenate(out)
+
+
+def active_cells(h: float, region: Region):
+    """Integer indices (M, 3) of the cells of spacing h that meet the sphere over region.
+
+    Exact for the sphere test; for the region a conservative superset (a cell counts
+    when its centre direction is within the cell's angular radius of the region).
+    """
+    samples = _sphere_samples(region, 0.5 * h)
+    cells = np.unique(np.floor(samples / h).astype(np.int64), axis=0)
+    cells = np.unique((cells[:, None, :] + _cube_offsets(-1, 1)[None]).reshape(-1, 3), axis=0)
+    cells = cells[_kernels.cells_meet_sphere(cells, h, 1.0)]
+    if not region.is_global:
+        centre = (cells + 0.5) * h
+        norm = np.linalg.norm(centre, axis=1)
+        lat = np.degrees(np.arcsin(np.clip(centre[:, 2] / norm, -1, 1)))
+        lon = np.degrees(np.arctan2(centre[:, 1], centre[:, 0]))
+        margin = math.degrees(math.sqrt(3.0) * h / max(1.0 - math.sqrt(3.0) * h, 0.1))
+        cells = cells[region.expanded(margin).contains(lat, lon)]
+    return cells
+
+
+def _touching_keys(cells, order):
+    """Sorted keys of every B-spline non-zero on at least one of ``cells``."""
+    idx = (cells[:, None, :] + _cube_offsets(-(order - 1), 0)[None]).reshape(-1, 3)
+    return np.unique(_kernels.pack_keys(idx))
+
+
+def _covered_cell_keys(coef_keys, order):
+    """Sorted keys of the cells on which at least one B-spline of ``coef_keys`` lives."""
+    idx = _kernels.unpack_keys(coef_keys)
+    cells = (idx[:, None, :] + _cube_offsets(0, order - 1)[None]).reshape(-1, 3)
+    return np.unique(_kernels.pack_keys(cells))
+
+
+def _isin_sorted(values, sorted_keys):
+    pos = np.searchsorted(sorted_keys, values)
+    pos = np.minimum(pos, sorted_keys.size - 1)
+    return sorted_keys[pos] == values if sorted_keys.size else np.zeros(values.shape, bool)
+
+
+# ---------------------------------------------------------------------------------
+# the local least-squares problem (runs in worker processes)
+
+
+@dataclass
+class LocalProblem:
+    """One tile's least-squares problem at one level: everything a worker needs."""
+
+    tile: tuple
+    h: float
+    order: int
+    regularization: float
+    keys: np.ndarray  # sorted unknowns of the local problem
+    own: np.ndarray  # bool mask over keys: the coefficients this tile keeps
+    points: np.ndarray  # (M, 3) site positions
+    values: np.ndarray  # (M,) residual values in metres
+
+
+def _second_difference_penalty(keys):
+    """D^T D for second differences along each axis among triples present in keys."""
+    rows, cols, vals = [], [], []
+    row0 = 0
+    for step in (1 << (2 * _kernels.KEY_BITS), 1 << _kernels.KEY_BITS, 1):
+        lower = _isin_sorted(keys - step, keys)
+        upper = _isin_sorted(keys + step, keys)
+        centre = np.flatnonzero(lower & upper)
+        if centre.size == 0:
+            continue
+        left = np.searchsorted(keys, keys[centre] - step)
+        right = np.searchsorted(keys, keys[centre] + step)
+        r = row0 + np.arange(centre.size)
+        rows += [r, r, r]
+        cols += [left, centre, right]
+        vals += [np.ones(centre.size), -2.0 * np.ones(centre.size), np.ones(centre.size)]
+        row0 += centre.size
+    if row0 == 0:
+        return sp.csr_matrix((keys.size, keys.size))
+    d = sp.csr_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(row0, keys.size)
+    )
+    return (d.T @ d).tocsr()
+
+
+def design_matrix(points, keys, h, order):
+    """Sparse design matrix (M, len(keys)) of the B-splines ``keys`` at ``points``."""
+    m = points.shape[0]
+    width = order**3
+    cols = np.empty((m, width), dtype=np.int64)
+    vals = np.empty((m, width))
+    _kernels.design_entries(np.ascontiguousarray(points), h, order, keys, cols, vals)
+    keep = cols >= 0
+    row = np.repeat(np.arange(m), width).reshape(m, width)
+    return sp.csr_matrix((vals[keep], (row[keep], cols[keep])), shape=(m, keys.size))
+
+
+def solve_local_problem(problem: LocalProblem):
+    """Solve one local problem; return (own keys, own coefficients, solve seconds)."""
+    start = time.perf_counter()
+    a = design_matrix(problem.points, problem.keys, problem.h, problem.order)
+    normal = (a.T @ a).tocsr()
+    rhs = a.T @ problem.values
+    diag = normal.diagonal()
+    scale = float(diag[diag > 0].mean()) if np.any(diag > 0) else 1.0
+    penalty = _second_difference_penalty(problem.keys)
+    system = normal + (problem.regularization * scale) * penalty
+    system = system + sp.identity(problem.keys.size, format="csr") * (1e-10 * scale)
+    solution = spla.spsolve(system.tocsc(), rhs, permc_spec="COLAMD")
+    return problem.keys[problem.own], solution[problem.own], time.perf_counter() - start
+
+
+def _worker_init():
+    # one solver per process: keep numba and BLAS from oversubscribing the cores
+    try:
+        import numba
+
+        numba.set_num_threads(1)
+    except Exception:  # pragma: no cover - numba always present in practice
+        pass
+
+
+# ---------------------------------------------------------------------------------
+# node bookkeeping
+
+
+@dataclass
+class _Nodes:
+    """Data nodes of a fit: directions, values, region mask and thinning strides."""
+
+    latitude: np.ndarray
+    longitude: np.ndarray
+    values: np.ndarray
+    directions: np.ndarray
+    in_region: np.ndarray
+    row: np.ndarray
+    col: np.ndarray
+    dlat_rad: float
+    dlon_rad: float
+
+    @classmethod
+    def from_sample(cls, sample, region: Region):
+        lat2, lon2 = np.meshgrid(sample.latitude, sample.longitude, indexing="ij")
+        row2, col2 = np.meshgrid(
+            np.arange(sample.latitude.size), np.arange(sample.longitude.size), indexing="ij"
+        )
+        values = np.asarray(sample.undulation, dtype=float).ravel()
+        keep = np.isfinite(values)
+        # a pole row holds one point: keep a single node there
+        pole = (np.abs(lat2.ravel()) >= 90.0) & (col2.ravel() > 0)
+        keep &= ~pole
+        lat = lat2.ravel()[keep]
+        lon = lon2.ravel()[keep]
+        dlat = np.radians(np.diff(sample.latitude).min()) if sample.latitude.size > 1 else np.pi
+        dlon = np.radians(np.diff(sample.longitude).min()) if sample.longitude.size > 1 else 2 * np.pi
+        return cls(
+            latitude=lat,
+            longitude=lon,
+            values=values[keep],
+            directions=directions(lat, lon),
+            in_region=region.contains(lat, lon),
+            row=row2.ravel()[keep],
+            col=col2.ravel()[keep],
+            dlat_rad=float(dlat),
+            dlon_rad=float(dlon),
+        )
+
+    def thinned(self, h, rays_per_cell):
+        """Mask of the nodes kept as rays at spacing h (about rays_per_cell per cell width)."""
+        target = h / rays_per_cell
+        lat_stride = max(1, int(target // self.dlat_rad))
+        cos_lat = np.maximum(np.cos(np.radians(self.latitude)), 1e-6)
+        lon_stride = np.maximum(1, np.floor(target / (self.dlon_rad * cos_lat))).astype(np.int64)
+        return (self.row % lat_stride == 0) & (self.col % lon_stride == 0)
+
+
+# ---------------------------------------------------------------------------------
+# refinement strategy
+
+
+class OverlayRefinement:
+    """Hierarchical overlays (thesis §5.2): each level fits the residual of the ones
+    before it on the B-splines touching the cells where the tolerance is violated."""
+
+    name = "overlay"
+
+    def level_keys(self, level, h, order, region, violating_directions):
+        if level == 0:
+            cells = active_cells(h, region)
+        else:
+            cells = np.unique(np.floor(violating_directions / h).astype(np.int64), axis=0)
+        if cells.size == 0:
+            return np.empty(0, dtype=np.int64), 0
+        return _touching_keys(cells, order), len(cells)
+
+
+# ---------------------------------------------------------------------------------
+# the driver
+
+
+def _sites_for_level(nodes: _Nodes, ray_mask, h, order, keys, radial_offsets):
+    """Site positions and node indices for one level (rays through the kept nodes)."""
+    covered = _covered_cell_keys(keys, order)
+    node_idx = np.flatnonzero(ray_mask)
+    pts_all, idx_all = [], []
+    for rho in radial_offsets:
+        pts = nodes.directions[node_idx] * (1.0 + rho * h)
+        cells = np.floor(pts / h).astype(np.int64)
+        inside = _isin_sorted(_kernels.pack_keys(cells), covered)
+        if rho != 0.0:
+            # sites off the sphere count only inside cells that meet the sphere (Ω)
+            inside[inside] = _kernels.cells_meet_sphere(cells[inside], h, 1.0)
+        pts_all.append(pts[inside])
+        idx_all.append(node_idx[inside])
+    return np.concatenate(pts_all), np.concatenate(idx_all)
+
+
+def _local_problems(level, h, params: FitParameters, keys, points, values, force_tiles=False):
+    order = params.order
+    if keys.size <= params.untiled_max_unknowns and not force_tiles:
+        yield LocalProblem(
+            tile=("whole",), h=h, order=order, regularization=params.regularization,
+            keys=keys, own=np.ones(keys.size, bool), points=points, values=values,
+        )
+        return
+    idx = _kernels.unpack_keys(keys)
+    tiles = tile_of_indices(idx, h, order, params.tile_size)
+    tile_keys = _kernels.pack_keys(tiles)
+    unique_tiles, tile_inverse = np.unique(tile_keys, return_inverse=True)
+    size = params.tile_size
+    margin = params.margin_cells * h
+    reach = int(math.ceil(margin / size))
+    site_bins = _kernels.pack_keys(np.floor(points / size).astype(np.int64))
+    bin_order = np.argsort(site_bins, kind="stable")
+    sorted_bins = site_bins[bin_order]
+    neighbour = _cube_offsets(-reach, reach)
+    for t, tkey in enumerate(unique_tiles):
+        tile = _kernels.unpack_keys(np.array([tkey]))[0]
+        lo = tile * size - margin
+        hi = (tile + 1) * size + margin
+        wanted = _kernels.pack_keys(tile[None, :] + neighbour)
+        starts = np.searchsorted(sorted_bins, wanted, side="left")
+        stops = np.searchsorted(sorted_bins, wanted, side="right")
+        chosen = np.concatenate([bin_order[a:b] for a, b in zip(starts, stops)])
+        if chosen.size:
+            p = points[chosen]
+            chosen = chosen[np.all((p >= lo) & (p < hi), axis=1)]
+        # unknowns: every coefficient non-zero somewhere in the local box
+        cell_lo = np.floor(lo / h).astype(np.int64) - (order - 1)
+        cell_hi = np.floor(hi / h).astype(np.int64)
+        in_box = np.all((idx >= cell_lo) & (idx <= cell_hi), axis=1)
+        local = np.flatnonzero(in_box)
+        own = tile_inverse[local] == t
+        yield LocalProblem(
+            tile=tuple(int(v) for v in tile), h=h, order=order,
+            regularization=params.regularization, keys=keys[local], own=own,
+            points=points[chosen], values=values[chosen],
+        )
+
+
+def _solve_level(problems, workers, progress=None):
+    keys_out, coefs_out, count = [], [], 0
+    if workers > 1:
+        ctx = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init) as pool:
+            for own_keys, own_coefs, _ in pool.map(solve_local_problem, problems):
+                keys_out.append(own_keys)
+                coefs_out.append(own_coefs)
+                count += 1
+                if progress:
+                    progress(1)
+    else:
+        for problem in problems:
+            own_keys, own_coefs, _ = solve_local_problem(problem)
+            keys_out.append(own_keys)
+            coefs_out.append(own_coefs)
+            count += 1
+            if progress:
+                progress(1)
+    keys = np.concatenate(keys_out) if keys_out else np.empty(0, np.int64)
+    coefs = np.concatenate(coefs_out) if coefs_out else np.empty(0)
+    order = np.argsort(keys)
+    return keys[order], coefs[order], count
+
+
+def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, progress=None,
+              force_tiles=False) -> FitResult:
+    """Fit the nodes of a :class:`~geoidspline.sources.NodeSample` over ``region``.
+
+    ``sample`` must cover the region plus the support margin of level 0 (see
+    :func:`fit_source`, which asks the source for exactly that). ``progress``, when
+    given, is called with the number of local problems just solved.
+    """
+    refinement = refinement or OverlayRefinement()
+    start = time.perf_counter()
+    nodes = _Nodes.from_sample(sample, region)
+    if not np.any(nodes.in_region):
+        raise FitError(f"no data nodes inside the region {region.as_tuple()}")
+    region_dirs = nodes.directions[nodes.in_region]
+    errors = nodes.values[nodes.in_region].copy()  # residual N - S at region nodes
+    levels: list[LevelSpline] = []
+    reports: list[LevelReport] = []
+    converged = False
+    violating = region_dirs
+    for level in range(params.max_level + 1):
+        t0 = time.perf_counter()
+        h = params.spacing(level)
+        keys, marked = refinement.level_keys(level, h, params.order, region, violating)
+        if keys.size == 0:
+            converged = True
+            break
+        ray_mask = nodes.thinned(h, params.rays_per_cell)
+        points, node_of_site = _sites_for_level(
+            nodes, ray_mask, h, params.order, keys, params.radial_offsets
+        )
+        values = nodes.values[node_of_site] - AmbientSpline(levels).evaluate_points(points) if levels \
+            else nodes.values[node_of_site].copy()
+        problems = list(_local_problems(level, h, params, keys, points, values, force_tiles))
+        own_keys, own_coefs, solved = _solve_level(problems, params.workers, progress)
+        if own_keys.size != keys.size:
+            raise FitError(f"level {level}: tiles returned {own_keys.size} of {keys.size} coefficients")
+        lv = LevelSpline(level, h, params.order, own_keys, own_coefs)
+        levels.append(lv)
+        errors -= AmbientSpline([lv]).evaluate_points(region_dirs)
+        above = np.abs(errors) > params.tolerance_m
+        violating = region_dirs[above]
+        report = LevelReport(
+            level=level, h=h, coefficients=len(lv), marked_cells=int(marked), sites=int(points.shape[0]),
+            tiles_solved=solved, max_error_m=float(np.abs(errors).max()),
+            rms_error_m=float(np.sqrt(np.mean(errors**2))), nodes_above_tolerance=int(above.sum()),
+            seconds=time.perf_counter() - t0,
+        )
+        reports.append(report)
+        log.info(
+            "level %d: h=%.6g, %d coefficients, %d sites, max |error| %.4f m, %d nodes above %.4g m (%.1f s)",
+            level, h, len(lv), points.shape[0], report.max_error_m, report.nodes_above_tolerance,
+            params.tolerance_m, report.seconds,
+        )
+        if not above.any():
+            converged = True
+            break
+    spline = AmbientSpline(levels)
+    return FitResult(
+        spline=spline, parameters=params, region=region, levels=reports,
+        node_count=int(errors.size), node_max_error_m=float(np.abs(errors).max()),
+        node_rms_error_m=float(np.sqrt(np.mean(errors**2))), converged=converged,
+        seconds=time.perf_counter() - start, node_directions=region_dirs, node_errors=errors,
+    )
+
+
+def support_margin_deg(params: FitParameters) -> float:
+    """Angular reach (degrees) of the level-0 B-splines beyond the region's cells."""
+    chord = params.order * params.h0 * math.sqrt(3.0)
+    return math.degrees(2.0 * math.asin(min(1.0, chord / 2.0)))
+
+
+def fit_source(source, region: Region | None = None, params: FitParameters | None = None,
+               progress=None, force_tiles=False) -> FitResult:
+    """Fit a geoid source (grid or model) over ``region`` (default: global)."""
+    params = params or FitParameters()
+    region = region or GLOBAL
+    data_region = region.expanded(support_margin_deg(params))
+    finest = params.spacing(params.max_level)
+    sample = source.nodes(_clip_to_extent(data_region, source), spacing_deg=math.degrees(finest) / 2.0)
+    return fit_nodes(sample, region, params, progress=progress, force_tiles=force_tiles)
+
+
+def _clip_to_extent(region: Region, source) -> Region:
+    extent = source.extent
+    if extent.is_global:
+        return region
+    south = max(region.south, extent.south)
+    north = min(region.north, extent.north)
+    if region.longitude_span >= 360.0:
+        return Region(south, extent.west, north, extent.east)
+    west = region.west
+    east = region.east
+    ext_w, ext_e = extent.west, extent.east
+    if extent.longitude_span < 360.0:
+        # shift the region onto the extent's longitude branch before clipping
+        shift = 360.0 * np.round(((west + east) / 2 - (ext_w + ext_e) / 2) / 360.0)
+        west, east = max(west - shift, ext_w), min(east - shift, ext_e)
+    return Region(south, west, north, east)

@@ -1,0 +1,403 @@
+"""The tile store: one netCDF4 file per tile plus a JSON manifest.
+
+Layout of a store directory::
+
+    STORE/manifest.json                      the commit point: lists the live tile files
+    STORE/tiles/t+0001-0002+0000.v1.nc       one file per tile and store version
+
+A tile file holds every coefficient, of every level, whose B-spline support centre
+lies in the tile's cube: variables ``index`` (coefficient, axis: the B-spline's
+integer position on its level's grid), ``level`` and ``value`` (metres).
+
+Writing is atomic: tile files are written under new names (they are never changed
+once written), then ``manifest.json`` is replaced with :func:`os.replace`, so a crash
+leaves either the old manifest with its old files or the new one with all of its own.
+Files no manifest names are removed afterwards. A directory without
+``manifest.json`` is not a store (a first write that crashed), and opening it says so.
+
+Opening checks every tile's size and sha256 against the manifest and refuses a store
+whose files disagree, naming the tile. A :class:`TileStore` is immutable after
+opening and its queries are thread-safe.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from . import __version__, _kernels
+from .errors import StoreError, StoreCorruptError
+from .fit import FitResult, tile_of_indices
+from .spline import AmbientSpline, LevelSpline, check_coordinates, directions
+
+__all__ = ["TileStore", "write_store", "FORMAT_NAME", "FORMAT_VERSION"]
+
+FORMAT_NAME = "geoidspline-tile-store"
+FORMAT_VERSION = 1
+MANIFEST = "manifest.json"
+TILE_DIR = "tiles"
+
+
+def _sha256(path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _fsync_dir(path):
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _tile_name(tile, version):
+    i, j, k = (int(v) for v in tile)
+    return f"t{i:+05d}{j:+05d}{k:+05d}.v{version}.nc"
+
+
+def _now():
+    return _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat()
+
+
+def _error_stats(errors):
+    errors = np.asarray(errors, dtype=float)
+    if errors.size == 0:
+        return {"count": 0, "max_error_m": None, "rms_error_m": None, "p99_error_m": None}
+    absolute = np.abs(errors)
+    return {
+        "count": int(errors.size),
+        "max_error_m": float(absolute.max()),
+        "rms_error_m": float(np.sqrt(np.mean(errors**2))),
+        "p99_error_m": float(np.percentile(absolute, 99)),
+    }
+
+
+@dataclass(frozen=True)
+class CheckPoints:
+    """Points that were not fit sites, with their true undulations (metres)."""
+
+    latitude: np.ndarray
+    longitude: np.ndarray
+    truth: np.ndarray
+    description: str
+
+
+def _group_by_tile(dirs, tile_size):
+    tiles = np.floor(dirs / tile_size).astype(np.int64)
+    keys = _kernels.pack_keys(tiles)
+    return keys
+
+
+def _write_tile_file(path, tile, levels, indices, values, attrs):
+    import netCDF4
+
+    tmp = path.with_name(path.name + ".tmp")
+    with netCDF4.Dataset(tmp, "w", format="NETCDF4") as ds:
+        ds.setncattr("Conventions", "CF-1.8")
+        ds.setncattr("title", "geoidspline ambient B-spline tile")
+        ds.setncattr("format", FORMAT_NAME)
+        ds.setncattr("format_version", FORMAT_VERSION)
+        ds.setncattr("tile", np.asarray(tile, dtype=np.int32))
+        for key, value in attrs.items():
+            if value is not None:
+                ds.setncattr(key, value)
+        ds.createDimension("coefficient", len(values))
+        ds.createDimension("axis", 3)
+        var = ds.createVariable("index", "i4", ("coefficient", "axis"), zlib=True, complevel=4)
+        var.long_name = "integer position (i, j, k) of the B-spline on its level's grid: support [k h, (k + order) h) per axis"
+        var.units = "1"
+        var[:] = indices.astype(np.int32)
+        var = ds.createVariable("level", "i1", ("coefficient",), zlib=True, complevel=4)
+        var.long_name = "overlay level; grid spacing h = h0 / 2**level on the unit sphere"
+        var.units = "1"
+        var[:] = levels.astype(np.int8)
+        var = ds.createVariable("value", "f8", ("coefficient",), zlib=True, complevel=4)
+        var.long_name = "B-spline coefficient of the geoid undulation"
+        var.units = "m"
+        var[:] = values
+    with open(tmp, "rb+") as fh:
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def _read_tile_file(path, entry):
+    import netCDF4
+
+    try:
+        with netCDF4.Dataset(path, "r") as ds:
+            ds.set_auto_mask(False)
+            indices = np.asarray(ds["index"][:], dtype=np.int64)
+            levels = np.asarray(ds["level"][:], dtype=np.int64)
+            values = np.asarray(ds["value"][:], dtype=np.float64)
+    except (OSError, KeyError, IndexError, RuntimeError) as exc:
+        raise StoreCorruptError(f"{path}: tile {entry['tile']} cannot be read as a tile file ({exc})") from None
+    if values.size != entry["coefficients"]:
+        raise StoreCorruptError(
+            f"{path}: tile {entry['tile']} holds {values.size} coefficients, the manifest says {entry['coefficients']}"
+        )
+    return indices.reshape(-1, 3), levels, values
+
+
+def write_store(path, result: FitResult, provenance, check: CheckPoints | None = None,
+                overwrite=False, extra=None) -> Path:
+    """Write a fit as a tile store at ``path`` (a directory) and return its path.
+
+    An existing store is refused unless ``overwrite``; even then its files stay valid
+    until the new manifest replaces the old one.
+    """
+    root = Path(path)
+    manifest_path = root / MANIFEST
+    previous = None
+    if root.exists() and not root.is_dir():
+        raise StoreError(f"{root}: exists and is not a directory")
+    if manifest_path.exists():
+        if not overwrite:
+            raise StoreError(f"{root}: a store already exists here (use --overwrite to replace it)")
+        previous = _load_manifest(root)
+    elif root.exists() and any(p.name != TILE_DIR for p in root.iterdir()):
+        raise StoreError(f"{root}: directory is not empty and is not a geoidspline store")
+    (root / TILE_DIR).mkdir(parents=True, exist_ok=True)
+    if not os.access(root, os.W_OK):
+        raise StoreError(f"{root}: not writable")
+    version = (previous["store_version"] + 1) if previous else 1
+
+    params = result.parameters
+    spline = result.spline
+    # every coefficient of every level, with its tile
+    all_idx, all_lvl, all_val, all_tile = [], [], [], []
+    for lv in spline.levels:
+        idx = lv.indices
+        all_idx.append(idx)
+        all_lvl.append(np.full(len(lv), lv.level))
+        all_val.append(lv.coefficients)
+        all_tile.append(_kernels.pack_keys(tile_of_indices(idx, lv.h, lv.order, params.tile_size)))
+    idx = np.concatenate(all_idx)
+    lvl = np.concatenate(all_lvl)
+    val = np.concatenate(all_val)
+    tile_keys = np.concatenate(all_tile)
+
+    node_tile = _group_by_tile(result.node_directions, params.tile_size)
+    check_errors = None
+    if check is not None:
+        check_errors = check.truth - spline.undulation(check.latitude, check.longitude)
+        check_tile = _group_by_tile(directions(check.latitude, check.longitude), params.tile_size)
+
+    entries = []
+    order = np.argsort(tile_keys, kind="stable")
+    unique, starts = np.unique(tile_keys[order], return_index=True)
+    stops = np.append(starts[1:], order.size)
+    for key, a, b in zip(unique, starts, stops):
+        sel = order[a:b]
+        tile = _kernels.unpack_keys(np.array([key]))[0]
+        nodes = _error_stats(result.node_errors[node_tile == key])
+        checks = _error_stats(check_errors[check_tile == key]) if check is not None else _error_stats([])
+        name = _tile_name(tile, version)
+        _write_tile_file(
+            root / TILE_DIR / name, tile, lvl[sel], idx[sel], val[sel],
+            {"order": params.order, "h0": params.h0, "tile_size": params.tile_size},
+        )
+        entries.append({
+            "tile": [int(v) for v in tile],
+            "file": f"{TILE_DIR}/{name}",
+            "bytes": (root / TILE_DIR / name).stat().st_size,
+            "sha256": _sha256(root / TILE_DIR / name),
+            "coefficients": int(sel.size),
+            "levels": [int(v) for v in np.unique(lvl[sel])],
+            "max_error_m": checks["max_error_m"],
+            "rms_error_m": checks["rms_error_m"],
+            "check_points": checks["count"],
+            "node_max_error_m": nodes["max_error_m"],
+            "node_rms_error_m": nodes["rms_error_m"],
+            "nodes": nodes["count"],
+        })
+    _kernels  # noqa: B018 - keys module used above
+    _fsync_dir(root / TILE_DIR)
+
+    node_stats = _error_stats(result.node_errors)
+    check_stats = _error_stats(check_errors if check is not None else [])
+    manifest = {
+        "format": FORMAT_NAME,
+        "format_version": FORMAT_VERSION,
+        "store_version": version,
+        "created": previous["created"] if previous else _now(),
+        "updated": _now(),
+        "software": f"geoidspline {__version__}",
+        "provenance": provenance.as_dict(),
+        "region": list(result.region.as_tuple()),
+        "spline": {
+            "reference_manifold": "unit sphere; direction u = (cos lat cos lon, cos lat sin lon, sin lat)",
+            "order": params.order,
+            "h0": params.h0,
+            "tile_size": params.tile_size,
+            "levels": [
+                {"level": lv.level, "h": lv.h, "coefficients": len(lv)} for lv in spline.levels
+            ],
+            "coefficients": spline.coefficient_count,
+        },
+        "fit": {
+            "method": "hierarchical overlays (Lehmann 2013, section 5.2)",
+            "parameters": params.as_dict(),
+            "tolerance_m": params.tolerance_m,
+            "converged": bool(result.converged),
+            "seconds": round(result.seconds, 3),
+            "level_reports": [vars(r) for r in result.levels],
+            **(extra or {}),
+        },
+        "accuracy": {
+            "nodes": node_stats["count"],
+            "node_max_error_m": node_stats["max_error_m"],
+            "node_rms_error_m": node_stats["rms_error_m"],
+            "node_p99_error_m": node_stats["p99_error_m"],
+            "check_points": check_stats["count"],
+            "check_truth": check.description if check is not None else None,
+            "max_error_m": check_stats["max_error_m"],
+            "rms_error_m": check_stats["rms_error_m"],
+            "p99_error_m": check_stats["p99_error_m"],
+            "units": "m",
+        },
+        "tiles": entries,
+        "history": (previous.get("history", []) if previous else []) + [{
+            "action": "fit",
+            "time": _now(),
+            "store_version": version,
+            "source": provenance.source,
+            "sha256": provenance.sha256,
+            "region": list(result.region.as_tuple()),
+        }],
+    }
+    tmp = root / (MANIFEST + ".tmp")
+    with open(tmp, "w") as fh:
+        json.dump(manifest, fh, indent=1)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, manifest_path)
+    _fsync_dir(root)
+    # files no manifest names any more (an overwritten store, an interrupted write)
+    live = {e["file"] for e in entries}
+    for stale in (root / TILE_DIR).iterdir():
+        if f"{TILE_DIR}/{stale.name}" not in live:
+            stale.unlink(missing_ok=True)
+    return root
+
+
+def _load_manifest(root: Path) -> dict:
+    path = root / MANIFEST
+    if not root.exists():
+        raise StoreError(f"{root}: no such store")
+    if not path.exists():
+        raise StoreError(
+            f"{root}: not a geoidspline store (no {MANIFEST}; a store whose first write did not finish has none)"
+        )
+    try:
+        with open(path) as fh:
+            manifest = json.load(fh)
+    except json.JSONDecodeError as exc:
+        raise StoreCorruptError(f"{path}: manifest is not valid JSON ({exc})") from None
+    if manifest.get("format") != FORMAT_NAME:
+        raise StoreError(f"{path}: not a geoidspline manifest (format {manifest.get('format')!r})")
+    if manifest.get("format_version", 0) > FORMAT_VERSION:
+        raise StoreError(
+            f"{path}: store format {manifest['format_version']} is newer than this geoidspline reads ({FORMAT_VERSION})"
+        )
+    return manifest
+
+
+class TileStore:
+    """A tile store opened read-only.
+
+    All tiles are read, checked against the manifest (size, sha256, coefficient count)
+    and merged into one :class:`~geoidspline.spline.AmbientSpline` at opening; the
+    memory cost is about 20 bytes per coefficient. Queries are thread-safe.
+    """
+
+    def __init__(self, root: Path, manifest: dict, spline: AmbientSpline):
+        self.path = root
+        self.manifest = manifest
+        self.spline = spline
+
+    @classmethod
+    def open(cls, path, verify=True):
+        root = Path(path)
+        manifest = _load_manifest(root)
+        spline_meta = manifest["spline"]
+        by_level: dict[int, list] = {}
+        for entry in manifest["tiles"]:
+            tile_path = root / entry["file"]
+            if not tile_path.exists():
+                raise StoreCorruptError(f"{tile_path}: tile {entry['tile']} is missing")
+            size = tile_path.stat().st_size
+            if size != entry["bytes"]:
+                raise StoreCorruptError(
+                    f"{tile_path}: tile {entry['tile']} is {size} bytes, the manifest says {entry['bytes']} (truncated or altered)"
+                )
+            if verify and _sha256(tile_path) != entry["sha256"]:
+                raise StoreCorruptError(f"{tile_path}: tile {entry['tile']} does not match its sha256 in the manifest")
+            indices, levels, values = _read_tile_file(tile_path, entry)
+            for level in np.unique(levels):
+                sel = levels == level
+                by_level.setdefault(int(level), []).append((indices[sel], values[sel]))
+        levels = []
+        order = spline_meta["order"]
+        for level in sorted(by_level):
+            idx = np.concatenate([p[0] for p in by_level[level]])
+            val = np.concatenate([p[1] for p in by_level[level]])
+            h = spline_meta["h0"] / 2.0**level
+            levels.append(LevelSpline.from_indices(level, h, order, idx, val))
+        return cls(root, manifest, AmbientSpline(levels))
+
+    def undulation(self, latitude, longitude):
+        """Geoid undulation N in metres at latitude/longitude (degrees).
+
+        Scalars give a scalar, arrays broadcast; NaN gives NaN; a latitude outside
+        [-90, 90] raises :class:`~geoidspline.errors.CoordinateError`. Outside the
+        store's region the value is not meaningful (see :meth:`covers`).
+        """
+        return self.spline.undulation(latitude, longitude)
+
+    def covers(self, latitude, longitude):
+        """Whether points lie inside the region the store was fitted for."""
+        from .region import Region
+
+        latitude, longitude = check_coordinates(latitude, longitude)
+        return Region(*self.manifest["region"]).contains(latitude, longitude)
+
+    def info(self) -> dict:
+        """The manifest summary that ``geoid-info --json`` prints."""
+        m = self.manifest
+        acc = m["accuracy"]
+        size = (self.path / MANIFEST).stat().st_size + sum(e["bytes"] for e in m["tiles"])
+        return {
+            "store": str(self.path),
+            "format_version": m["format_version"],
+            "store_version": m["store_version"],
+            "provenance": m["provenance"],
+            "region": m["region"],
+            "order": m["spline"]["order"],
+            "h0": m["spline"]["h0"],
+            "tolerance_m": m["fit"]["tolerance_m"],
+            "converged": m["fit"]["converged"],
+            "coefficients": m["spline"]["coefficients"],
+            "levels": m["spline"]["levels"],
+            "tiles": len(m["tiles"]),
+            "max_error_m": acc["max_error_m"],
+            "rms_error_m": acc["rms_error_m"],
+            "p99_error_m": acc["p99_error_m"],
+            "check_points": acc["check_points"],
+            "check_truth": acc["check_truth"],
+            "node_max_error_m": acc["node_max_error_m"],
+            "node_rms_error_m": acc["node_rms_error_m"],
+            "nodes": acc["nodes"],
+            "bytes": size,
+            "fit_seconds": m["fit"]["seconds"],
+        }
