@@ -23,7 +23,7 @@ log = logging.getLogger("geoidspline.cli")
 @click.option("--tolerance", type=float, default=0.5, show_default=True,
               help="Largest |error| in metres accepted at the data nodes.")
 @click.option("--h0", type=float, default=None, help="Level-0 grid spacing on the unit sphere [default: 0.1].")
-@click.option("--max-level", type=int, default=None, help="Finest overlay level (h = h0 / 2**level) [default: 4].")
+@click.option("--max-level", type=int, default=None, help="Finest overlay level (h = h0 / 2**level) [default: 8].")
 @click.option("--order", type=int, default=4, show_default=True, help="Spline order (4 = cubic, C²).")
 @click.option("--workers", type=int, default=1, show_default=True, help="Worker processes solving tiles.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing store at --out.")

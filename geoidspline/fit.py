@@ -58,18 +58,21 @@ class FitParameters:
     level's spacing. ``rays_per_cell`` caps how many data directions a cell width holds
     at coarse levels (more are thinned out: they would cost time, not accuracy).
     ``regularization`` weighs the second-difference penalty relative to the mean
-    diagonal of the normal matrix.
+    diagonal of the normal matrix. An overlay level takes the B-splines whose support
+    centre is within ``refine_radius`` cells (per axis) of a node above the tolerance;
+    ``None`` means ``order / 2``: every B-spline touching that node (thesis §5.2).
     """
 
     order: int = 4
     h0: float = 0.1
     tolerance_m: float = 0.5
-    max_level: int = 4
+    max_level: int = 8
     tile_size: float = 0.4
     margin_cells: int = 8
     radial_offsets: tuple = (-1.5, -0.9, -0.3, 0.0, 0.3, 0.9, 1.5)
     rays_per_cell: float = 5.0
     regularization: float = 1e-6
+    refine_radius: float | None = 1.0
     untiled_max_unknowns: int = 60_000
     workers: int = 1
 
@@ -342,14 +345,30 @@ class OverlayRefinement:
 
     name = "overlay"
 
+    def __init__(self, refine_radius=None):
+        self.refine_radius = refine_radius
+
     def level_keys(self, level, h, order, region, violating_directions):
         if level == 0:
             cells = active_cells(h, region)
-        else:
-            cells = np.unique(np.floor(violating_directions / h).astype(np.int64), axis=0)
-        if cells.size == 0:
+            if cells.size == 0:
+                return np.empty(0, dtype=np.int64), 0
+            return _touching_keys(cells, order), len(cells)
+        if violating_directions.size == 0:
             return np.empty(0, dtype=np.int64), 0
-        return _touching_keys(cells, order), len(cells)
+        position = violating_directions / h
+        cells = np.floor(position).astype(np.int64)
+        n_cells = np.unique(_kernels.pack_keys(cells)).size
+        radius = order / 2.0 if self.refine_radius is None else self.refine_radius
+        if radius >= order / 2.0:
+            return _touching_keys(np.unique(cells, axis=0), order), n_cells
+        keys = []
+        for chunk in range(0, len(position), 200_000):
+            pos = position[chunk:chunk + 200_000]
+            cand = cells[chunk:chunk + 200_000, None, :] + _cube_offsets(-(order - 1), 0)[None]
+            near = np.all(np.abs(cand + order / 2.0 - pos[:, None, :]) <= radius, axis=2)
+            keys.append(np.unique(_kernels.pack_keys(cand[near])))
+        return np.unique(np.concatenate(keys)), n_cells
 
 
 # ---------------------------------------------------------------------------------
@@ -449,7 +468,7 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
     :func:`fit_source`, which asks the source for exactly that). ``progress``, when
     given, is called with the number of local problems just solved.
     """
-    refinement = refinement or OverlayRefinement()
+    refinement = refinement or OverlayRefinement(params.refine_radius)
     start = time.perf_counter()
     nodes = _Nodes.from_sample(sample, region)
     if not np.any(nodes.in_region):
