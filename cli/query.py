@@ -56,7 +56,7 @@ def _line_batches(stream):
         yield [pending.decode("utf-8", "replace").rstrip("\r")]
 
 
-def _parse(rows, first_line_number, lat_col, lon_col):
+def _parse(rows, line_numbers, lat_col, lon_col):
     """Split rows into fields and parse lat/lon; return (fields, lat, lon, problems)."""
     import numpy as np
 
@@ -67,7 +67,7 @@ def _parse(rows, first_line_number, lat_col, lon_col):
     for i, row in enumerate(rows):
         parts = [p.strip() for p in row.split(",")]
         fields.append(parts)
-        n = first_line_number + i
+        n = line_numbers[i]
         if len(parts) <= max(lat_col, lon_col):
             problems[i] = f"line {n}: expected at least {max(lat_col, lon_col) + 1} columns (lat,lon), got {len(parts)}"
             continue
@@ -97,7 +97,8 @@ def _looks_like_header(line, lat_col, lon_col):
     return False
 
 
-@click.command(name="query", context_settings={"help_option_names": ["-h", "--help"]})
+@click.command(name="query", context_settings={"help_option_names": ["-h", "--help"],
+                                               "ignore_unknown_options": True})
 @click.option("--store", "store_path", required=True, type=click.Path(), help="Tile store directory.")
 @click.option("--input", "input_path", type=click.File("r"), default=None,
               help="CSV file of lat,lon[,...] rows ('-' for stdin); a header row is optional.")
@@ -132,20 +133,20 @@ def _stream(store, stream, precision, lat_col=0, lon_col=1):
     line_number = 0
     bad = 0
     header_checked = False
-    for rows in _line_batches(stream):
-        first = line_number + 1
-        line_number += len(rows)
-        if not header_checked and rows:
+    for batch in _line_batches(stream):
+        numbers = range(line_number + 1, line_number + 1 + len(batch))
+        line_number += len(batch)
+        # blank lines are skipped, but rows keep their line numbers for messages
+        numbered = [(n, row) for n, row in zip(numbers, batch) if row.strip()]
+        if not header_checked and numbered:
             header_checked = True
-            if _looks_like_header(rows[0], lat_col, lon_col):
-                out.write(rows[0].rstrip() + ",undulation_m\n")
-                rows = rows[1:]
-                first += 1
-        keep = [i for i, r in enumerate(rows) if r.strip()]
-        rows = [rows[i] for i in keep]
-        if not rows:
+            if _looks_like_header(numbered[0][1], lat_col, lon_col):
+                out.write(numbered[0][1].rstrip() + ",undulation_m\n")
+                numbered = numbered[1:]
+        if not numbered:
             continue
-        fields, lat, lon, problems = _parse(rows, first, lat_col, lon_col)
+        rows = [row for _, row in numbered]
+        fields, lat, lon, problems = _parse(rows, [n for n, _ in numbered], lat_col, lon_col)
         values = store.undulation(lat, lon)
         lines = []
         for i, row in enumerate(rows):

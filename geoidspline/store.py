@@ -164,7 +164,10 @@ def write_store(path, result: FitResult, provenance, check: CheckPoints | None =
     if manifest_path.exists():
         if not overwrite:
             raise StoreError(f"{root}: a store already exists here (use --overwrite to replace it)")
-        previous = _load_manifest(root)
+        try:
+            previous = _load_manifest(root)
+        except StoreCorruptError:
+            previous = None  # replacing a damaged store is what --overwrite is for
     elif root.exists() and any(p.name != TILE_DIR for p in root.iterdir()):
         raise StoreError(f"{root}: directory is not empty and is not a geoidspline store")
     (root / TILE_DIR).mkdir(parents=True, exist_ok=True)
@@ -300,17 +303,25 @@ def _load_manifest(root: Path) -> dict:
             f"{root}: not a geoidspline store (no {MANIFEST}; a store whose first write did not finish has none)"
         )
     try:
-        with open(path) as fh:
+        with open(path, encoding="utf-8") as fh:
             manifest = json.load(fh)
-    except json.JSONDecodeError as exc:
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise StoreCorruptError(f"{path}: manifest is not valid JSON ({exc})") from None
+    if not isinstance(manifest, dict):
+        raise StoreCorruptError(f"{path}: manifest is not a JSON object")
     if manifest.get("format") != FORMAT_NAME:
         raise StoreError(f"{path}: not a geoidspline manifest (format {manifest.get('format')!r})")
     if manifest.get("format_version", 0) > FORMAT_VERSION:
         raise StoreError(
             f"{path}: store format {manifest['format_version']} is newer than this geoidspline reads ({FORMAT_VERSION})"
         )
+    missing = [key for key in _MANIFEST_KEYS if key not in manifest]
+    if missing:
+        raise StoreCorruptError(f"{path}: manifest lacks {', '.join(missing)}")
     return manifest
+
+
+_MANIFEST_KEYS = ("format_version", "store_version", "spline", "fit", "accuracy", "tiles", "region", "provenance")
 
 
 class TileStore:

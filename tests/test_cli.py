@@ -1,0 +1,413 @@
+"""The command-line tools: geoid-fit, geoid-query, geoid-info and ``python -m geoidspline``.
+
+One full fit + query + info cycle runs in real subprocesses; everything else uses
+click's CliRunner in-process (fast).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+import geoidspline
+from geoidspline.__main__ import main as geoidspline_main
+from geoidspline.catalogue import list_catalogue
+from geoidspline.cli.fit import main as fit_main
+from geoidspline.cli.info import main as info_main
+from geoidspline.cli.query import main as query_main
+
+INFO_KEYS = ("coefficients", "levels", "tiles", "max_error_m", "rms_error_m", "bytes")
+#: A fit of the synthetic grid that converges at once (tolerance 1 m), a few tenths of a second.
+QUICK_FIT = ["--region", "10", "20", "30", "40", "--h0", "0.2", "--max-level", "1", "--tolerance", "1.0"]
+
+
+def run_module(*args, stdin=None, cwd=None):
+    return subprocess.run(
+        [sys.executable, "-m", "geoidspline", *map(str, args)],
+        input=stdin, capture_output=True, text=True, timeout=300, cwd=cwd,
+    )
+
+
+def invoke(command, args, input=None):
+    return CliRunner().invoke(command, [str(a) for a in args], input=input)
+
+
+def assert_user_error(result, code=1):
+    """Exit status ``code``, one ``ERROR:`` message on stderr, no traceback."""
+    assert result.exit_code == code, (result.stdout, result.stderr)
+    assert result.stderr.startswith("ERROR: "), result.stderr
+    assert "Traceback" not in result.stderr and "Traceback" not in result.stdout
+    assert isinstance(result.exception, SystemExit)  # not an escaped exception
+
+
+def fmt(value, precision=4):
+    return f"{value:.{precision}f}"
+
+
+# -- one full cycle in real processes ------------------------------------------------
+
+
+def test_fit_query_info_cycle_in_subprocesses(synthetic_gtx, tmp_path, analytic):
+    out = tmp_path / "store"
+    fit = run_module("fit", synthetic_gtx, "--out", out, *QUICK_FIT, cwd=tmp_path)
+    assert fit.returncode == 0, fit.stderr
+    assert "Traceback" not in fit.stderr
+    assert (out / "manifest.json").is_file()
+    assert "level" in fit.stdout and "coefficients" in fit.stdout
+    assert "solving" in fit.stderr  # the progress bar (stderr only)
+    assert "solving" not in fit.stdout
+    store = geoidspline.open_store(out)
+    info = store.info()
+    assert f"total      {info['coefficients']:,} coefficients" in fit.stdout
+
+    query = run_module("query", "--store", out, "20", "30", cwd=tmp_path)
+    assert query.returncode == 0, query.stderr
+    assert query.stdout == fmt(store.undulation(20.0, 30.0)) + "\n"
+    assert abs(float(query.stdout) - analytic(20.0, 30.0)) < 1.0
+
+    csv = tmp_path / "points.csv"
+    csv.write_text("lat,lon,name\n20,30,a\n95,30,b\n21.5,31.25,c\n")
+    batch = run_module("query", "--store", out, "--input", csv, cwd=tmp_path)
+    assert batch.returncode == 1
+    assert batch.stdout.splitlines() == [
+        "lat,lon,name,undulation_m",
+        f"20,30,a,{fmt(store.undulation(20.0, 30.0))}",
+        "ERROR: line 3: latitude 95 is outside [-90, 90] degrees",
+        f"21.5,31.25,c,{fmt(store.undulation(21.5, 31.25))}",
+    ]
+    assert "Traceback" not in batch.stderr
+
+    # stdin through a real pipe, larger than one 64 KiB read, one bad row far down
+    rng = np.random.default_rng(9)
+    lat = np.round(rng.uniform(10, 30, 20000), 5)
+    lon = np.round(rng.uniform(20, 40, 20000), 5)
+    rows = [f"{a},{b},row{i}" for i, (a, b) in enumerate(zip(lat, lon))]
+    rows[15000] = "not,a,number"
+    piped = run_module("query", "--store", out, "--input", "-", stdin="\n".join(rows) + "\n", cwd=tmp_path)
+    assert piped.returncode == 1
+    lines = piped.stdout.splitlines()
+    assert len(lines) == 20000
+    assert lines[15000] == "ERROR: line 15001: latitude/longitude are not numbers: 'not', 'a'"
+    good = np.array([i for i in range(20000) if i != 15000])
+    values = store.undulation(lat[good], lon[good])
+    assert [lines[i] for i in good] == [f"{rows[i]},{fmt(v)}" for i, v in zip(good, values)]
+
+    shown = run_module("info", out, "--json", cwd=tmp_path)
+    assert shown.returncode == 0, shown.stderr
+    assert json.loads(shown.stdout) == json.loads(json.dumps(info))
+
+
+def test_module_help_lists_the_commands():
+    result = run_module("--help")
+    assert result.returncode == 0
+    commands = re.findall(r"^\s{2}(\w+)\s", result.stdout.split("Commands:")[1], flags=re.M)
+    assert sorted(commands) == ["fit", "info", "query"]
+
+
+def test_nonexistent_source_in_a_subprocess(tmp_path):
+    result = run_module("fit", tmp_path / "missing.gtx", "--out", tmp_path / "store", cwd=tmp_path)
+    assert result.returncode == 1
+    assert result.stderr.startswith("ERROR: ")
+    assert "missing.gtx" in result.stderr
+    assert "Traceback" not in result.stderr
+    assert not (tmp_path / "store").exists()
+
+
+# -- geoid-fit -------------------------------------------------------------------------
+
+
+def test_fit_prints_levels_and_coefficients(synthetic_gtx, tmp_path, small_store):
+    out = tmp_path / "store"
+    p = small_store.params
+    result = invoke(fit_main, [synthetic_gtx, "--out", out, "--region", *small_store.region.as_tuple(),
+                               "--h0", p.h0, "--max-level", p.max_level, "--tolerance", p.tolerance_m])
+    assert result.exit_code == 0, result.output
+    info = geoidspline.open_store(out).info()
+    lines = result.stdout.splitlines()
+    assert lines[0].startswith(f"store      {out}")
+    assert f"{info['tiles']} tiles" in lines[0]
+    table = [ln.split() for ln in lines if re.match(r"^\s+\d+\s", ln)]
+    assert [int(row[0]) for row in table] == [lv["level"] for lv in info["levels"]]
+    assert [float(row[1]) for row in table] == [lv["h"] for lv in info["levels"]]
+    assert [int(row[2].replace(",", "")) for row in table] == [lv["coefficients"] for lv in info["levels"]]
+    assert f"total      {info['coefficients']:,} coefficients" in result.stdout
+    assert "reached" in result.stdout and "NOT reached" not in result.stdout
+    assert "solving" in result.stderr  # progress bar on stderr by default
+
+
+def test_fit_quiet_has_no_progress_bar(synthetic_gtx, tmp_path):
+    result = invoke(fit_main, [synthetic_gtx, "--out", tmp_path / "store", *QUICK_FIT, "-q"])
+    assert result.exit_code == 0, result.output
+    assert result.stderr == ""
+    assert "coefficients" in result.stdout
+
+
+def test_fit_json_output_parses(synthetic_gtx, tmp_path):
+    out = tmp_path / "store"
+    result = invoke(fit_main, [synthetic_gtx, "--out", out, *QUICK_FIT, "--json", "-q"])
+    assert result.exit_code == 0, result.output
+    data = json.loads(result.stdout)
+    for key in INFO_KEYS:
+        assert key in data
+    assert data["wall_seconds"] >= 0
+    info = geoidspline.open_store(out).info()
+    assert {k: v for k, v in data.items() if k != "wall_seconds"} == json.loads(json.dumps(info))
+    assert data["region"] == [10.0, 20.0, 30.0, 40.0]
+    assert data["provenance"]["source"] == "synthetic.gtx"
+
+
+def test_fit_nonexistent_source_is_a_user_error(tmp_path):
+    result = invoke(fit_main, [tmp_path / "missing.gtx", "--out", tmp_path / "store"])
+    assert_user_error(result)
+    assert "missing.gtx" in result.stderr
+
+
+def test_fit_unknown_catalogue_name_lists_known_names(tmp_path):
+    result = invoke(fit_main, ["no-such-geoid", "--out", tmp_path / "store"])
+    assert_user_error(result)
+    assert "no-such-geoid" in result.stderr
+    names = [entry.name for entry in list_catalogue()]
+    assert names
+    for name in names:
+        assert name in result.stderr
+
+
+def test_fit_refuses_existing_store_unless_overwrite(synthetic_gtx, store_copy):
+    before = {p: p.read_bytes() for p in store_copy.rglob("*") if p.is_file()}
+    result = invoke(fit_main, [synthetic_gtx, "--out", store_copy, *QUICK_FIT, "-q"])
+    assert_user_error(result)
+    assert "already exists" in result.stderr and "--overwrite" in result.stderr
+    assert {p: p.read_bytes() for p in store_copy.rglob("*") if p.is_file()} == before
+    result = invoke(fit_main, [synthetic_gtx, "--out", store_copy, *QUICK_FIT, "-q", "--overwrite"])
+    assert result.exit_code == 0, result.output
+    assert geoidspline.open_store(store_copy).info()["store_version"] == 2
+
+
+def test_fit_not_converged_exits_3(synthetic_gtx, tmp_path):
+    out = tmp_path / "store"
+    args = [synthetic_gtx, "--out", out, "--region", "10", "20", "30", "40",
+            "--h0", "0.2", "--max-level", "0", "--tolerance", "1e-6", "-q"]
+    result = invoke(fit_main, args)
+    assert result.exit_code == 3
+    assert "NOT reached" in result.stdout
+    assert geoidspline.open_store(out).info()["converged"] is False
+
+
+@pytest.mark.parametrize(
+    "args, words",
+    [(["--h0", "0.9"], "h0"), (["--region", "30", "20", "10", "40"], "south"), (["--order", "1"], "order")],
+    ids=["h0", "region", "order"],
+)
+def test_fit_bad_parameters_are_user_errors(synthetic_gtx, tmp_path, args, words):
+    result = invoke(fit_main, [synthetic_gtx, "--out", tmp_path / "store", *args, "-q"])
+    assert_user_error(result)
+    assert words in result.stderr
+    assert not (tmp_path / "store" / "manifest.json").exists()
+
+
+# -- geoid-query -----------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def api(small_store):
+    return geoidspline.open_store(small_store.path)
+
+
+def query(small_store, *args, input=None):
+    return invoke(query_main, ["--store", small_store.path, *args], input=input)
+
+
+def test_query_one_point(small_store, api):
+    result = query(small_store, "20", "30")
+    assert result.exit_code == 0, result.output
+    value = api.undulation(20.0, 30.0)
+    assert result.stdout == fmt(value) + "\n"
+    assert abs(float(result.stdout) - value) <= 0.5e-4
+    precise = query(small_store, "--precision", "8", "21.25", "33.5")
+    assert precise.stdout.strip() == fmt(api.undulation(21.25, 33.5), 8)
+    assert re.fullmatch(r"-?\d+\.\d{8}\n", precise.stdout)
+
+
+def test_query_negative_coordinates(small_store, api):
+    """Southern latitudes and western longitudes are ordinary positional values."""
+    result = query(small_store, "-20", "-30.5")
+    assert result.exit_code == 0, result.output
+    assert result.stdout.strip() == fmt(api.undulation(-20.0, -30.5))
+
+
+def test_query_input_with_header(small_store, api, tmp_path):
+    csv = tmp_path / "in.csv"
+    csv.write_text("lat,lon\n20,30\n21.5,31.25\n")
+    result = query(small_store, "--input", csv)
+    assert result.exit_code == 0, result.output
+    assert result.stdout.splitlines() == [
+        "lat,lon,undulation_m",
+        f"20,30,{fmt(api.undulation(20.0, 30.0))}",
+        f"21.5,31.25,{fmt(api.undulation(21.5, 31.25))}",
+    ]
+
+
+def test_query_input_without_header_and_without_final_newline(small_store, api, tmp_path):
+    csv = tmp_path / "in.csv"
+    csv.write_text("20,30\n25.125,35.5")
+    result = query(small_store, "--input", csv)
+    assert result.exit_code == 0, result.output
+    assert result.stdout.splitlines() == [
+        f"20,30,{fmt(api.undulation(20.0, 30.0))}",
+        f"25.125,35.5,{fmt(api.undulation(25.125, 35.5))}",
+    ]
+
+
+def test_query_keeps_extra_columns(small_store, api, tmp_path):
+    csv = tmp_path / "in.csv"
+    csv.write_text("lat,lon,name,height_m\n20,30,Station A,12.5\n22,24,B,-3\n")
+    result = query(small_store, "--input", csv, "--precision", "3")
+    assert result.exit_code == 0, result.output
+    assert result.stdout.splitlines() == [
+        "lat,lon,name,height_m,undulation_m",
+        f"20,30,Station A,12.5,{fmt(api.undulation(20.0, 30.0), 3)}",
+        f"22,24,B,-3,{fmt(api.undulation(22.0, 24.0), 3)}",
+    ]
+
+
+def test_query_bad_rows_are_reported_in_place(small_store, api, tmp_path):
+    csv = tmp_path / "in.csv"
+    csv.write_text("lat,lon,id\n20,30,a\nabc,30,b\n95,30,c\n42\nnan,30,d\n21,inf,e\n21,31,f\n")
+    result = query(small_store, "--input", csv)
+    assert result.exit_code == 1
+    lines = result.stdout.splitlines()
+    assert len(lines) == 8
+    assert lines[0] == "lat,lon,id,undulation_m"
+    assert lines[1] == f"20,30,a,{fmt(api.undulation(20.0, 30.0))}"
+    assert lines[7] == f"21,31,f,{fmt(api.undulation(21.0, 31.0))}"
+    for n, line in zip(range(3, 8), lines[2:7]):
+        assert line.startswith(f"ERROR: line {n}: "), line
+    assert "not numbers" in lines[2] and "'abc'" in lines[2]
+    assert "latitude 95" in lines[3]
+    assert "columns" in lines[4]
+    assert "'nan'" in lines[5] and "finite" in lines[5]
+    assert "'inf'" in lines[6]
+    assert "Traceback" not in result.output
+    assert "5 row(s)" in result.stderr
+
+
+def test_query_skips_empty_lines(small_store, api, tmp_path):
+    csv = tmp_path / "in.csv"
+    csv.write_text("lat,lon\n20,30\n\n   \n21,31\n\n")
+    result = query(small_store, "--input", csv)
+    assert result.exit_code == 0, result.output
+    assert result.stdout.splitlines() == [
+        "lat,lon,undulation_m",
+        f"20,30,{fmt(api.undulation(20.0, 30.0))}",
+        f"21,31,{fmt(api.undulation(21.0, 31.0))}",
+    ]
+
+
+def test_query_line_numbers_count_empty_lines(small_store, api, tmp_path):
+    csv = tmp_path / "in.csv"
+    csv.write_text("lat,lon\n20,30\n\n21,31\n\nxyz,31\n22,32\n")  # the bad row is line 6
+    result = query(small_store, "--input", csv)
+    assert result.exit_code == 1
+    assert result.stdout.splitlines() == [
+        "lat,lon,undulation_m",
+        f"20,30,{fmt(api.undulation(20.0, 30.0))}",
+        f"21,31,{fmt(api.undulation(21.0, 31.0))}",
+        "ERROR: line 6: latitude/longitude are not numbers: 'xyz', '31'",
+        f"22,32,{fmt(api.undulation(22.0, 32.0))}",
+    ]
+
+
+def test_query_header_after_leading_empty_line(small_store, api, tmp_path):
+    csv = tmp_path / "in.csv"
+    csv.write_text("\nlat,lon\n20,30\n")
+    result = query(small_store, "--input", csv)
+    assert result.exit_code == 0, result.output
+    assert result.stdout.splitlines() == ["lat,lon,undulation_m", f"20,30,{fmt(api.undulation(20.0, 30.0))}"]
+
+
+def test_query_reads_stdin(small_store, api):
+    result = query(small_store, "--input", "-", input="20,30\n-5.5,100\n")
+    assert result.exit_code == 0, result.output
+    assert result.stdout.splitlines() == [
+        f"20,30,{fmt(api.undulation(20.0, 30.0))}",
+        f"-5.5,100,{fmt(api.undulation(-5.5, 100.0))}",
+    ]
+
+
+def test_query_nonexistent_store(tmp_path):
+    result = invoke(query_main, ["--store", tmp_path / "nowhere", "20", "30"])
+    assert_user_error(result)
+    assert "nowhere" in result.stderr
+    assert result.stdout == ""
+
+
+def test_query_corrupt_store(store_copy):
+    entry = max(json.loads((store_copy / "manifest.json").read_text())["tiles"], key=lambda e: e["bytes"])
+    tile = store_copy / entry["file"]
+    tile.write_bytes(tile.read_bytes()[:100])
+    result = invoke(query_main, ["--store", store_copy, "20", "30"])
+    assert_user_error(result)
+    assert Path(entry["file"]).name in result.stderr
+
+
+@pytest.mark.parametrize("args", [[], ["20"], ["--input", "-", "20", "30"]], ids=["neither", "one", "both"])
+def test_query_usage_errors(small_store, args):
+    result = query(small_store, *args, input="20,30\n")
+    assert result.exit_code == 2
+    assert "Error:" in result.stderr  # click's usage error (with the usage line for most)
+    if args != ["20"]:
+        assert "Usage:" in result.stderr and "--input" in result.stderr
+    assert "Traceback" not in result.output
+    assert result.stdout == ""
+
+
+# -- geoid-info ------------------------------------------------------------------------
+
+
+def test_info_json(small_store):
+    result = invoke(info_main, [small_store.path, "--json"])
+    assert result.exit_code == 0, result.output
+    data = json.loads(result.stdout)
+    for key in INFO_KEYS:
+        assert key in data
+    assert data == json.loads(json.dumps(geoidspline.open_store(small_store.path).info()))
+    assert all({"h", "coefficients"} <= set(lv) for lv in data["levels"])
+    real = sum(p.stat().st_size for p in small_store.path.rglob("*") if p.is_file())
+    assert data["bytes"] == real
+
+
+def test_info_text(small_store):
+    result = invoke(info_main, [small_store.path])
+    assert result.exit_code == 0, result.output
+    info = small_store.info
+    for lv in info["levels"]:
+        assert re.search(rf"level {lv['level']}\s+h {lv['h']:g}\s+{lv['coefficients']:,} coefficients", result.stdout)
+    assert f"coefficients {info['coefficients']:,} in {info['tiles']} tiles, {info['bytes']:,} bytes" in result.stdout
+    assert info["provenance"]["sha256"][:16] in result.stdout
+
+
+def test_info_errors(tmp_path):
+    result = invoke(info_main, [tmp_path / "nowhere"])
+    assert_user_error(result)
+    (tmp_path / "half" / "tiles").mkdir(parents=True)
+    result = invoke(info_main, [tmp_path / "half"])
+    assert_user_error(result)
+    assert "not a geoidspline store" in result.stderr
+
+
+def test_group_dispatches_to_the_commands(small_store, api):
+    runner = CliRunner()
+    result = runner.invoke(geoidspline_main, ["query", "--store", str(small_store.path), "20", "30"])
+    assert result.exit_code == 0, result.output
+    assert result.stdout.strip() == fmt(api.undulation(20.0, 30.0))
+    result = runner.invoke(geoidspline_main, ["info", str(small_store.path), "--json"])
+    assert json.loads(result.stdout)["tiles"] == small_store.info["tiles"]
+    for name in ("fit", "query", "info"):
+        assert runner.invoke(geoidspline_main, [name, "--help"]).exit_code == 0

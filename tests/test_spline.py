@@ -1,0 +1,147 @@
+"""The B-spline kernels and the ambient spline: exact values and invariants."""
+
+import numpy as np
+import pytest
+from scipy.interpolate import BSpline
+
+from geoidspline import _kernels
+from geoidspline.errors import CoordinateError
+from geoidspline.spline import AmbientSpline, LevelSpline, directions
+
+
+@pytest.mark.parametrize("order", [2, 3, 4, 5, 6])
+@pytest.mark.parametrize("t", [0.0, 0.25, 0.6180339887, 0.999])
+def test_weights_match_scipy_cardinal_bspline(order, t):
+    out = np.zeros((3, order))
+    nderiv = 2 if order >= 3 else 1
+    _kernels.bspline_weights(t, order, nderiv, out)
+    element = BSpline.basis_element(np.arange(order + 1), extrapolate=False)
+    x = t + order - 1 - np.arange(order)
+    np.testing.assert_allclose(out[0], element(x), atol=1e-15)
+    np.testing.assert_allclose(out[1], element.derivative(1)(x), atol=1e-14)
+    if nderiv == 2:
+        np.testing.assert_allclose(out[2], element.derivative(2)(x), atol=1e-13)
+    # partition of unity and its derivatives
+    assert out[0].sum() == pytest.approx(1.0, abs=1e-15)
+    assert out[1].sum() == pytest.approx(0.0, abs=1e-14)
+
+
+def test_cubic_weights_are_the_documented_formulas():
+    t = 0.3
+    out = np.zeros((3, 4))
+    _kernels.bspline_weights(t, 4, 0, out)
+    expected = [(1 - t) ** 3 / 6, (3 * t**3 - 6 * t**2 + 4) / 6, (-3 * t**3 + 3 * t**2 + 3 * t + 1) / 6, t**3 / 6]
+    np.testing.assert_allclose(out[0], expected, rtol=1e-14)
+
+
+def test_key_packing_round_trip_and_order():
+    idx = np.array([[-5, 3, 7], [0, 0, 0], [1000, -1000, 5], [-5, 3, 8]])
+    keys = _kernels.pack_keys(idx)
+    np.testing.assert_array_equal(_kernels.unpack_keys(keys), idx)
+    # sorting keys sorts (i, j, k) lexicographically; z neighbours are consecutive keys
+    assert keys[3] == keys[0] + 1
+    assert np.all(np.argsort(keys) == np.lexsort(idx.T[::-1]))
+
+
+def _full_block(h, order, lo=-1.3, hi=1.3):
+    r = np.arange(int(np.floor(lo / h)) - order, int(np.ceil(hi / h)) + 1)
+    return np.array(np.meshgrid(r, r, r, indexing="ij")).reshape(3, -1).T
+
+
+@pytest.mark.parametrize("order", [3, 4, 5])
+def test_polynomial_reproduction_in_the_ambient_space(order):
+    """Σ_k c_k B_k reproduces x (and constants) exactly: Marsden's identity."""
+    h = 0.25
+    idx = _full_block(h, order)
+    # linear precision: x = Σ (k + order/2) h B_k(x)
+    level = LevelSpline.from_indices(0, h, order, idx, (idx[:, 0] + order / 2.0) * h)
+    points = np.random.default_rng(1).uniform(-1.0, 1.0, (200, 3))
+    values = AmbientSpline([level]).evaluate_points(points, nderiv=2)
+    np.testing.assert_allclose(values[:, 0], points[:, 0], atol=1e-13)
+    np.testing.assert_allclose(values[:, 1], 1.0, atol=1e-12)
+    np.testing.assert_allclose(values[:, 2:4], 0.0, atol=1e-12)
+    np.testing.assert_allclose(values[:, 4:], 0.0, atol=1e-10)
+    ones = LevelSpline.from_indices(0, h, order, idx, np.ones(len(idx)))
+    np.testing.assert_allclose(AmbientSpline([ones]).evaluate_points(points), 1.0, atol=1e-14)
+
+
+def test_derivatives_match_central_differences():
+    """Analytic gradient and Hessian against central differences.
+
+    The tolerance is the truncation error of the difference quotient: for a cubic
+    spline |∂³S| ≤ 8 max|c| / h³ per axis (Σ|B'''| over the 4 weights = 1+3+3+1),
+    so |error| ≤ ε²/6 · 8 max|c|/h³, plus rounding ~ 1e-15 max|S| / ε.
+    """
+    rng = np.random.default_rng(7)
+    h = 0.2
+    idx = _full_block(h, 4)
+    coefs = rng.normal(size=len(idx))
+    spline = AmbientSpline([LevelSpline.from_indices(0, h, 4, idx, coefs)])
+    points = rng.uniform(-0.9, 0.9, (100, 3))
+    eps = 1e-4
+    analytic = spline.evaluate_points(points, nderiv=2)
+    bound3 = 8 * np.abs(coefs).max() / h**3
+    tol1 = eps**2 / 6 * bound3 + 1e-15 * 10 / eps
+    hess_index = {(0, 0): 4, (1, 1): 5, (2, 2): 6, (0, 1): 7, (0, 2): 8, (1, 2): 9}
+    for axis in range(3):
+        step = np.zeros(3)
+        step[axis] = eps
+        plus = spline.evaluate_points(points + step, nderiv=1)
+        minus = spline.evaluate_points(points - step, nderiv=1)
+        np.testing.assert_allclose((plus[:, 0] - minus[:, 0]) / (2 * eps), analytic[:, 1 + axis], atol=tol1)
+        # d/dx_axis of the gradient gives a Hessian column; its bound has one power of h less
+        tol2 = eps**2 / 6 * bound3 * 8 / h + 1e-15 * 100 / eps
+        for other in range(3):
+            key = tuple(sorted((axis, other)))
+            fd = (plus[:, 1 + other] - minus[:, 1 + other]) / (2 * eps)
+            np.testing.assert_allclose(fd, analytic[:, hess_index[key]], atol=tol2)
+
+
+def test_c2_across_cell_faces():
+    """Value, gradient and Hessian of a random cubic spline do not jump at cell faces."""
+    rng = np.random.default_rng(3)
+    h = 0.2
+    idx = _full_block(h, 4)
+    spline = AmbientSpline([LevelSpline.from_indices(0, h, 4, idx, rng.normal(size=len(idx)))])
+    base = rng.uniform(-0.8, 0.8, (50, 3))
+    for axis in range(3):
+        face = base.copy()
+        face[:, axis] = np.round(face[:, axis] / h) * h  # on a cell face
+        for delta in (1e-6, 1e-8):
+            step = np.zeros(3)
+            step[axis] = delta
+            left = spline.evaluate_points(face - step, nderiv=2)
+            right = spline.evaluate_points(face + step, nderiv=2)
+            # continuous derivatives change by O(delta) across the face, not O(1)
+            scale = np.array([1] + [1 / h] * 3 + [1 / h**2] * 6) * 10
+            assert np.all(np.abs(right - left) <= scale * 2 * delta * 8 / h + 1e-9)
+
+
+def test_level_spline_checks_its_invariants():
+    with pytest.raises(ValueError, match="strictly increasing"):
+        LevelSpline(0, 0.1, 4, np.array([3, 2]), np.array([1.0, 2.0]))
+    with pytest.raises(ValueError, match="finite"):
+        LevelSpline(0, 0.1, 4, np.array([1, 2]), np.array([1.0, np.nan]))
+    with pytest.raises(ValueError, match="order"):
+        LevelSpline(0, 0.1, 1, np.array([1]), np.array([1.0]))
+
+
+def test_undulation_scalars_nan_and_range():
+    h = 0.25
+    idx = _full_block(h, 4)
+    spline = AmbientSpline([LevelSpline.from_indices(0, h, 4, idx, np.full(len(idx), 2.5))])
+    value = spline.undulation(10.0, 20.0)
+    assert np.ndim(value) == 0 and value == pytest.approx(2.5, abs=1e-13)
+    out = spline.undulation(np.array([[0.0, np.nan], [45.0, -90.0]]), 370.0)
+    assert out.shape == (2, 2) and np.isnan(out[0, 1])
+    np.testing.assert_allclose(out[~np.isnan(out)], 2.5, atol=1e-13)
+    with pytest.raises(CoordinateError, match="latitude"):
+        spline.undulation(90.5, 0.0)
+
+
+def test_directions_are_unit_vectors_with_the_documented_convention():
+    u = directions(np.array([0.0, 90.0, 0.0, -45.0]), np.array([0.0, 0.0, 90.0, 180.0]))
+    np.testing.assert_allclose(u[0], [1, 0, 0], atol=1e-15)
+    np.testing.assert_allclose(u[1], [0, 0, 1], atol=1e-15)
+    np.testing.assert_allclose(u[2], [0, 1, 0], atol=1e-15)
+    np.testing.assert_allclose(u[3], [-np.sqrt(0.5), 0, -np.sqrt(0.5)], atol=1e-15)
