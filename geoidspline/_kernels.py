@@ -169,47 +169,6 @@ def evaluate_level(points, h, order, nderiv, keys, coefs, out):
             out[s, r] += result[r]
 
 
-@_pjit
-def design_entries(points, h, order, keys, cols, vals):
-    """Rows of the least-squares design matrix.
-
-    For site s, ``cols[s, e]`` is the position in ``keys`` of its e-th touching
-    B-spline (-1 where that B-spline is not in the set) and ``vals[s, e]`` its value.
-    ``cols`` and ``vals`` have shape (M, order**3).
-    """
-    inv_h = 1.0 / h
-    n = keys.shape[0]
-    for s in numba.prange(points.shape[0]):
-        fx = points[s, 0] * inv_h
-        fy = points[s, 1] * inv_h
-        fz = points[s, 2] * inv_h
-        ax = int(np.floor(fx))
-        ay = int(np.floor(fy))
-        az = int(np.floor(fz))
-        wx = np.empty((3, order))
-        wy = np.empty((3, order))
-        wz = np.empty((3, order))
-        bspline_weights(fx - ax, order, 0, wx)
-        bspline_weights(fy - ay, order, 0, wy)
-        bspline_weights(fz - az, order, 0, wz)
-        for e in range(order * order * order):
-            cols[s, e] = -1
-            vals[s, e] = 0.0
-        k0 = az - order + 1
-        for p in range(order):
-            i = ax - order + 1 + p
-            for q in range(order):
-                j = ay - order + 1 + q
-                base = _pack(i, j, k0)
-                pos = _lower_bound(keys, base)
-                while pos < n and keys[pos] < base + order:
-                    r = keys[pos] - base
-                    e = (p * order + q) * order + r
-                    cols[s, e] = pos
-                    vals[s, e] = wx[0, p] * wy[0, q] * wz[0, r]
-                    pos += 1
-
-
 @_jit
 def cells_meet_sphere(cells, h, radius):
     """Whether each cell (M, 3) of spacing h meets the sphere |x| = radius.
@@ -233,3 +192,88 @@ def cells_meet_sphere(cells, h, radius):
             far += max(lo * lo, hi * hi)
         out[s] = near <= r2 <= far
     return out
+
+
+@_jit
+def normal_equations(points, values, h, order, keys):
+    """Upper triangle of AᵀA (CSC) and Aᵀb for the B-splines ``keys`` at sites ``points``.
+
+    Accumulates straight into a (len(keys), (2 order - 1)³) table indexed by the
+    relative position of the second B-spline, so no sparse product or sort is needed;
+    each site costs order⁶ multiply-adds. Returns (indptr, indices, data, rhs).
+    """
+    n = keys.shape[0]
+    span = 2 * order - 1
+    width = span * span * span
+    table = np.zeros((n, width))
+    rhs = np.zeros(n)
+    inv_h = 1.0 / h
+    block = order * order * order
+    cols = np.empty(block, dtype=np.int64)
+    vals = np.empty(block)
+    loc = np.empty((block, 3), dtype=np.int64)
+    wx = np.empty((3, order))
+    wy = np.empty((3, order))
+    wz = np.empty((3, order))
+    for s in range(points.shape[0]):
+        fx = points[s, 0] * inv_h
+        fy = points[s, 1] * inv_h
+        fz = points[s, 2] * inv_h
+        ax = int(np.floor(fx))
+        ay = int(np.floor(fy))
+        az = int(np.floor(fz))
+        bspline_weights(fx - ax, order, 0, wx)
+        bspline_weights(fy - ay, order, 0, wy)
+        bspline_weights(fz - az, order, 0, wz)
+        found = 0
+        k0 = az - order + 1
+        for p in range(order):
+            i = ax - order + 1 + p
+            for q in range(order):
+                j = ay - order + 1 + q
+                base = _pack(i, j, k0)
+                pos = _lower_bound(keys, base)
+                while pos < n and keys[pos] < base + order:
+                    r = keys[pos] - base
+                    cols[found] = pos
+                    vals[found] = wx[0, p] * wy[0, q] * wz[0, r]
+                    loc[found, 0] = p
+                    loc[found, 1] = q
+                    loc[found, 2] = r
+                    found += 1
+                    pos += 1
+        value = values[s]
+        for e2 in range(found):
+            c2 = cols[e2]
+            v2 = vals[e2]
+            rhs[c2] += v2 * value
+            for e1 in range(found):
+                if cols[e1] > c2:
+                    continue
+                off = ((loc[e1, 0] - loc[e2, 0] + order - 1) * span
+                       + (loc[e1, 1] - loc[e2, 1] + order - 1)) * span + (loc[e1, 2] - loc[e2, 2] + order - 1)
+                table[c2, off] += vals[e1] * v2
+    # compress: column c2 holds rows c1 <= c2; offsets in lexicographic order are
+    # increasing key deltas, hence increasing row positions
+    count = 0
+    for c in range(n):
+        for off in range(width):
+            if table[c, off] != 0.0:
+                count += 1
+    indptr = np.zeros(n + 1, dtype=np.int64)
+    indices = np.empty(count, dtype=np.int64)
+    data = np.empty(count)
+    at = 0
+    for c in range(n):
+        for off in range(width):
+            v = table[c, off]
+            if v != 0.0:
+                dr = off % span - (order - 1)
+                dq = (off // span) % span - (order - 1)
+                dp = off // (span * span) - (order - 1)
+                target = keys[c] + (dp << (2 * KEY_BITS)) + (dq << KEY_BITS) + dr
+                indices[at] = _lower_bound(keys, target)
+                data[at] = v
+                at += 1
+        indptr[c + 1] = at
+    return indptr, indices, data, rhs

@@ -14,11 +14,13 @@ The algorithm (Lehmann 2013, §3-4 and §5.2; summarised in METHOD.md):
    ``ℓ + 1`` (spacing ``h0 / 2^(ℓ+1)``) takes the B-splines touching the cells that
    hold nodes above the tolerance, and is fitted on every site where those B-splines
    are non-zero, so each level is a C^(n-2) spline on all of R³.
-5. Each level is split into tiles (cubes of side ``tile_size``; a coefficient belongs
-   to the tile holding the centre of its support). A tile's local problem carries the
-   coefficients and sites within ``margin_cells`` cells around it and keeps only its
-   own coefficients, so tiles solve independently (in worker processes) and still form
-   one spline. Levels with few unknowns are solved whole.
+5. Each level is split into blocks of ``block_cells`` cells a side (a coefficient
+   belongs to the block holding the centre of its support). A block's local problem
+   carries the coefficients and sites within ``margin_cells`` cells around it and keeps
+   only its own coefficients, so blocks solve independently (in worker processes) and
+   still form one spline. Levels with few unknowns are solved whole. Storage tiles
+   (cubes of side ``tile_size``, :mod:`geoidspline.store`) group the coefficients of
+   all levels the same way, by support centre.
 
 Refinement is a strategy object (:class:`OverlayRefinement`) so that the linearly
 independent hierarchical basis of thesis §5.3 can be added beside it.
@@ -69,6 +71,7 @@ class FitParameters:
     max_level: int = 8
     tile_size: float = 0.4
     margin_cells: int = 10
+    block_cells: int = 40
     radial_offsets: tuple = (-1.5, -0.9, -0.3, 0.0, 0.3, 0.9, 1.5)
     rays_per_cell: float = 5.0
     regularization: float = 1e-6
@@ -244,32 +247,22 @@ def _second_difference_penalty(keys):
     return (d.T @ d).tocsr()
 
 
-def design_matrix(points, keys, h, order):
-    """Sparse design matrix (M, len(keys)) of the B-splines ``keys`` at ``points``."""
-    m = points.shape[0]
-    width = order**3
-    cols = np.empty((m, width), dtype=np.int64)
-    vals = np.empty((m, width))
-    _kernels.design_entries(np.ascontiguousarray(points), h, order, keys, cols, vals)
-    keep = cols >= 0
-    row = np.repeat(np.arange(m), width).reshape(m, width)
-    return sp.csr_matrix((vals[keep], (row[keep], cols[keep])), shape=(m, keys.size))
-
-
 def solve_local_problem(problem: LocalProblem):
     """Solve one local problem; return (own keys, own coefficients, solve seconds)."""
     start = time.perf_counter()
-    a = design_matrix(problem.points, problem.keys, problem.h, problem.order)
-    normal = (a.T @ a).tocsr()
-    rhs = a.T @ problem.values
-    diag = normal.diagonal()
+    keys = problem.keys
+    indptr, indices, data, rhs = _kernels.normal_equations(
+        np.ascontiguousarray(problem.points), problem.values, problem.h, problem.order, keys
+    )
+    upper = sp.csc_matrix((data, indices, indptr), shape=(keys.size, keys.size))
+    diag = upper.diagonal()
     scale = float(diag[diag > 0].mean()) if np.any(diag > 0) else 1.0
-    penalty = _second_difference_penalty(problem.keys)
-    system = normal + (problem.regularization * scale) * penalty
-    system = system + sp.identity(problem.keys.size, format="csr") * (1e-10 * scale)
+    penalty = sp.triu(_second_difference_penalty(keys), format="csc")
+    system = upper + (problem.regularization * scale) * penalty
+    system = system + sp.identity(keys.size, format="csc") * (1e-10 * scale)
     # qdldl: LDL^T with AMD ordering, about 3x faster than SuperLU on these SPD systems
-    solution = qdldl.Solver(sp.triu(system, format="csc")).solve(rhs)
-    return problem.keys[problem.own], solution[problem.own], time.perf_counter() - start
+    solution = qdldl.Solver(system.tocsc()).solve(rhs)
+    return keys[problem.own], solution[problem.own], time.perf_counter() - start
 
 
 def _worker_init():
@@ -406,10 +399,12 @@ def _local_problems(level, h, params: FitParameters, keys, points, values, force
         )
         return
     idx = _kernels.unpack_keys(keys)
-    tiles = tile_of_indices(idx, h, order, params.tile_size)
+    # solve blocks hold block_cells cells of this level a side, so every level's local
+    # problems have about the same size; storage tiles are independent of them
+    size = params.block_cells * h
+    tiles = tile_of_indices(idx, h, order, size)
     tile_keys = _kernels.pack_keys(tiles)
     unique_tiles, tile_inverse = np.unique(tile_keys, return_inverse=True)
-    size = params.tile_size
     margin = params.margin_cells * h
     reach = int(math.ceil(margin / size))
     site_bins = _kernels.pack_keys(np.floor(points / size).astype(np.int64))

@@ -1,0 +1,177 @@
+"""Fitting: exactness, convergence order, overlays, tiles and seams."""
+
+import math
+
+import numpy as np
+import pytest
+
+from geoidspline.fit import FitParameters, fit_nodes, active_cells
+from geoidspline.region import GLOBAL, Region
+from geoidspline.sources import NodeSample
+from geoidspline import _kernels
+
+
+def smooth_field(lat, lon):
+    """A low-degree field on the sphere (metres): degree-2/3 spherical harmonics."""
+    p, l = np.radians(lat), np.radians(lon)
+    return 20 * np.sin(2 * p) * np.cos(l) + 10 * np.cos(p) ** 2 * np.sin(2 * l) + 3 * np.cos(p) ** 3 * np.cos(3 * l)
+
+
+def bumpy_field(lat, lon):
+    """The smooth field plus a narrow 2 m Gaussian bump at (5N, 3E), 2° wide."""
+    return smooth_field(lat, lon) + 2 * np.exp(-((lat - 5) ** 2 + (lon - 3) ** 2) / 4)
+
+
+def lattice(field, step_deg, south=-90, north=90, west=-180, east=180):
+    lat = np.arange(south, north + 1e-9, step_deg)
+    lon = np.arange(west, east - 1e-9, step_deg)
+    lat2, lon2 = np.meshgrid(lat, lon, indexing="ij")
+    return NodeSample(lat, lon, field(lat2, lon2))
+
+
+REGION = Region(-20, -30, 20, 30)
+
+
+def random_points(region, count, seed=0, inset=5.0):
+    rng = np.random.default_rng(seed)
+    lat = rng.uniform(region.south + inset, region.north - inset, count)
+    lon = rng.uniform(region.west + inset, region.east - inset, count)
+    return lat, lon
+
+
+def test_active_cells_are_exactly_the_cells_meeting_the_sphere():
+    h = 0.25
+    cells = active_cells(h, GLOBAL)
+    r = np.arange(-6, 6)
+    every = np.array(np.meshgrid(r, r, r, indexing="ij")).reshape(3, -1).T
+    lo = every * h
+    hi = lo + h
+    near = np.sqrt((np.clip(0, lo, hi) ** 2).sum(axis=1))
+    far = np.sqrt(np.maximum(lo**2, hi**2).sum(axis=1))
+    expected = every[(near <= 1) & (far >= 1)]
+    assert {tuple(c) for c in cells} == {tuple(c) for c in expected}
+
+
+def test_constant_field_is_reproduced_exactly():
+    sample = lattice(lambda la, lo: np.full_like(la, 7.25), 1.5, -60, 60, -90, 90)
+    result = fit_nodes(sample, REGION, FitParameters(h0=0.1, max_level=0, tolerance_m=1e-6))
+    lat, lon = random_points(REGION, 2000)
+    # the second-difference penalty vanishes on constants; only the 1e-10 ridge remains
+    np.testing.assert_allclose(result.spline.undulation(lat, lon), 7.25, atol=1e-6)
+
+
+def test_convergence_order_is_about_h4_for_cubic_splines():
+    """Max error at random points of a single-level fit for h, h/2, h/4.
+
+    Theorem 3.3 of the thesis: ||g - s|| <= c h^n for order n = 4. Nodes are dense
+    enough (h/5) that the data do not limit the fit.
+    """
+    errors = []
+    lat, lon = random_points(REGION, 5000, seed=1)
+    for h0 in (0.2, 0.1, 0.05):
+        sample = lattice(smooth_field, math.degrees(h0 / 5), -70, 70, -100, 100)
+        result = fit_nodes(sample, REGION, FitParameters(h0=h0, max_level=0, tolerance_m=1e-9))
+        errors.append(np.abs(result.spline.undulation(lat, lon) - smooth_field(lat, lon)).max())
+    orders = np.log2(np.array(errors[:-1]) / np.array(errors[1:]))
+    assert errors[-1] < 5e-5  # 20 m amplitude field, h = 0.05
+    assert np.all(orders > 3.5), (errors, orders)
+
+
+def test_overlays_refine_only_where_the_tolerance_is_violated():
+    sample = lattice(bumpy_field, 0.5, -60, 60, -90, 90)
+    params = FitParameters(h0=0.1, max_level=4, tolerance_m=0.01)
+    result = fit_nodes(sample, REGION, params)
+    assert result.converged
+    assert result.node_max_error_m <= 0.01
+    assert len(result.levels) >= 2
+    # every overlay's B-splines sit near the bump or near nodes that were above tolerance
+    fine = result.spline.levels[-1]
+    centres = (fine.indices + params.order / 2) * fine.h
+    lat = np.degrees(np.arcsin(centres[:, 2] / np.linalg.norm(centres, axis=1)))
+    lon = np.degrees(np.arctan2(centres[:, 1], centres[:, 0]))
+    assert np.all(REGION.expanded(2.0).contains(lat, lon))
+    # finer levels have fewer coefficients than full coverage would need
+    full = FitParameters(h0=fine.h, max_level=0)
+    assert len(fine) < 0.5 * len(active_cells(full.h0, REGION)) * 8
+    # the reported error is the real one at the nodes
+    lat2, lon2 = np.meshgrid(sample.latitude, sample.longitude, indexing="ij")
+    inside = REGION.contains(lat2, lon2)
+    err = np.abs(result.spline.undulation(lat2[inside], lon2[inside]) - sample.undulation[inside])
+    assert err.max() == pytest.approx(result.node_max_error_m, rel=1e-9)
+
+
+@pytest.fixture(scope="module")
+def tiled_and_whole():
+    sample = lattice(bumpy_field, 0.5, -60, 60, -90, 90)
+    params = FitParameters(h0=0.1, max_level=2, tolerance_m=0.01, block_cells=8, margin_cells=10,
+                           untiled_max_unknowns=0)
+    whole = fit_nodes(sample, REGION, FitParameters(h0=0.1, max_level=2, tolerance_m=0.01,
+                                                    untiled_max_unknowns=10**9))
+    tiled = fit_nodes(sample, REGION, params)
+    return whole, tiled
+
+
+def test_tiled_fit_agrees_with_untiled_fit(tiled_and_whole):
+    whole, tiled = tiled_and_whole
+    assert all(r.tiles_solved > 1 for r in tiled.levels)
+    assert [r.coefficients for r in tiled.levels] == [r.coefficients for r in whole.levels]
+    lat, lon = random_points(REGION, 20000, seed=2, inset=0.0)
+    diff = np.abs(tiled.spline.undulation(lat, lon) - whole.spline.undulation(lat, lon))
+    # measured: max 1.0 mm, RMS 0.07 mm with a 10-cell margin, tolerance 10 mm
+    assert diff.max() < 0.2 * 0.01
+    assert np.sqrt(np.mean(diff**2)) < 0.02 * 0.01
+
+
+def test_c2_across_block_seams(tiled_and_whole):
+    """Value, gradient and Hessian continuous across the faces between solve blocks."""
+    _, tiled = tiled_and_whole
+    spline = tiled.spline
+    lat, lon = random_points(REGION, 400, seed=3)
+    from geoidspline.spline import directions
+
+    u = directions(lat, lon)
+    fine_h = spline.levels[-1].h
+    block = 8 * fine_h  # block_cells * h of the finest level: a multiple of every cell face
+    for axis in range(3):
+        x = u.copy()
+        x[:, axis] = np.round(x[:, axis] / block) * block
+        x /= np.linalg.norm(x, axis=1)[:, None]  # back onto the sphere, near the seam
+        x[:, axis] = np.round(x[:, axis] / block) * block  # exactly on the seam plane
+        # A continuous quantity changes across the seam in proportion to the step
+        # (by its derivative times 2 delta); a jump would stay the same size.
+        jumps = []
+        for delta in (1e-5, 1e-6):
+            step = np.zeros(3)
+            step[axis] = delta
+            jumps.append(np.abs(spline.evaluate_points(x + step, nderiv=2)
+                                - spline.evaluate_points(x - step, nderiv=2)))
+        big = jumps[0] > 1e-9 * (1 + np.abs(spline.evaluate_points(x, nderiv=2)))
+        ratio = jumps[0][big] / np.maximum(jumps[1][big], 1e-300)
+        assert big.any()
+        assert np.all(ratio > 5), f"axis {axis}: not continuous, ratios {np.sort(ratio)[:5]}"
+
+
+def test_restriction_derivatives_match_finite_differences_along_the_sphere():
+    """d/dλ of the restricted spline from the ambient gradient equals a central
+    difference in longitude; the tolerance is the O(ε²) truncation of the quotient."""
+    sample = lattice(smooth_field, 1.0, -60, 60, -90, 90)
+    result = fit_nodes(sample, REGION, FitParameters(h0=0.1, max_level=0, tolerance_m=1e-6))
+    lat, lon = random_points(REGION, 300, seed=4)
+    from geoidspline.spline import directions
+
+    u = directions(lat, lon)
+    grad = result.spline.evaluate_points(u, nderiv=1)[:, 1:4]
+    # ∂u/∂λ = (-cos φ sin λ, cos φ cos λ, 0) per radian
+    du = np.stack([-np.cos(np.radians(lat)) * np.sin(np.radians(lon)),
+                   np.cos(np.radians(lat)) * np.cos(np.radians(lon)), np.zeros_like(lat)], axis=1)
+    analytic = (grad * du).sum(axis=1)
+    eps = 1e-3  # degrees
+    fd = (result.spline.undulation(lat, lon + eps) - result.spline.undulation(lat, lon - eps)) / (2 * math.radians(eps))
+    coef = np.abs(result.spline.levels[0].coefficients).max()
+    bound = math.radians(eps) ** 2 / 6 * 8 * 3 * coef / 0.1**3 * 3
+    np.testing.assert_allclose(fd, analytic, atol=bound)
+
+
+def test_keys_cover_the_index_range_of_the_finest_level():
+    params = FitParameters(h0=0.1, max_level=12)
+    assert 1.0 / params.spacing(12) + 8 < _kernels.MAX_INDEX
