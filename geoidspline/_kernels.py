@@ -60,6 +60,26 @@ def bspline_weights(t, order, nderiv, out):
     de Boor recursion ``w_q[j] = ((t+q-1-j) w_{q-1}[j-1] + (1+j-t) w_{q-1}[j]) / (q-1)``
     and ``B_q' = B_{q-1}(x) - B_{q-1}(x-1)``.
     """
+    if order == 4:
+        # closed form of the cubic case: the hot path of every query
+        s = 1.0 - t
+        t2 = t * t
+        t3 = t2 * t
+        out[0, 0] = s * s * s / 6.0
+        out[0, 1] = (3.0 * t3 - 6.0 * t2 + 4.0) / 6.0
+        out[0, 2] = (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) / 6.0
+        out[0, 3] = t3 / 6.0
+        if nderiv >= 1:
+            out[1, 0] = -0.5 * s * s
+            out[1, 1] = 1.5 * t2 - 2.0 * t
+            out[1, 2] = -1.5 * t2 + t + 0.5
+            out[1, 3] = 0.5 * t2
+        if nderiv >= 2:
+            out[2, 0] = s
+            out[2, 1] = 3.0 * t - 2.0
+            out[2, 2] = 1.0 - 3.0 * t
+            out[2, 3] = t
+        return
     work = np.zeros((order + 1, order + 1))
     work[1, 0] = 1.0
     for q in range(2, order + 1):
@@ -95,78 +115,6 @@ def _lower_bound(keys, value):
         else:
             hi = mid
     return lo
-
-
-@_jit
-def _eval_point(x, y, z, inv_h, order, nderiv, keys, coefs, wx, wy, wz, result):
-    """Value (result[0]), gradient (1..3) and Hessian (4..9: xx yy zz xy xz yz)."""
-    fx = x * inv_h
-    fy = y * inv_h
-    fz = z * inv_h
-    ax = int(np.floor(fx))
-    ay = int(np.floor(fy))
-    az = int(np.floor(fz))
-    bspline_weights(fx - ax, order, nderiv, wx)
-    bspline_weights(fy - ay, order, nderiv, wy)
-    bspline_weights(fz - az, order, nderiv, wz)
-    for r in range(result.shape[0]):
-        result[r] = 0.0
-    n = keys.shape[0]
-    k0 = az - order + 1
-    for p in range(order):
-        i = ax - order + 1 + p
-        for q in range(order):
-            j = ay - order + 1 + q
-            base = _pack(i, j, k0)
-            pos = _lower_bound(keys, base)
-            while pos < n and keys[pos] < base + order:
-                r = keys[pos] - base
-                c = coefs[pos]
-                result[0] += c * wx[0, p] * wy[0, q] * wz[0, r]
-                if nderiv >= 1:
-                    result[1] += c * wx[1, p] * wy[0, q] * wz[0, r]
-                    result[2] += c * wx[0, p] * wy[1, q] * wz[0, r]
-                    result[3] += c * wx[0, p] * wy[0, q] * wz[1, r]
-                if nderiv >= 2:
-                    result[4] += c * wx[2, p] * wy[0, q] * wz[0, r]
-                    result[5] += c * wx[0, p] * wy[2, q] * wz[0, r]
-                    result[6] += c * wx[0, p] * wy[0, q] * wz[2, r]
-                    result[7] += c * wx[1, p] * wy[1, q] * wz[0, r]
-                    result[8] += c * wx[1, p] * wy[0, q] * wz[1, r]
-                    result[9] += c * wx[0, p] * wy[1, q] * wz[1, r]
-                pos += 1
-    # chain rule: derivatives were taken with respect to x/h
-    if nderiv >= 1:
-        for r in range(1, 4):
-            result[r] *= inv_h
-    if nderiv >= 2:
-        for r in range(4, 10):
-            result[r] *= inv_h * inv_h
-
-
-@_pjit
-def evaluate_level(points, h, order, nderiv, keys, coefs, out):
-    """Add one level's spline (and derivatives) at ambient ``points`` (M, 3) to ``out``.
-
-    ``out`` has shape (M, 1), (M, 4) or (M, 10) for nderiv 0, 1, 2 (see _eval_point).
-    Points with a NaN coordinate are skipped (the caller keeps NaN there).
-    """
-    inv_h = 1.0 / h
-    m = points.shape[0]
-    width = out.shape[1]
-    for s in numba.prange(m):
-        x = points[s, 0]
-        y = points[s, 1]
-        z = points[s, 2]
-        if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
-            continue
-        wx = np.empty((3, order))
-        wy = np.empty((3, order))
-        wz = np.empty((3, order))
-        result = np.empty(width)
-        _eval_point(x, y, z, inv_h, order, nderiv, keys, coefs, wx, wy, wz, result)
-        for r in range(width):
-            out[s, r] += result[r]
 
 
 @_jit
@@ -277,3 +225,153 @@ def normal_equations(points, values, h, order, keys):
                 at += 1
         indptr[c + 1] = at
     return indptr, indices, data, rhs
+
+
+# ---------------------------------------------------------------------------------
+# brick index for fast queries
+#
+# A level's coefficients are regrouped by bricks of 2**BRICK_BITS cells a side. A brick
+# lists, for each (i, j) column of B-splines touching its cells, the contiguous run of
+# k values present (zeros fill gaps), so evaluating a point costs one hash probe for
+# its brick per level and then direct array reads: no search over coefficients.
+
+BRICK_BITS = 4
+_HASH_MULT = np.uint64(0x9E3779B97F4A7C15)
+
+
+@_jit
+def _hash_slot(key, mask):
+    h = np.uint64(key) * _HASH_MULT
+    return np.int64((h >> np.uint64(32)) & np.uint64(mask))
+
+
+@_jit
+def build_hash(keys):
+    """Open-addressing hash table (linear probing) from key to its position in keys."""
+    capacity = 1
+    while capacity < 2 * keys.shape[0] + 2:
+        capacity *= 2
+    mask = capacity - 1
+    slot_keys = np.full(capacity, -1, dtype=np.int64)
+    slot_vals = np.full(capacity, -1, dtype=np.int64)
+    for pos in range(keys.shape[0]):
+        s = _hash_slot(keys[pos], mask)
+        while slot_keys[s] != -1:
+            s = (s + 1) & mask
+        slot_keys[s] = keys[pos]
+        slot_vals[s] = pos
+    return slot_keys, slot_vals
+
+
+@_jit
+def _hash_find(slot_keys, slot_vals, start, mask, key):
+    s = _hash_slot(key, mask)
+    while True:
+        k = slot_keys[start + s]
+        if k == key:
+            return slot_vals[start + s]
+        if k == -1:
+            return -1
+        s = (s + 1) & mask
+
+
+PRESENCE_CELL = 0.125  # side of the coarse cells of the per-level presence map
+PRESENCE_SIDE = 20  # covers [-1.25, 1.25) on each axis
+
+
+@_jit
+def _present(presence, lev, x, y, z):
+    i = int(np.floor(x / PRESENCE_CELL)) + PRESENCE_SIDE // 2
+    j = int(np.floor(y / PRESENCE_CELL)) + PRESENCE_SIDE // 2
+    k = int(np.floor(z / PRESENCE_CELL)) + PRESENCE_SIDE // 2
+    if i < 0 or j < 0 or k < 0 or i >= PRESENCE_SIDE or j >= PRESENCE_SIDE or k >= PRESENCE_SIDE:
+        return False
+    return presence[lev, i, j, k] != 0
+
+
+@_jit
+def _eval_bricks_point(x, y, z, inv_h, order, nderiv, slot_keys, slot_vals, slot_start, slot_mask,
+                       columns, values, wx, wy, wz, result):
+    fx = x * inv_h
+    fy = y * inv_h
+    fz = z * inv_h
+    ax = int(np.floor(fx))
+    ay = int(np.floor(fy))
+    az = int(np.floor(fz))
+    bx = ax >> BRICK_BITS
+    by = ay >> BRICK_BITS
+    bz = az >> BRICK_BITS
+    brick = _hash_find(slot_keys, slot_vals, slot_start, slot_mask, _pack(bx, by, bz))
+    if brick < 0:
+        return
+    bspline_weights(fx - ax, order, nderiv, wx)
+    bspline_weights(fy - ay, order, nderiv, wy)
+    bspline_weights(fz - az, order, nderiv, wz)
+    lx = ax - (bx << BRICK_BITS)
+    ly = ay - (by << BRICK_BITS)
+    k0 = az - order + 1
+    ih2 = inv_h * inv_h
+    for p in range(order):
+        for q in range(order):
+            packed = columns[brick, lx + p, ly + q]
+            length = packed & 0xFFFF
+            if length == 0:
+                continue
+            start = k0 - (((packed >> 16) & 0xFFFF) - 32768)
+            offset = packed >> 32
+            for r in range(order):
+                t = start + r
+                if t < 0 or t >= length:
+                    continue
+                c = values[offset + t]
+                result[0] += c * wx[0, p] * wy[0, q] * wz[0, r]
+                if nderiv >= 1:
+                    result[1] += c * wx[1, p] * wy[0, q] * wz[0, r] * inv_h
+                    result[2] += c * wx[0, p] * wy[1, q] * wz[0, r] * inv_h
+                    result[3] += c * wx[0, p] * wy[0, q] * wz[1, r] * inv_h
+                if nderiv >= 2:
+                    result[4] += c * wx[2, p] * wy[0, q] * wz[0, r] * ih2
+                    result[5] += c * wx[0, p] * wy[2, q] * wz[0, r] * ih2
+                    result[6] += c * wx[0, p] * wy[0, q] * wz[2, r] * ih2
+                    result[7] += c * wx[1, p] * wy[1, q] * wz[0, r] * ih2
+                    result[8] += c * wx[1, p] * wy[0, q] * wz[1, r] * ih2
+                    result[9] += c * wx[0, p] * wy[1, q] * wz[1, r] * ih2
+
+
+@_pjit
+def evaluate_bricks(points, inv_hs, order, nderiv, presence, slot_keys, slot_vals, slot_start, slot_mask,
+                    columns, values, out):
+    """Sum over all levels of the spline (and derivatives) at points (M, 3) into out.
+
+    The tables of every level are stacked (see :class:`geoidspline.spline.BrickIndex`):
+    level ``l`` probes ``slot_keys[slot_start[l]:slot_start[l] + slot_mask[l] + 1]``, only
+    where its coarse presence map says it has bricks. ``columns`` packs a column's value
+    offset (bits 32-63), first k + 32768 (16-31) and run length (0-15).
+    ``out`` has 1 (value), 4 (+ gradient) or 10 (+ Hessian xx yy zz xy xz yz) columns.
+    NaN points are skipped.
+    """
+    m = points.shape[0]
+    width = out.shape[1]
+    nlev = inv_hs.shape[0]
+    # chunks, so the work arrays are allocated once per chunk and not per point
+    chunk = 4096
+    nchunks = (m + chunk - 1) // chunk
+    for c in numba.prange(nchunks):
+        wx = np.empty((3, order))
+        wy = np.empty((3, order))
+        wz = np.empty((3, order))
+        result = np.empty(width)
+        for s in range(c * chunk, min(m, (c + 1) * chunk)):
+            x = points[s, 0]
+            y = points[s, 1]
+            z = points[s, 2]
+            if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+                continue
+            for r in range(width):
+                result[r] = 0.0
+            for lev in range(nlev):
+                if _present(presence, lev, x, y, z):
+                    _eval_bricks_point(x, y, z, inv_hs[lev], order, nderiv, slot_keys, slot_vals, slot_start[lev],
+                                       slot_mask[lev], columns, values, wx, wy, wz, result)
+            for r in range(width):
+                out[s, r] += result[r]

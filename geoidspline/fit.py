@@ -43,7 +43,7 @@ import qdldl
 from . import _kernels
 from .errors import FitError
 from .region import Region, GLOBAL
-from .spline import AmbientSpline, LevelSpline, directions
+from .spline import AmbientSpline, LevelSpline, directions, tile_of_indices
 
 __all__ = ["FitParameters", "LevelReport", "FitResult", "fit_source", "fit_nodes", "tile_of_indices"]
 
@@ -143,12 +143,6 @@ class FitResult:
 def _cube_offsets(lo, hi):
     r = np.arange(lo, hi + 1)
     return np.array(np.meshgrid(r, r, r, indexing="ij")).reshape(3, -1).T
-
-
-def tile_of_indices(indices, h, order, tile_size):
-    """Tile (integer triple) of each coefficient: the cube holding its support centre."""
-    centre = (np.asarray(indices, dtype=float) + order / 2.0) * h
-    return np.floor(centre / tile_size).astype(np.int64)
 
 
 def _sphere_samples(region: Region, spacing_rad: float):

@@ -34,8 +34,7 @@ import numpy as np
 
 from . import __version__, _kernels
 from .errors import StoreError, StoreCorruptError
-from .fit import FitResult, tile_of_indices
-from .spline import AmbientSpline, LevelSpline, check_coordinates, directions
+from .spline import AmbientSpline, LevelSpline, check_coordinates, directions, tile_of_indices
 
 __all__ = ["TileStore", "write_store", "FORMAT_NAME", "FORMAT_VERSION"]
 
@@ -149,9 +148,9 @@ def _read_tile_file(path, entry):
     return indices.reshape(-1, 3), levels, values
 
 
-def write_store(path, result: FitResult, provenance, check: CheckPoints | None = None,
+def write_store(path, result, provenance, check: CheckPoints | None = None,
                 overwrite=False, extra=None) -> Path:
-    """Write a fit as a tile store at ``path`` (a directory) and return its path.
+    """Write a fit (:class:`geoidspline.fit.FitResult`) as a tile store at ``path``.
 
     An existing store is refused unless ``overwrite``; even then its files stay valid
     until the new manifest replaces the old one.

@@ -1,0 +1,49 @@
+# geoidspline: fit geoid grids into ambient B-spline tile stores, query them.
+#
+# Build (from the repository root):
+#   docker build -t geoidspline .
+# Fit PROJ's EGM96 15' grid (shipped in the image by Debian's proj-data) over the Andes,
+# writing the store into the current directory, then query it:
+#   docker run --rm -v "$PWD:/data" geoidspline geoid-fit egm96-15 --region -60 -90 15 -30 --tolerance 0.5 --out /data/store
+#   docker run --rm -v "$PWD:/data" geoidspline geoid-query --store /data/store -33.45 -70.66
+#   docker run --rm -v "$PWD:/data" geoidspline geoid-info /data/store
+# The container runs as the non-root user "geoid" (uid 1000); if your uid differs and the
+# mounted directory is not writable for uid 1000, add --user "$(id -u):$(id -g)".
+#
+# Python 3.11.7 is the interpreter requirements.lock was frozen from (pip freeze of the
+# runtime dependency closure); the base image is pinned to that patch release.
+FROM python:3.11.7-slim-bookworm
+
+# egm96_15.gtx (and PROJ's other grids) in /usr/share/proj, where the catalogue looks
+RUN apt-get update \
+ && apt-get install -y --no-install-recommends proj-data \
+ && rm -rf /var/lib/apt/lists/*
+
+RUN useradd --create-home --uid 1000 --shell /usr/sbin/nologin geoid \
+ && mkdir -p /data /var/cache/numba \
+ && chown geoid:geoid /data
+
+ENV PIP_NO_CACHE_DIR=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1 \
+    NUMBA_CACHE_DIR=/var/cache/numba
+
+WORKDIR /opt/geoidspline
+COPY requirements.lock ./
+RUN pip install -r requirements.lock
+COPY pyproject.toml README.md ./
+COPY geoidspline ./geoidspline
+COPY cli ./cli
+COPY grids ./grids
+# the same command as README.md's set-up (non-editable; cli/ and grids/ install as
+# geoidspline.cli and geoidspline.grids)
+RUN pip install .
+
+# Compile the query kernels once into numba's cache so a container's first query does not
+# spend seconds in the JIT (a different CPU recompiles; the cache stays writable for any uid).
+RUN python -c "import numpy as np; from geoidspline.spline import AmbientSpline, LevelSpline; AmbientSpline([LevelSpline.from_indices(0, 0.1, 4, np.zeros((1, 3), dtype=np.int64), np.ones(1))]).undulation([0.0], [0.0])" \
+ && chmod -R a+rwX /var/cache/numba
+
+USER geoid
+WORKDIR /data
+VOLUME ["/data"]
+CMD ["geoid-info", "--help"]
