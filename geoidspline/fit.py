@@ -75,6 +75,7 @@ class FitParameters:
     radial_offsets: tuple = (-1.5, -0.9, -0.3, 0.0, 0.3, 0.9, 1.5)
     rays_per_cell: float = 5.0
     regularization: float = 1e-6
+    overlay_ridge: float = 0.3
     refine_radius: float | None = 1.0
     untiled_max_unknowns: int = 20_000
     workers: int = 1
@@ -210,6 +211,7 @@ class LocalProblem:
     h: float
     order: int
     regularization: float
+    ridge: float
     keys: np.ndarray  # sorted unknowns of the local problem
     own: np.ndarray  # bool mask over keys: the coefficients this tile keeps
     points: np.ndarray  # (M, 3) site positions
@@ -253,7 +255,7 @@ def solve_local_problem(problem: LocalProblem):
     scale = float(diag[diag > 0].mean()) if np.any(diag > 0) else 1.0
     penalty = sp.triu(_second_difference_penalty(keys), format="csc")
     system = upper + (problem.regularization * scale) * penalty
-    system = system + sp.identity(keys.size, format="csc") * (1e-10 * scale)
+    system = system + sp.identity(keys.size, format="csc") * (problem.ridge * scale)
     # qdldl: LDL^T with AMD ordering, about 3x faster than SuperLU on these SPD systems
     solution = qdldl.Solver(system.tocsc()).solve(rhs)
     return keys[problem.own], solution[problem.own], time.perf_counter() - start
@@ -386,9 +388,12 @@ def _sites_for_level(nodes: _Nodes, ray_mask, h, order, keys, radial_offsets, si
 
 def _local_problems(level, h, params: FitParameters, keys, points, values, force_tiles=False):
     order = params.order
+    # Overlays fit residuals, which are near zero wherever the data do not pin them
+    # down: a ridge keeps their coefficients there small (level 0 must not be biased).
+    ridge = params.overlay_ridge if level > 0 else 1e-10
     if keys.size <= params.untiled_max_unknowns and not force_tiles:
         yield LocalProblem(
-            tile=("whole",), h=h, order=order, regularization=params.regularization,
+            tile=("whole",), h=h, order=order, regularization=params.regularization, ridge=ridge,
             keys=keys, own=np.ones(keys.size, bool), points=points, values=values,
         )
         return
@@ -424,7 +429,7 @@ def _local_problems(level, h, params: FitParameters, keys, points, values, force
         own = tile_inverse[local] == t
         yield LocalProblem(
             tile=tuple(int(v) for v in tile), h=h, order=order,
-            regularization=params.regularization, keys=keys[local], own=own,
+            regularization=params.regularization, ridge=ridge, keys=keys[local], own=own,
             points=points[chosen], values=values[chosen],
         )
 
