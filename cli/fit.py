@@ -26,15 +26,26 @@ log = logging.getLogger("geoidspline.cli")
 @click.option("--max-level", type=int, default=None, help="Finest overlay level (h = h0 / 2**level) [default: 8].")
 @click.option("--order", type=int, default=4, show_default=True, help="Spline order (4 = cubic, C²).")
 @click.option("--workers", type=int, default=1, show_default=True, help="Worker processes solving tiles.")
+@click.option("--correction", type=click.Path(exists=True, dir_okay=False), default=None,
+              help="NGA zeta-to-N correction coefficients (CORRCOEF) for a model SOURCE.")
+@click.option("--preset", type=click.Choice(["nga-f477", "nga-hsynth", "generic"]), default=None,
+              help="Synthesis conventions for a model SOURCE [default: chosen from the model].")
+@click.option("--sample-spacing", type=float, default=None,
+              help="Lattice spacing in degrees at which a model SOURCE is synthesised [default: 90/N].")
 @click.option("--overwrite", is_flag=True, help="Replace an existing store at --out.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @verbosity_options
 @user_errors
-def main(source, out, region, tolerance, h0, max_level, order, workers, overwrite, as_json, quiet):
-    """Fit SOURCE (a grid file: .gtx, .nc, WW15MGH.DAC, .pgm; or a catalogue name such
-    as egm96-15) into ambient B-spline tiles stored at --out."""
+def main(source, out, region, tolerance, h0, max_level, order, workers, correction, preset, sample_spacing,
+         overwrite, as_json, quiet):
+    """Fit SOURCE into ambient B-spline tiles stored at --out.
+
+    SOURCE is a grid file (.gtx, .nc, WW15MGH.DAC, .pgm), a catalogue name such as
+    egm96-15, or a spherical-harmonic model (ICGEM .gfc, NGA egm96_to360.ascii[.gz],
+    EGM2008_to2190_*) whose synthesis is fitted directly.
+    """
     from geoidspline.build import build_store
-    from geoidspline.catalogue import resolve_source
+    from geoidspline.catalogue import open_source
     from geoidspline.fit import FitParameters
     from geoidspline.region import GLOBAL, Region
 
@@ -43,11 +54,11 @@ def main(source, out, region, tolerance, h0, max_level, order, workers, overwrit
         order=order, tolerance_m=tolerance,
         h0=defaults.h0 if h0 is None else h0,
         max_level=defaults.max_level if max_level is None else max_level,
-        workers=workers,
+        workers=workers, sample_spacing_deg=sample_spacing,
     )
     fit_region = Region.from_bounds(*region) if region else GLOBAL
-    grid = resolve_source(source)
-    log.info("source %s (%s), region %s", grid.provenance.source, grid.provenance.model, fit_region.as_tuple())
+    src = open_source(source, correction, preset)
+    log.info("source %s (%s), region %s", src.provenance.source, src.provenance.model, fit_region.as_tuple())
     started = time.perf_counter()
     bar = None
     if not quiet:
@@ -55,7 +66,7 @@ def main(source, out, region, tolerance, h0, max_level, order, workers, overwrit
 
         bar = tqdm(desc="solving", unit=" problems", file=sys.stderr, leave=False)
     try:
-        result, info = build_store(grid, out, fit_region, params, progress=bar.update if bar is not None else None,
+        result, info = build_store(src, out, fit_region, params, progress=bar.update if bar is not None else None,
                                    overwrite=overwrite)
     finally:
         if bar is not None:
@@ -65,7 +76,7 @@ def main(source, out, region, tolerance, h0, max_level, order, workers, overwrit
         click.echo(json.dumps(info, indent=1))
         return
     click.echo(f"store      {out}  ({info['tiles']} tiles, {info['bytes']:,} bytes)")
-    click.echo(f"source     {grid.provenance.source} ({grid.provenance.model})")
+    click.echo(f"source     {src.provenance.source} ({src.provenance.model})")
     click.echo(f"region     S {fit_region.south:g}  W {fit_region.west:g}  N {fit_region.north:g}  E {fit_region.east:g}")
     click.echo("level  h          coefficients  max|err| m  nodes>tol  seconds")
     for r in result.levels:

@@ -163,3 +163,30 @@ def resolve_source(name_or_path) -> GeoidGrid:
         zero_degree_term_m=entry.zero_degree_term_m,
     )
     return grid
+
+
+def is_model_file(path) -> bool:
+    """Whether ``path`` names a spherical-harmonic model rather than a grid.
+
+    ICGEM files end in ``.gfc`` (optionally compressed); NGA's coefficient files have
+    no header and are recognised by their standard names (``egm96_to360.ascii``,
+    ``EGM2008_to2190_*``), see :data:`geoidspline.harmonics.NGA_CATALOGUE`.
+    """
+    name = Path(path).name.lower()
+    if name.endswith((".gfc", ".gfc.gz")):
+        return True
+    from .harmonics.models import _nga_lookup
+
+    return _nga_lookup(path) is not None
+
+
+def open_source(name_or_path, correction=None, preset=None):
+    """The source behind a command-line SOURCE: a model (with its optional ζ-to-N
+    correction file and NGA preset) or a grid file / catalogue name."""
+    if correction is not None or (Path(name_or_path).exists() and is_model_file(name_or_path)):
+        from .queries import load_synthesis
+
+        return load_synthesis(name_or_path, correction, preset)
+    if preset is not None:
+        raise InputFileError(name_or_path, "--preset applies to spherical-harmonic models only")
+    return resolve_source(name_or_path)

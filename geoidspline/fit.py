@@ -49,6 +49,9 @@ __all__ = ["FitParameters", "LevelReport", "FitResult", "fit_source", "fit_nodes
 
 log = logging.getLogger("geoidspline.fit")
 
+#: Finest level spacing allowed, in units of the data's node spacing.
+MIN_H_PER_DATA_SPACING = 0.5
+
 
 @dataclass(frozen=True)
 class FitParameters:
@@ -63,6 +66,9 @@ class FitParameters:
     diagonal of the normal matrix. An overlay level takes the B-splines whose support
     centre is within ``refine_radius`` cells (per axis) of a node above the tolerance;
     ``None`` means ``order / 2``: every B-spline touching that node (thesis §5.2).
+    ``sample_spacing_deg`` is the lattice spacing (degrees) at which a spherical-harmonic
+    source is synthesised for the fit (``None``: the source's default, 90/N degrees for
+    degree N); grids always give their own nodes.
     """
 
     order: int = 4
@@ -79,6 +85,7 @@ class FitParameters:
     refine_radius: float | None = 1.0
     untiled_max_unknowns: int = 20_000
     workers: int = 1
+    sample_spacing_deg: float | None = None
 
     def __post_init__(self):
         if not 2 <= self.order <= 8:
@@ -97,6 +104,8 @@ class FitParameters:
             raise FitError(f"margin_cells must be at least the spline order ({self.order})")
         if self.workers < 1:
             raise FitError(f"workers must be at least 1, got {self.workers}")
+        if self.sample_spacing_deg is not None and not 0 < self.sample_spacing_deg <= 5:
+            raise FitError(f"sample spacing must be within (0, 5] degrees, got {self.sample_spacing_deg}")
 
     def spacing(self, level: int) -> float:
         return self.h0 / 2.0 ** level
@@ -135,6 +144,8 @@ class FitResult:
     # per-node arrays kept for tile statistics (sphere directions and errors)
     node_directions: np.ndarray | None = None
     node_errors: np.ndarray | None = None
+    # refinement stopped because the next level would be finer than the data resolve
+    data_limited: bool = False
 
 
 # ---------------------------------------------------------------------------------
@@ -478,9 +489,20 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
     reports: list[LevelReport] = []
     converged = False
     violating = region_dirs
+    # a level much finer than the data spacing is not determined between the nodes
+    data_spacing = max(nodes.dlat_rad, nodes.dlon_rad * float(np.cos(np.radians(np.abs(nodes.latitude)).mean())))
+    data_limited = False
     for level in range(params.max_level + 1):
         t0 = time.perf_counter()
         h = params.spacing(level)
+        if level > 0 and h < MIN_H_PER_DATA_SPACING * data_spacing:
+            data_limited = True
+            log.warning(
+                "stopping at level %d: level %d (h=%.4g) would be finer than %.1f x the data spacing "
+                "(%.4g on the unit sphere); sample a model source finer with --sample-spacing",
+                level - 1, level, h, MIN_H_PER_DATA_SPACING, data_spacing,
+            )
+            break
         keys, marked, site_cells = refinement.level_keys(level, h, params.order, region, violating)
         if keys.size == 0:
             converged = True
@@ -521,6 +543,7 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
         node_count=int(errors.size), node_max_error_m=float(np.abs(errors).max()),
         node_rms_error_m=float(np.sqrt(np.mean(errors**2))), converged=converged,
         seconds=time.perf_counter() - start, node_directions=region_dirs, node_errors=errors,
+        data_limited=data_limited,
     )
 
 
@@ -536,8 +559,7 @@ def fit_source(source, region: Region | None = None, params: FitParameters | Non
     params = params or FitParameters()
     region = region or GLOBAL
     data_region = region.expanded(support_margin_deg(params))
-    finest = params.spacing(params.max_level)
-    sample = source.nodes(_clip_to_extent(data_region, source), spacing_deg=math.degrees(finest) / 2.0)
+    sample = source.nodes(_clip_to_extent(data_region, source), spacing_deg=params.sample_spacing_deg)
     return fit_nodes(sample, region, params, progress=progress, force_tiles=force_tiles)
 
 

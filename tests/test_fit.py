@@ -175,3 +175,31 @@ def test_restriction_derivatives_match_finite_differences_along_the_sphere():
 def test_keys_cover_the_index_range_of_the_finest_level():
     params = FitParameters(h0=0.1, max_level=12)
     assert 1.0 / params.spacing(12) + 8 < _kernels.MAX_INDEX
+
+
+def test_fit_straight_from_a_spherical_harmonic_model():
+    """A degree-12 model is fitted from its synthesis; the store is checked against
+    the exact synthesis at random points that were not fit sites."""
+    from geoidspline.fit import fit_source
+    from geoidspline.build import check_points
+    from geoidspline.harmonics import GeoidSynthesis, HarmonicModel
+
+    rng = np.random.default_rng(11)
+    nmax = 12
+    C = np.zeros((nmax + 1, nmax + 1))
+    S = np.zeros((nmax + 1, nmax + 1))
+    for n in range(2, nmax + 1):
+        C[n, : n + 1] = rng.normal(size=n + 1) * 1e-6 / n
+        S[n, 1 : n + 1] = rng.normal(size=n) * 1e-6 / n
+    C[2, 0] = -0.484165371736e-3  # the normal field removes most of it
+    model = HarmonicModel(name="toy12", gm=3.986004415e14, radius=6378136.3, max_degree=nmax,
+                          tide_system="tide_free", C=C, S=S)
+    synthesis = GeoidSynthesis(model, preset="generic")
+    region = Region(10, 10, 30, 40)
+    params = FitParameters(h0=0.1, tolerance_m=0.01, max_level=3, sample_spacing_deg=1.0)
+    result = fit_source(synthesis, region, params)
+    assert result.converged and result.node_max_error_m <= 0.01
+    check = check_points(synthesis, region, count=3000, seed=3)
+    err = np.abs(check.truth - result.spline.undulation(check.latitude, check.longitude))
+    assert err.max() < 3 * 0.01
+    assert np.sqrt(np.mean(err**2)) < 0.01
