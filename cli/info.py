@@ -12,13 +12,36 @@ from ._common import user_errors, verbosity_options
 @click.command(name="info", context_settings={"help_option_names": ["-h", "--help"]})
 @click.argument("store_path", metavar="STORE", type=click.Path())
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
+@click.option("--check-against", "model_path", type=click.Path(), default=None, metavar="MODEL",
+              help="Also compare the store with the exact synthesis of this spherical-harmonic model "
+                   "(ICGEM .gfc or NGA ASCII) at random points (JSON key check_against).")
+@click.option("--correction", "correction_path", type=click.Path(), default=None,
+              help="With --check-against: zeta-to-N correction coefficients (NGA CORRCOEF).")
+@click.option("--preset", type=click.Choice(["nga-f477", "nga-hsynth", "generic"]), default=None,
+              help="With --check-against: synthesis conventions [default: the store's, when it was fitted from "
+                   "MODEL; else nga-f477, nga-hsynth for EGM2008].")
+@click.option("--points", type=click.IntRange(min=1), default=20_000, show_default=True,
+              help="With --check-against: random points, uniform in area over the store's region (fixed seed).")
 @verbosity_options
 @user_errors
-def main(store_path, as_json, quiet):
-    """Summary of the tile store STORE (a directory written by geoid-fit)."""
+def main(store_path, as_json, model_path, correction_path, preset, points, quiet):
+    """Summary of the tile store STORE (a directory written by geoid-fit).
+
+    With --check-against MODEL: max, RMS and 99th percentile of |store - model| at
+    --points random points uniform in area over the store's region (seed fixed, so
+    repeatable; random points are not the fit's lattice nodes).
+    """
     import geoidspline
 
-    info = geoidspline.open_store(store_path).info()
+    if model_path is None and (correction_path is not None or preset is not None):
+        raise click.UsageError("--correction and --preset go with --check-against")
+    store = geoidspline.open_store(store_path)
+    info = store.info()
+    if model_path is not None:
+        from geoidspline.queries import check_against, load_synthesis
+
+        synthesis = load_synthesis(model_path, correction_path, preset, like_store=store)
+        info["check_against"] = check_against(store, synthesis, points)
     if as_json:
         click.echo(json.dumps(info, indent=1))
         return
@@ -40,6 +63,17 @@ def main(store_path, as_json, quiet):
         click.echo(f"check points {info['check_points']:,}: max {info['max_error_m']:.4f} m, "
                    f"RMS {info['rms_error_m']:.4f} m, 99% {info['p99_error_m']:.4f} m")
         click.echo(f"             truth: {info['check_truth']}")
+    check = info.get("check_against")
+    if check is not None:
+        corr = f" + {check['correction']}" if check["correction"] else ""
+        click.echo(f"check against {check['model']}{corr} ({check['model_name']}, degree {check['max_degree']}, "
+                   f"preset {check['preset']})")
+        click.echo(f"             {check['points']:,} random points uniform in area (seed {check['seed']}): "
+                   f"max {check['max_error_m']:.4f} m, RMS {check['rms_error_m']:.4f} m, "
+                   f"99% {check['p99_error_m']:.4f} m, mean {check['mean_error_m']:+.4f} m")
+        if not check["same_source"]:
+            click.echo("             note: the store was not fitted from this model file (sha256 differs): "
+                       "the figures include its source's own difference from the model")
 
 
 if __name__ == "__main__":  # pragma: no cover

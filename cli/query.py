@@ -1,8 +1,11 @@
-"""geoid-query: geoid undulations from a tile store, for one point or a CSV stream."""
+"""geoid-query: geoid undulations from a tile store (or a harmonic model), for one point
+or a CSV stream, with optional derived quantities."""
 
 from __future__ import annotations
 
+import json
 import logging
+import math
 import os
 import select
 import sys
@@ -14,6 +17,10 @@ from ._common import user_errors, verbosity_options
 log = logging.getLogger("geoidspline.cli")
 
 BATCH_BYTES = 1 << 16
+
+PRESET_CHOICES = ("nga-f477", "nga-hsynth", "generic")  # geoidspline.harmonics.PRESETS
+DEFLECTION_COLUMNS = ("xi_arcsec", "eta_arcsec", "dNdn_m_per_m", "dNde_m_per_m")
+HEIGHT_OUTPUT = {"ellipsoidal": "orthometric_height_m", "orthometric": "ellipsoidal_height_m"}
 
 
 def _line_batches(stream):
@@ -56,35 +63,6 @@ def _line_batches(stream):
         yield [pending.decode("utf-8", "replace").rstrip("\r")]
 
 
-def _parse(rows, line_numbers, lat_col, lon_col):
-    """Split rows into fields and parse lat/lon; return (fields, lat, lon, problems)."""
-    import numpy as np
-
-    lat = np.full(len(rows), np.nan)
-    lon = np.full(len(rows), np.nan)
-    problems = {}
-    fields = []
-    for i, row in enumerate(rows):
-        parts = [p.strip() for p in row.split(",")]
-        fields.append(parts)
-        n = line_numbers[i]
-        if len(parts) <= max(lat_col, lon_col):
-            problems[i] = f"line {n}: expected at least {max(lat_col, lon_col) + 1} columns (lat,lon), got {len(parts)}"
-            continue
-        try:
-            la, lo = float(parts[lat_col]), float(parts[lon_col])
-        except ValueError:
-            problems[i] = f"line {n}: latitude/longitude are not numbers: {parts[lat_col]!r}, {parts[lon_col]!r}"
-            continue
-        if not (np.isfinite(la) and np.isfinite(lo)):
-            problems[i] = f"line {n}: latitude/longitude must be finite numbers, got {parts[lat_col]!r}, {parts[lon_col]!r}"
-        elif abs(la) > 90.0:
-            problems[i] = f"line {n}: latitude {la:g} is outside [-90, 90] degrees"
-        else:
-            lat[i], lon[i] = la, lo
-    return fields, lat, lon, problems
-
-
 def _looks_like_header(line, lat_col, lon_col):
     parts = [p.strip() for p in line.split(",")]
     if len(parts) <= max(lat_col, lon_col):
@@ -97,64 +75,375 @@ def _looks_like_header(line, lat_col, lon_col):
     return False
 
 
-@click.command(name="query", context_settings={"help_option_names": ["-h", "--help"],
-                                               "ignore_unknown_options": True})
-@click.option("--store", "store_path", required=True, type=click.Path(), help="Tile store directory.")
+class Query:
+    """What to compute for each row: the input layout and the output columns.
+
+    Input columns (0-based): without ``crs`` latitude, longitude in 0, 1; with ``crs``
+    x, y in 0, 1 (always_xy order) and, for a 3D CRS, z in 2. With ``height_in`` (2D
+    input) the height is in ``height_column``; with a 3D CRS the ellipsoidal height is
+    the one the CRS conversion gives.
+    """
+
+    def __init__(self, source, *, is_store, deflection=False, height_in=None, height_column=None,
+                 crs=None, with_error=False, precision=4, fmt="csv"):
+        self.source = source
+        self.is_store = is_store
+        self.deflection = deflection
+        self.height_in = height_in
+        self.crs = crs
+        self.with_error = with_error
+        self.precision = precision
+        self.fmt = fmt
+        self.crs_dim = 2
+        if crs is not None:
+            from geoidspline.queries import crs_info
+
+            _, self.crs_dim = crs_info(crs)
+        if self.crs_dim == 3:
+            self.coord_columns = (0, 1, 2)
+            self.height_column = None  # h comes from the conversion
+        else:
+            self.coord_columns = (0, 1)
+            self.height_column = (2 if height_column is None else height_column) if height_in else None
+        needed = list(self.coord_columns) + ([self.height_column] if self.height_column is not None else [])
+        self.width = max(needed) + 1
+        # output columns: (name, kind) with kind deg | m | arcsec | ratio
+        columns = []
+        if crs is not None:
+            columns += [("latitude_deg", "deg"), ("longitude_deg", "deg")]
+        columns.append(("undulation_m", "m"))
+        if deflection:
+            columns += [(DEFLECTION_COLUMNS[0], "arcsec"), (DEFLECTION_COLUMNS[1], "arcsec"),
+                        (DEFLECTION_COLUMNS[2], "ratio"), (DEFLECTION_COLUMNS[3], "ratio")]
+        if height_in:
+            columns.append((HEIGHT_OUTPUT[height_in], "m"))
+        if with_error:
+            columns.append(("error_bound_m", "m"))
+        self.columns = columns
+        self.plain = columns == [("undulation_m", "m")]
+        self.json_keys = ["line", "fields", "latitude_deg", "longitude_deg"] + [
+            name for name, _ in columns if name not in ("latitude_deg", "longitude_deg")
+        ] + ["error"]
+
+    # -- parsing --------------------------------------------------------------------
+    def parse(self, rows, line_numbers):
+        """Split rows into fields and parse the numbers; return (fields, numbers, problems).
+
+        ``numbers`` has shape (len(rows), width) with NaN where unused or bad.
+        """
+        import numpy as np
+
+        numbers = np.full((len(rows), self.width), np.nan)
+        problems = {}
+        fields = []
+        names = "x/y" if self.crs is not None else "latitude/longitude"
+        if self.crs_dim == 3:
+            names = "x/y/z"
+        for i, row in enumerate(rows):
+            parts = [p.strip() for p in row.split(",")]
+            fields.append(parts)
+            n = line_numbers[i]
+            if len(parts) < self.width:
+                what = self._layout()
+                problems[i] = f"line {n}: expected at least {self.width} columns ({what}), got {len(parts)}"
+                continue
+            coords = [parts[c] for c in self.coord_columns]
+            try:
+                values = [float(v) for v in coords]
+            except ValueError:
+                shown = ", ".join(repr(v) for v in coords)
+                problems[i] = f"line {n}: {names} are not numbers: {shown}"
+                continue
+            if not all(math.isfinite(v) for v in values):
+                shown = ", ".join(repr(v) for v in coords)
+                problems[i] = f"line {n}: {names} must be finite numbers, got {shown}"
+                continue
+            if self.crs is None and abs(values[0]) > 90.0:
+                problems[i] = f"line {n}: latitude {values[0]:g} is outside [-90, 90] degrees"
+                continue
+            if self.height_column is not None:
+                token = parts[self.height_column]
+                try:
+                    height = float(token)
+                except ValueError:
+                    problems[i] = f"line {n}: {self.height_in} height (column {self.height_column}) is not a number: {token!r}"
+                    continue
+                if not math.isfinite(height):
+                    problems[i] = f"line {n}: {self.height_in} height must be a finite number, got {token!r}"
+                    continue
+                numbers[i, self.height_column] = height
+            for c, v in zip(self.coord_columns, values):
+                numbers[i, c] = v
+        return fields, numbers, problems
+
+    def _layout(self):
+        if self.crs is None:
+            names = ["lat", "lon"]
+        elif self.crs_dim == 3:
+            names = ["x", "y", "z"]
+        else:
+            names = ["x", "y"]
+        if self.height_column is not None:
+            names = names + ["..."] * (self.height_column - len(names)) + [f"{self.height_in} height"]
+        return ",".join(names)
+
+    # -- evaluation -----------------------------------------------------------------
+    def evaluate(self, numbers, line_numbers, problems):
+        """Output values (len, ncolumns) for the rows without problems; adds problems."""
+        import numpy as np
+
+        count = numbers.shape[0]
+        out = np.full((count, len(self.columns)), np.nan)
+        lat = np.full(count, np.nan)
+        lon = np.full(count, np.nan)
+        good = np.array([i not in problems for i in range(count)], dtype=bool)
+        h_known = None
+        if self.crs is None:
+            lat[good], lon[good] = numbers[good, 0], numbers[good, 1]
+        elif good.any():
+            from geoidspline.queries import to_geodetic
+
+            z = numbers[good, 2] if self.crs_dim == 3 else None
+            la, lo, h = to_geodetic(numbers[good, 0], numbers[good, 1], z, crs=self.crs)
+            lat[good], lon[good] = la, lo
+            h_known = np.full(count, np.nan)
+            h_known[good] = h
+            for i in np.flatnonzero(good & ~(np.isfinite(lat) & np.isfinite(lon))):
+                problems[int(i)] = (f"line {line_numbers[i]}: cannot transform "
+                                    f"{tuple(float(v) for v in numbers[i, list(self.coord_columns)])} "
+                                    f"from {self.crs} to WGS84 latitude/longitude")
+                good[i] = False
+        if not good.any():
+            return out, lat, lon
+        idx = np.flatnonzero(good)
+        la, lo = lat[idx], lon[idx]
+        undulation = np.asarray(self.source.undulation(la, lo), dtype=float).reshape(-1)
+        values = {"undulation_m": undulation, "latitude_deg": la, "longitude_deg": lo}
+        if self.deflection:
+            from geoidspline.queries import deflection
+
+            d = deflection(self.source, la, lo)
+            values.update(zip(DEFLECTION_COLUMNS, (np.asarray(v).reshape(-1) for v in d)))
+        if self.height_in:
+            from geoidspline.queries import convert_height
+
+            height = h_known[idx] if self.crs_dim == 3 else numbers[idx, self.height_column]
+            values[HEIGHT_OUTPUT[self.height_in]] = np.asarray(convert_height(undulation, height, self.height_in)).reshape(-1)
+        if self.with_error:
+            from geoidspline.queries import tile_error_bound
+
+            values["error_bound_m"] = np.asarray(tile_error_bound(self.source, la, lo)).reshape(-1)
+        for k, (name, _) in enumerate(self.columns):
+            out[idx, k] = values[name]
+        return out, lat, lon
+
+    # -- formatting -----------------------------------------------------------------
+    def format_value(self, value, kind):
+        p = self.precision
+        if not math.isfinite(value):
+            return "nan"
+        if kind == "ratio":
+            return f"{value:.{p}e}"
+        if kind == "deg":
+            return f"{value:.{p + 5}f}"
+        return f"{value:.{p}f}"
+
+    def json_value(self, value, kind):
+        if not math.isfinite(value):
+            return None
+        return float(self.format_value(value, kind))
+
+    def csv_values(self, row_values):
+        return ",".join(self.format_value(float(v), kind) for v, (_, kind) in zip(row_values, self.columns))
+
+    def json_record(self, line, fields, row_values, lat, lon, error=None):
+        record = dict.fromkeys(self.json_keys)
+        record["line"] = line
+        record["fields"] = list(fields)
+        if error is None:
+            record["latitude_deg"] = self.json_value(float(lat), "deg")
+            record["longitude_deg"] = self.json_value(float(lon), "deg")
+            for v, (name, kind) in zip(row_values, self.columns):
+                record[name] = self.json_value(float(v), kind)
+        record["error"] = error
+        return json.dumps(record)
+
+
+HELP = """Geoid undulation N (metres) at LAT LON (degrees), or for every row of --input.
+
+\b
+Source: --store DIR (a tile store written by geoid-fit), or --model FILE for the exact
+spherical-harmonic synthesis at each point (ICGEM .gfc or NGA ASCII coefficients, with
+an optional --correction FILE such as NGA's CORRCOEF; --preset defaults to nga-f477,
+i.e. NGA's F477 for EGM96, and nga-hsynth for an EGM2008 model without correction).
+`geoid-query --model egm96_to360.ascii.gz --correction CORRCOEF.gz LAT LON` reproduces
+NGA's F477.
+
+\b
+CSV rows are echoed with the results appended as new columns, in this order
+(column names, also appended to a header row when the input has one):
+  latitude_deg, longitude_deg  with --crs: the input converted to WGS84 degrees
+  undulation_m                 always: N in metres
+  xi_arcsec, eta_arcsec,       with --deflection: deflection of the vertical
+  dNdn_m_per_m, dNde_m_per_m     (xi = -dN/dnorth, eta = -dN/deast; arcseconds)
+                                 and the geoid gradient in metres per metre
+  orthometric_height_m         with --height-in ellipsoidal: H = h - N
+  ellipsoidal_height_m         with --height-in orthometric: h = H + N
+  error_bound_m                with --with-error: the largest check-point error of
+                                 the store tile the point is in (nan: none)
+With LAT LON (or X Y [Z] [HEIGHT]) on the command line only the appended values are
+printed, comma-separated. --precision gives the decimals of metres and arcseconds
+(degrees get 5 more; the m/m gradients are printed as %.<precision>e).
+
+\b
+Input columns (0-based): latitude, longitude in 0, 1 (header row optional). With --crs
+they are x, y in that CRS (longitude, latitude for a geographic CRS: always x first),
+plus z in column 2 for a 3D CRS (geocentric EPSG:4978, geographic 3D EPSG:4979), whose
+converted ellipsoidal height is then what --height-in ellipsoidal uses. Otherwise the
+height for --height-in is in --height-column (default 2, the third column).
+
+\b
+--format jsonl prints one JSON object per row with the keys, always all present:
+line, fields, latitude_deg, longitude_deg, undulation_m, [the optional columns above],
+error (null, or the message of a bad row); null for values that are not available.
+A header row is not echoed in jsonl.
+
+A bad row becomes an `ERROR: line N: ...` row (jsonl: its "error" key), the rest go
+on, and the exit status is then 1.
+"""
+
+
+@click.command(name="query", help=HELP, context_settings={"help_option_names": ["-h", "--help"],
+                                                          "ignore_unknown_options": True})
+@click.option("--store", "store_path", type=click.Path(), default=None, help="Tile store directory.")
+@click.option("--model", "model_path", type=click.Path(), default=None,
+              help="Spherical-harmonic model file (instead of --store): exact synthesis at each point.")
+@click.option("--correction", "correction_path", type=click.Path(), default=None,
+              help="With --model: zeta-to-N correction coefficients (NGA CORRCOEF, centimetres).")
+@click.option("--preset", type=click.Choice(PRESET_CHOICES), default=None,
+              help="With --model: synthesis conventions [default: nga-f477; nga-hsynth for EGM2008].")
 @click.option("--input", "input_path", type=click.File("r"), default=None,
               help="CSV file of lat,lon[,...] rows ('-' for stdin); a header row is optional.")
-@click.option("--precision", type=int, default=4, show_default=True, help="Decimals of the undulation (metres).")
-@click.argument("coordinates", nargs=2, type=float, required=False, metavar="[LAT LON]")
+@click.option("--deflection", is_flag=True,
+              help="Append xi_arcsec, eta_arcsec, dNdn_m_per_m, dNde_m_per_m (store only).")
+@click.option("--height-in", type=click.Choice(sorted(HEIGHT_OUTPUT)), default=None,
+              help="Convert a height: ellipsoidal h -> orthometric_height_m, orthometric H -> ellipsoidal_height_m.")
+@click.option("--height-column", type=click.IntRange(min=0), default=None,
+              help="0-based column of the height for --height-in [default: 2, the third column].")
+@click.option("--crs", default=None, metavar="CRS",
+              help="Input coordinates are x,y[,z] in this CRS (e.g. EPSG:32633, EPSG:4978); "
+                   "appends latitude_deg, longitude_deg.")
+@click.option("--with-error", is_flag=True, help="Append error_bound_m, the tile's check-point max error (store only).")
+@click.option("--format", "fmt", type=click.Choice(["csv", "jsonl"]), default="csv", show_default=True,
+              help="Output format.")
+@click.option("--precision", type=click.IntRange(0, 15), default=4, show_default=True,
+              help="Decimals of metres and arcseconds.")
+@click.argument("coordinates", nargs=-1, type=float, required=False, metavar="[LAT LON]")
 @verbosity_options
 @user_errors
-def main(store_path, input_path, precision, coordinates, quiet):
-    """Geoid undulation N (metres) at LAT LON (degrees), or for every row of --input.
-
-    CSV rows are echoed with the undulation appended as the last column
-    (``undulation_m``); a bad row becomes an ``ERROR: line N: ...`` row, the rest go
-    on, and the exit status is then 1.
-    """
-    import geoidspline
-
+def main(store_path, model_path, correction_path, preset, input_path, deflection, height_in, height_column,
+         crs, with_error, fmt, precision, coordinates, quiet):
+    coordinates = tuple(coordinates) or None
     if (input_path is None) == (coordinates is None):
         raise click.UsageError("give either LAT LON or --input FILE (use '-' for stdin)")
-    store = geoidspline.open_store(store_path)
+    if (store_path is None) == (model_path is None):
+        raise click.UsageError("give either --store DIR or --model FILE")
+    if model_path is None and (correction_path is not None or preset is not None):
+        raise click.UsageError("--correction and --preset go with --model")
+    if model_path is not None and (deflection or with_error):
+        raise click.UsageError("--deflection and --with-error need a --store (a model has no tiles or gradient here)")
+    if height_column is not None and height_in is None:
+        raise click.UsageError("--height-column goes with --height-in")
+
+    if crs is not None:
+        from geoidspline.queries import crs_info
+
+        if crs_info(crs)[1] == 3:
+            if height_column is not None:
+                raise click.UsageError(f"--crs {crs} is 3D: the height is its z (column 2); drop --height-column")
+            if height_in == "orthometric":
+                raise click.UsageError(f"--crs {crs} is 3D: its z gives an ellipsoidal height, not an orthometric one")
+
+    if store_path is not None:
+        import geoidspline
+
+        source = geoidspline.open_store(store_path)
+    else:
+        from geoidspline.queries import load_synthesis
+
+        source = load_synthesis(model_path, correction_path, preset)
+        log.info("model %s, preset %s, degree %d", source.model.name, source.preset, source.max_degree)
+
+    q = Query(source, is_store=store_path is not None, deflection=deflection, height_in=height_in,
+              height_column=height_column, crs=crs, with_error=with_error, precision=precision, fmt=fmt)
     if coordinates is not None:
-        value = store.undulation(*coordinates)
-        click.echo(f"{value:.{precision}f}")
+        if len(coordinates) != q.width:
+            raise click.UsageError(f"expected {q.width} coordinate values ({q._layout()}), got {len(coordinates)}")
+        _single(q, coordinates)
         return
-    bad = _stream(store, input_path, precision)
+    bad = _stream(q, input_path)
     if bad:
         log.error("%d row(s) could not be processed", bad)
         sys.exit(1)
 
 
-def _stream(store, stream, precision, lat_col=0, lon_col=1):
+def _single(q: Query, coordinates):
+    from geoidspline.errors import CoordinateError
+
+    if q.plain and q.fmt == "csv":
+        # the plain query: the value and nothing else (a latitude out of range is the
+        # source's CoordinateError)
+        value = q.source.undulation(*coordinates)
+        click.echo(f"{value:.{q.precision}f}")
+        return
+    fields = [repr(float(v)) for v in coordinates]
+    _, numbers, problems = q.parse([",".join(fields)], [1])
+    if not problems:
+        out, lat, lon = q.evaluate(numbers, [1], problems)
+    if problems:
+        raise CoordinateError(problems[0].split(": ", 1)[1])
+    if q.fmt == "jsonl":
+        click.echo(q.json_record(None, [repr(float(v)) for v in coordinates], out[0], lat[0], lon[0]))
+    else:
+        click.echo(q.csv_values(out[0]))
+
+
+def _stream(q: Query, stream):
     out = sys.stdout
     line_number = 0
     bad = 0
     header_checked = False
+    jsonl = q.fmt == "jsonl"
+    names = ",".join(name for name, _ in q.columns)
     for batch in _line_batches(stream):
-        numbers = range(line_number + 1, line_number + 1 + len(batch))
+        numbers_range = range(line_number + 1, line_number + 1 + len(batch))
         line_number += len(batch)
         # blank lines are skipped, but rows keep their line numbers for messages
-        numbered = [(n, row) for n, row in zip(numbers, batch) if row.strip()]
+        numbered = [(n, row) for n, row in zip(numbers_range, batch) if row.strip()]
         if not header_checked and numbered:
             header_checked = True
-            if _looks_like_header(numbered[0][1], lat_col, lon_col):
-                out.write(numbered[0][1].rstrip() + ",undulation_m\n")
+            if _looks_like_header(numbered[0][1], *q.coord_columns[:2]):
+                if not jsonl:
+                    out.write(numbered[0][1].rstrip() + "," + names + "\n")
                 numbered = numbered[1:]
         if not numbered:
             continue
         rows = [row for _, row in numbered]
-        fields, lat, lon, problems = _parse(rows, [n for n, _ in numbered], lat_col, lon_col)
-        values = store.undulation(lat, lon)
+        line_numbers = [n for n, _ in numbered]
+        fields, numbers, problems = q.parse(rows, line_numbers)
+        values, lat, lon = q.evaluate(numbers, line_numbers, problems)
         lines = []
         for i, row in enumerate(rows):
             if i in problems:
-                lines.append(f"ERROR: {problems[i]}")
                 bad += 1
+                if jsonl:
+                    lines.append(q.json_record(line_numbers[i], fields[i], None, None, None, error=problems[i]))
+                else:
+                    lines.append(f"ERROR: {problems[i]}")
+            elif jsonl:
+                lines.append(q.json_record(line_numbers[i], fields[i], values[i], lat[i], lon[i]))
             else:
-                lines.append(f"{row.rstrip()},{values[i]:.{precision}f}")
+                lines.append(f"{row.rstrip()},{q.csv_values(values[i])}")
         out.write("\n".join(lines) + "\n")
         out.flush()
     return bad

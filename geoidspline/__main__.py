@@ -2,7 +2,7 @@
 
 import click
 
-from geoidspline.cli import fit, info, query
+from geoidspline.cli import export, fit, info, query
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -13,6 +13,7 @@ def main():
 main.add_command(fit.main, "fit")
 main.add_command(query.main, "query")
 main.add_command(info.main, "info")
+main.add_command(export.main, "export")
 
 if __name__ == "__main__":
     main()

@@ -67,8 +67,8 @@ class FitParameters:
     centre is within ``refine_radius`` cells (per axis) of a node above the tolerance;
     ``None`` means ``order / 2``: every B-spline touching that node (thesis §5.2).
     ``sample_spacing_deg`` is the lattice spacing (degrees) at which a spherical-harmonic
-    source is synthesised for the fit (``None``: the source's default, 90/N degrees for
-    degree N); grids always give their own nodes.
+    source is synthesised for the fit (``None``: 90/N degrees for degree N, at most a
+    quarter of h0); grids always give their own nodes.
     """
 
     order: int = 4
@@ -559,7 +559,12 @@ def fit_source(source, region: Region | None = None, params: FitParameters | Non
     params = params or FitParameters()
     region = region or GLOBAL
     data_region = region.expanded(support_margin_deg(params))
-    sample = source.nodes(_clip_to_extent(data_region, source), spacing_deg=params.sample_spacing_deg)
+    spacing = params.sample_spacing_deg
+    if spacing is None and hasattr(source, "lattice_step"):
+        # a model's own default (90/N degrees) can leave a low-degree model with a
+        # handful of nodes: keep at least a few per level-0 cell
+        spacing = min(source.lattice_step(None), math.degrees(params.h0) / 4.0)
+    sample = source.nodes(_clip_to_extent(data_region, source), spacing_deg=spacing)
     return fit_nodes(sample, region, params, progress=progress, force_tiles=force_tiles)
 
 
