@@ -24,8 +24,6 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
-import os
-import platform
 import re
 import resource
 import shutil
@@ -34,6 +32,9 @@ import sys
 import threading
 import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import git_commit, machine_info  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
@@ -64,38 +65,6 @@ TABLE_HEADER = (
     "| wall s | peak RSS MB | targets |\n"
     "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"
 )
-
-
-def machine_info() -> dict:
-    cpu = None
-    mem_kb = None
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-        with open("/proc/meminfo", encoding="utf-8") as fh:
-            for line in fh:
-                if line.startswith("MemTotal:"):
-                    mem_kb = int(line.split()[1])
-                    break
-    except OSError:
-        pass
-    return {"nproc": os.cpu_count(), "cpu_model": cpu or platform.processor() or None,
-            "mem_total_mb": round(mem_kb / 1024) if mem_kb else None,
-            "python": platform.python_version(), "platform": platform.platform()}
-
-
-def git_commit() -> str | None:
-    try:
-        sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True, text=True,
-                             check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=REPO,
-                               capture_output=True, text=True, check=True).stdout.strip()
-        return sha + ("-dirty" if dirty else "")
-    except (OSError, subprocess.CalledProcessError):
-        return None
 
 
 def command(name: str) -> str:
@@ -234,7 +203,7 @@ def run_scenario(name: str, workers: int, out_dir: Path) -> dict:
         checks[key] = {"limit": limit, "value": value, "met": value is not None and value <= limit}
     return {
         "date": dt.datetime.now(dt.timezone.utc).replace(microsecond=0).isoformat(),
-        "git_commit": git_commit(),
+        "git_commit": git_commit(REPO),
         "machine": machine_info(),
         "scenario": name,
         "description": description,

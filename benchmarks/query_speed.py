@@ -36,14 +36,15 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
-import os
-import platform
 import shutil
 import statistics
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import git_commit, machine_info  # noqa: E402
 
 import numpy as np
 
@@ -52,31 +53,6 @@ GTX = "egm96_15.gtx"
 PROJ_DIR = "/usr/share/proj"
 PIPELINE = f"+proj=vgridshift +grids={GTX} +multiplier=1"
 COLD_RUNS = 5
-
-
-def machine_info() -> dict:
-    cpu = None
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    return {"nproc": os.cpu_count(), "cpu_model": cpu or platform.processor() or None,
-            "python": platform.python_version(), "platform": platform.platform()}
-
-
-def git_commit(repo: Path) -> str | None:
-    try:
-        sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True, text=True,
-                             check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=repo,
-                               capture_output=True, text=True, check=True).stdout.strip()
-        return sha + ("-dirty" if dirty else "")
-    except (OSError, subprocess.CalledProcessError):
-        return None
 
 
 def random_points(n: int, seed: int = SEED):

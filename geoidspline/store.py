@@ -26,7 +26,6 @@ import datetime as _dt
 import hashlib
 import json
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -223,7 +222,6 @@ def write_store(path, result, provenance, check: CheckPoints | None = None,
             "node_rms_error_m": nodes["rms_error_m"],
             "nodes": nodes["count"],
         })
-    _kernels  # noqa: B018 - keys module used above
     _fsync_dir(root / TILE_DIR)
 
     node_stats = _error_stats(result.node_errors)
