@@ -177,8 +177,9 @@ def active_cells(h: float, region: Region):
     when its centre direction is within the cell's angular radius of the region).
     """
     samples = _sphere_samples(region, 0.5 * h)
-    cells = np.unique(np.floor(samples / h).astype(np.int64), axis=0)
-    cells = np.unique((cells[:, None, :] + _cube_offsets(-1, 1)[None]).reshape(-1, 3), axis=0)
+    keys = np.unique(_kernels.pack_keys(np.floor(samples / h).astype(np.int64)))
+    # every cell meeting the sphere is next to a cell holding a sample closer than h
+    cells = _kernels.unpack_keys(_dilate_keys(keys, -1, 1))
     cells = cells[_kernels.cells_meet_sphere(cells, h, 1.0)]
     if not region.is_global:
         centre = (cells + 0.5) * h
@@ -190,17 +191,29 @@ def active_cells(h: float, region: Region):
     return cells
 
 
+_AXIS_STEP = (1 << (2 * _kernels.KEY_BITS), 1 << _kernels.KEY_BITS, 1)
+
+
+def _dilate_keys(keys, lo, hi):
+    """Sorted unique keys of ``key + o`` for every offset o in [lo, hi]³.
+
+    Packing is linear in each index, so offsets add to the keys; dilating one axis at
+    a time keeps the intermediate arrays (hi - lo + 1) times the result, not its cube.
+    """
+    keys = np.unique(keys)
+    for step in _AXIS_STEP:
+        keys = np.unique((keys[:, None] + np.arange(lo, hi + 1)[None, :] * step).ravel())
+    return keys
+
+
 def _touching_keys(cells, order):
     """Sorted keys of every B-spline non-zero on at least one of ``cells``."""
-    idx = (cells[:, None, :] + _cube_offsets(-(order - 1), 0)[None]).reshape(-1, 3)
-    return np.unique(_kernels.pack_keys(idx))
+    return _dilate_keys(_kernels.pack_keys(cells), -(order - 1), 0)
 
 
 def _covered_cell_keys(coef_keys, order):
     """Sorted keys of the cells on which at least one B-spline of ``coef_keys`` lives."""
-    idx = _kernels.unpack_keys(coef_keys)
-    cells = (idx[:, None, :] + _cube_offsets(0, order - 1)[None]).reshape(-1, 3)
-    return np.unique(_kernels.pack_keys(cells))
+    return _dilate_keys(coef_keys, 0, order - 1)
 
 
 def _isin_sorted(values, sorted_keys):
@@ -365,7 +378,7 @@ class OverlayRefinement:
         n_cells = np.unique(_kernels.pack_keys(cells)).size
         radius = order / 2.0 if self.refine_radius is None else self.refine_radius
         if radius >= order / 2.0:
-            return _touching_keys(np.unique(cells, axis=0), order), n_cells, None
+            return _touching_keys(cells, order), n_cells, None
         keys = []
         for chunk in range(0, len(position), 200_000):
             pos = position[chunk:chunk + 200_000]
@@ -420,6 +433,11 @@ def _local_problems(level, h, params: FitParameters, keys, points, values, force
     bin_order = np.argsort(site_bins, kind="stable")
     sorted_bins = site_bins[bin_order]
     neighbour = _cube_offsets(-reach, reach)
+    # coefficients grouped by block, to gather a block's neighbourhood without a scan
+    coef_order = np.argsort(tile_inverse, kind="stable")
+    coef_start = np.searchsorted(tile_inverse[coef_order], np.arange(unique_tiles.size + 1))
+    coef_reach = int(math.ceil((margin + order * h) / size))
+    coef_neighbour = _cube_offsets(-coef_reach, coef_reach)
     for t, tkey in enumerate(unique_tiles):
         tile = _kernels.unpack_keys(np.array([tkey]))[0]
         lo = tile * size - margin
@@ -434,8 +452,12 @@ def _local_problems(level, h, params: FitParameters, keys, points, values, force
         # unknowns: every coefficient non-zero somewhere in the local box
         cell_lo = np.floor(lo / h).astype(np.int64) - (order - 1)
         cell_hi = np.floor(hi / h).astype(np.int64)
-        in_box = np.all((idx >= cell_lo) & (idx <= cell_hi), axis=1)
-        local = np.flatnonzero(in_box)
+        wanted_blocks = _kernels.pack_keys(tile[None, :] + coef_neighbour)
+        near = np.minimum(np.searchsorted(unique_tiles, wanted_blocks), unique_tiles.size - 1)
+        near = near[unique_tiles[near] == wanted_blocks]
+        candidates = np.concatenate([coef_order[coef_start[n]:coef_start[n + 1]] for n in near])
+        candidates = candidates[np.all((idx[candidates] >= cell_lo) & (idx[candidates] <= cell_hi), axis=1)]
+        local = np.sort(candidates)
         own = tile_inverse[local] == t
         yield LocalProblem(
             tile=tuple(int(v) for v in tile), h=h, order=order,
