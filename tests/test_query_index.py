@@ -1,0 +1,230 @@
+"""The query index folds the overlays: one level per point, the same sum as level by level.
+
+:class:`geoidspline.spline.BrickIndex` rewrites S_0 + … + S_ℓ on level ℓ's grid (B-spline
+subdivision) near the sphere, and evaluates a point on the finest level that has a
+brick there only. These tests compare it with a plain reference: the sum over levels
+of the order³ B-splines touching each point, found by ``np.searchsorted`` in each
+level's sorted keys and weighted with scipy's B-spline basis element.
+
+Tolerances: 1e-9 m for values; for derivatives the same 1e-9 m over one cell of the
+finest level (1e-9 / h_f per unit length, 1e-9 / h_f² per unit length squared), since
+a gradient is a difference of coefficients divided by h.
+"""
+
+import numpy as np
+import pytest
+from scipy.interpolate import BSpline
+
+from geoidspline import _kernels
+from geoidspline.fit import FitParameters, fit_nodes
+from geoidspline.region import Region
+from geoidspline.sources import NodeSample
+from geoidspline.spline import FOLD_BAND_CELLS, AmbientSpline, LevelSpline, directions
+
+# derivative multi-indices of the output columns: value, gradient, Hessian xx yy zz xy xz yz
+_COLUMNS = [(0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1),
+            (2, 0, 0), (0, 2, 0), (0, 0, 2), (1, 1, 0), (1, 0, 1), (0, 1, 1)]
+
+
+def reference_evaluate(levels, points, nderiv=0):
+    """Σ_ℓ Σ_k c_k B_k(x) (and derivatives), straight from each level's sorted keys."""
+    width = {0: 1, 1: 4, 2: 10}[nderiv]
+    out = np.zeros((points.shape[0], width))
+    for lv in levels:
+        if len(lv) == 0:
+            continue
+        n, h = lv.order, lv.h
+        element = BSpline.basis_element(np.arange(n + 1), extrapolate=False)
+        basis = [element] + [element.derivative(d) for d in range(1, nderiv + 1)]
+        f = points / h
+        cell = np.floor(f).astype(np.int64)
+        t = f - cell
+        j = np.arange(n)
+        # weights[d][axis][:, j]: d-th derivative (per unit length) of B-spline k = a - n + 1 + j
+        weights = [[np.nan_to_num(basis[d](t[:, axis, None] + n - 1 - j)) / h**d for axis in range(3)]
+                   for d in range(nderiv + 1)]
+        for p in range(n):
+            for q in range(n):
+                for r in range(n):
+                    key = _kernels.pack_keys(cell - n + 1 + np.array([p, q, r]))
+                    pos = np.minimum(np.searchsorted(lv.keys, key), len(lv) - 1)
+                    coef = np.where(lv.keys[pos] == key, lv.coefficients[pos], 0.0)
+                    for col in range(width):
+                        dx, dy, dz = _COLUMNS[col]
+                        out[:, col] += coef * weights[dx][0][:, p] * weights[dy][1][:, q] * weights[dz][2][:, r]
+    return out
+
+
+def unit_vectors(rng, count):
+    u = rng.normal(size=(count, 3))
+    return u / np.linalg.norm(u, axis=1)[:, None]
+
+
+def patch_keys(rng, h, order, centre, radius, keep=0.8, near_sphere=True):
+    """B-splines whose support centre is within radius of centre (and near the sphere),
+    a random fraction ``1 - keep`` of them dropped (holes)."""
+    lo = np.floor((centre - radius) / h).astype(int) - order
+    hi = np.ceil((centre + radius) / h).astype(int) + 1
+    axes = [np.arange(a, b) for a, b in zip(lo, hi)]
+    idx = np.array(np.meshgrid(*axes, indexing="ij")).reshape(3, -1).T
+    mid = (idx + order / 2.0) * h
+    sel = np.linalg.norm(mid - centre, axis=1) <= radius
+    if near_sphere:
+        sel &= np.abs(np.linalg.norm(mid, axis=1) - 1.0) <= order * h
+    idx = idx[sel]
+    return idx[rng.random(len(idx)) < keep]
+
+
+def random_overlays(seed, order=4, h0=0.2, nlevels=4, inner=True):
+    """A sparse level 0 over the sphere with holes and random patches on finer levels.
+
+    Patches are placed independently, so finer levels exist both over coarser ones and
+    where the coarser levels have nothing; ``inner`` adds a finest-level patch around
+    a point at radius 0.6, far from the sphere (evaluated through the own tables).
+    """
+    rng = np.random.default_rng(seed)
+    levels = []
+    for ell in range(nlevels):
+        h = h0 / 2**ell
+        if ell == 0:
+            idx = patch_keys(rng, h, order, np.zeros(3), 1.0 + order * h, keep=0.9)
+        else:
+            parts = [patch_keys(rng, h, order, c, rng.uniform(6, 14) * h) for c in unit_vectors(rng, 6)]
+            if inner and ell == nlevels - 1:
+                parts.append(patch_keys(rng, h, order, 0.6 * unit_vectors(rng, 1)[0], 5 * h, near_sphere=False))
+            idx = np.unique(np.concatenate(parts), axis=0)
+        levels.append(LevelSpline.from_indices(ell, h, order, idx, rng.normal(scale=10.0 / 2**ell, size=len(idx))))
+    return levels
+
+
+def point_sets(rng, levels, count=3000):
+    """Points on the sphere, in thin and thick shells around it, and anywhere in the cube."""
+    h0 = max(lv.h for lv in levels)
+    hf = min(lv.h for lv in levels)
+    u = unit_vectors(rng, count)
+    faces = u.copy()
+    brick = (1 << _kernels.BRICK_BITS) * hf  # on faces between bricks of the finest level
+    axis = rng.integers(0, 3, count)
+    faces[np.arange(count), axis] = np.round(faces[np.arange(count), axis] / brick) * brick
+    return {
+        "sphere": u,
+        "0.999-1.001": u * rng.uniform(0.999, 1.001, (count, 1)),
+        "1-1.5hf": u * (1 - 1.5 * hf),
+        "1+1.5hf": u * (1 + 1.5 * hf),
+        "shell 2h0": u * rng.uniform(1 - 2 * h0, 1 + 2 * h0, (count, 1)),
+        "brick faces": faces,
+        "cube": rng.uniform(-1.3, 1.3, (count, 3)),
+    }
+
+
+def assert_matches_reference(spline, levels, points, label=""):
+    hf = min(lv.h for lv in levels)
+    for nderiv in (0, 1, 2):
+        got = spline.evaluate_points(points, nderiv=nderiv).reshape(len(points), -1)
+        want = reference_evaluate(levels, points, nderiv)
+        tol = np.array([1e-9] + [1e-9 / hf] * 3 + [1e-9 / hf**2] * 6)[:want.shape[1]]
+        err = np.abs(got - want).max(axis=0)
+        assert np.all(err <= tol), f"{label} nderiv={nderiv}: max |error| {err} > {tol}"
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_folded_evaluation_equals_the_level_by_level_sum(seed):
+    levels = random_overlays(seed)
+    spline = AmbientSpline(levels)
+    assert [d for d in spline.index.depths] == [0, 1, 2, 3]
+    for name, points in point_sets(np.random.default_rng(100 + seed), levels).items():
+        assert_matches_reference(spline, levels, points, name)
+
+
+@pytest.mark.parametrize("order", [3, 5])
+def test_other_orders_fold_exactly(order):
+    levels = random_overlays(7, order=order, nlevels=3)
+    spline = AmbientSpline(levels)
+    for name, points in point_sets(np.random.default_rng(8), levels, count=1500).items():
+        assert_matches_reference(spline, levels, points, f"order {order}, {name}")
+
+
+def test_points_in_the_band_read_only_the_folded_tables():
+    """On and near the sphere a point is evaluated on one level: with every own table
+    emptied (the coarsest level's folded table is its own), the results do not change;
+    far from the sphere they do, as there the own tables are summed level by level."""
+    levels = random_overlays(3)
+    spline = AmbientSpline(levels)
+    rng = np.random.default_rng(4)
+    hf = min(lv.h for lv in levels)
+    u = unit_vectors(rng, 5000)
+    near = u * rng.uniform(1 - FOLD_BAND_CELLS * hf, 1 + FOLD_BAND_CELLS * hf, (5000, 1))
+    far = rng.uniform(-0.7, 0.7, (5000, 3))
+    before_near = spline.evaluate_points(near, nderiv=2)
+    before_far = spline.evaluate_points(far)
+    spline.index.own_cols[:] = 0
+    np.testing.assert_array_equal(spline.evaluate_points(near, nderiv=2), before_near)
+    assert np.abs(spline.evaluate_points(far) - before_far).max() > 1e-3
+
+
+def test_empty_duplicate_and_non_nested_levels():
+    levels = random_overlays(5, nlevels=3, inner=False)
+    rng = np.random.default_rng(6)
+    # a second level on level 1's grid (summed with it), an empty level, and a level on
+    # h0 / 3: not nested in the coarser ones, so it and every finer level stay unfolded
+    extra = random_overlays(9, nlevels=2, inner=False)[1]
+    empty = LevelSpline(7, 0.01, 4, np.zeros(0, np.int64), np.zeros(0))
+    third_h = levels[0].h / 3
+    third_idx = patch_keys(rng, third_h, 4, unit_vectors(rng, 1)[0], 8 * third_h)
+    third = LevelSpline.from_indices(8, third_h, 4, third_idx, rng.normal(size=len(third_idx)))
+    # (levels 0 and 2 only: level 2 folds through level 1's grid, which has no bricks)
+    for case in ([extra] + levels + [empty], levels + [third], [levels[2]], [third, levels[1]], [levels[0], levels[2]]):
+        spline = AmbientSpline(case)
+        for name, points in point_sets(rng, [lv for lv in case if len(lv)], count=1000).items():
+            assert_matches_reference(spline, case, points, name)
+    assert AmbientSpline([extra] + levels).index.depths == (0, 1, 2)
+    assert AmbientSpline([levels[2], levels[0]]).index.depths == (0, 2)
+    # h0/3 sorts between h0/2 and h0/4: it and the finer h0/4 level are not folded
+    assert AmbientSpline(levels + [third]).index.depths == (0, 1, None, None)
+
+
+def test_nan_points_and_no_levels():
+    levels = random_overlays(2, nlevels=2)
+    points = np.array([[np.nan, 0.0, 1.0], [0.6, 0.0, 0.8]])
+    values = AmbientSpline(levels).evaluate_points(points)
+    assert np.isnan(values[0]) and values[1] == pytest.approx(reference_evaluate(levels, points[1:])[0, 0], abs=1e-9)
+    assert AmbientSpline([]).evaluate_points(points[1:])[0] == 0.0
+
+
+def test_many_points_are_ordered_without_changing_results():
+    """From 20,000 points on, the index visits them in its own order (locality)."""
+    levels = random_overlays(11)
+    spline = AmbientSpline(levels)
+    rng = np.random.default_rng(12)
+    points = unit_vectors(rng, 60_000) * rng.uniform(0.95, 1.05, (60_000, 1))
+    points[::997] = np.nan
+    many = spline.evaluate_points(points, nderiv=1)
+    few = np.concatenate([spline.evaluate_points(points[i:i + 5000], nderiv=1) for i in range(0, 60_000, 5000)])
+    np.testing.assert_array_equal(many, few)
+    order = _kernels.query_order(points)
+    assert np.array_equal(np.sort(order), np.arange(60_000))
+
+
+def test_fitted_spline_folds_exactly():
+    """A real overlay fit (a narrow bump on a smooth field) against the reference."""
+    def field(lat, lon):
+        p, l = np.radians(lat), np.radians(lon)
+        return (20 * np.sin(2 * p) * np.cos(l) + 10 * np.cos(p) ** 2 * np.sin(2 * l)
+                + 2 * np.exp(-((lat - 5) ** 2 + (lon - 3) ** 2) / 4))
+
+    lat = np.arange(-40, 40.01, 0.5)
+    lon = np.arange(-40, 40.01, 0.5)
+    sample = NodeSample(lat, lon, field(*np.meshgrid(lat, lon, indexing="ij")))
+    result = fit_nodes(sample, Region(-10, -10, 20, 15), FitParameters(h0=0.1, max_level=4, tolerance_m=0.01))
+    levels = list(result.spline.levels)
+    assert len(levels) >= 3
+    rng = np.random.default_rng(13)
+    hf = levels[-1].h
+    la = rng.uniform(-10, 20, 3000)
+    lo = rng.uniform(-10, 15, 3000)
+    u = directions(la, lo)
+    sets = {"sphere": u, "0.999-1.001": u * rng.uniform(0.999, 1.001, (3000, 1)),
+            "1-1.5hf": u * (1 - 1.5 * hf), "1+1.5hf": u * (1 + 1.5 * hf),
+            "shell 2h0": u * rng.uniform(1 - 2 * levels[0].h, 1 + 2 * levels[0].h, (3000, 1))}
+    for name, points in sets.items():
+        assert_matches_reference(result.spline, levels, points, name)
