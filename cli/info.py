@@ -22,9 +22,12 @@ from ._common import user_errors, verbosity_options
                    "MODEL; else nga-f477, nga-hsynth for EGM2008].")
 @click.option("--points", type=click.IntRange(min=1), default=20_000, show_default=True,
               help="With --check-against: random points, uniform in area over the store's region (fixed seed).")
+@click.option("--verify", is_flag=True,
+              help="Check every tile's size and sha256 against the manifest; name each missing, truncated or "
+                   "altered tile and exit 1 if there is any.")
 @verbosity_options
 @user_errors
-def main(store_path, as_json, model_path, correction_path, preset, points, quiet):
+def main(store_path, as_json, model_path, correction_path, preset, points, verify, quiet):
     """Summary of the tile store STORE (a directory written by geoid-fit).
 
     With --check-against MODEL: max, RMS and 99th percentile of |store - model| at
@@ -35,6 +38,20 @@ def main(store_path, as_json, model_path, correction_path, preset, points, quiet
 
     if model_path is None and (correction_path is not None or preset is not None):
         raise click.UsageError("--correction and --preset go with --check-against")
+    if verify:
+        import sys
+
+        from geoidspline.store import verify_store
+
+        problems = verify_store(store_path)
+        if as_json:
+            click.echo(json.dumps({"store": str(store_path), "ok": not problems, "problems": problems}, indent=1))
+        else:
+            for problem in problems:
+                click.echo(f"ERROR: {problem}")
+            if not problems:
+                click.echo(f"{store_path}: every tile matches the manifest")
+        sys.exit(1 if problems else 0)
     store = geoidspline.open_store(store_path)
     info = store.info()
     if model_path is not None:

@@ -229,14 +229,18 @@ def test_overwrite_replaces_store_and_removes_old_tiles(small_store, store_copy)
     assert new["created"] == old["created"]
     assert [h["store_version"] for h in new["history"]] == [1, 2]
     assert [lv["level"] for lv in new["spline"]["levels"]] == [0]
-    assert not [f for f in old_files if f.exists()]
-    on_disk = sorted(p.name for p in (store_copy / "tiles").iterdir())
-    assert on_disk == sorted(Path(e["file"]).name for e in new["tiles"])
-    assert all(".v2." in name for name in on_disk)
+    # the previous version's files stay one version longer, for readers that opened it
+    assert all(f.exists() for f in old_files)
     store = geoidspline.open_store(store_copy)
     lat, lon = _random_points(small_store.region, 500, seed=3)
     assert np.array_equal(store.undulation(lat, lon), result.spline.undulation(lat, lon))
-    assert info["bytes"] == sum(p.stat().st_size for p in store_copy.rglob("*") if p.is_file())
+    assert info["bytes"] == (store_copy / "manifest.json").stat().st_size + sum(
+        (store_copy / e["file"]).stat().st_size for e in new["tiles"])
+    build_store(small_store.grid, store_copy, small_store.region, params, overwrite=True)
+    newer = _manifest(store_copy)
+    assert not [f for f in old_files if f.exists()]
+    on_disk = sorted(p.name for p in (store_copy / "tiles").iterdir())
+    assert on_disk == sorted({Path(e["file"]).name for e in new["tiles"] + newer["tiles"]})
 
 
 def _crash_after(monkeypatch, tiles_written):
@@ -269,10 +273,12 @@ def test_crash_during_overwrite_keeps_the_old_store(small_store, store_copy, mon
     store = geoidspline.open_store(store_copy)
     lat, lon = _random_points(small_store.region, 300, seed=5)
     assert np.array_equal(store.undulation(lat, lon), small_store.result.spline.undulation(lat, lon))
-    # the next successful write removes the orphans
+    # the next successful write removes the orphans (keeping the previous version's files)
+    previous = {Path(e["file"]).name for e in _manifest(store_copy)["tiles"]}
     build_store(small_store.grid, store_copy, small_store.region, params, overwrite=True)
     on_disk = sorted(p.name for p in (store_copy / "tiles").iterdir())
-    assert on_disk == sorted(Path(e["file"]).name for e in _manifest(store_copy)["tiles"])
+    assert on_disk == sorted({Path(e["file"]).name for e in _manifest(store_copy)["tiles"]} | previous)
+    assert not (store_copy / ".lock").exists()
 
 
 def test_crash_during_first_write_leaves_no_store(small_store, tmp_path, monkeypatch):
