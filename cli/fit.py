@@ -16,8 +16,13 @@ log = logging.getLogger("geoidspline.cli")
 
 @click.command(name="fit", context_settings={"help_option_names": ["-h", "--help"]})
 @click.argument("source")
-@click.option("--out", "out", required=True, type=click.Path(file_okay=False),
+@click.option("--out", "out", type=click.Path(file_okay=False), default=None,
               help="Store directory to write (must not exist unless --overwrite).")
+@click.option("--update", "update", type=click.Path(file_okay=False, exists=True), default=None,
+              help="Instead of --out: replace an existing store's geoid inside --region by SOURCE, refitting "
+                   "only the tiles the region touches.")
+@click.option("--blend-width", type=click.FloatRange(min=0.0), default=100.0, show_default=True,
+              help="With --update: width in km outside --region over which SOURCE fades into the store.")
 @click.option("--region", nargs=4, type=float, metavar="S W N E", default=None,
               help="Region in degrees: south west north east (default: global).")
 @click.option("--tolerance", type=float, default=0.5, show_default=True,
@@ -26,6 +31,8 @@ log = logging.getLogger("geoidspline.cli")
 @click.option("--max-level", type=int, default=None, help="Finest overlay level (h = h0 / 2**level) [default: 8].")
 @click.option("--order", type=int, default=4, show_default=True, help="Spline order (4 = cubic, C²).")
 @click.option("--workers", type=int, default=1, show_default=True, help="Worker processes solving tiles.")
+@click.option("--scheduler", type=str, default=None, metavar="TEXT",
+              help="dask scheduler address, or 'local' for a LocalCluster of --workers processes.")
 @click.option("--correction", type=click.Path(exists=True, dir_okay=False), default=None,
               help="NGA zeta-to-N correction coefficients (CORRCOEF) for a model SOURCE.")
 @click.option("--preset", type=click.Choice(["nga-f477", "nga-hsynth", "generic"]), default=None,
@@ -36,8 +43,8 @@ log = logging.getLogger("geoidspline.cli")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @verbosity_options
 @user_errors
-def main(source, out, region, tolerance, h0, max_level, order, workers, correction, preset, sample_spacing,
-         overwrite, as_json, quiet):
+def main(source, out, update, blend_width, region, tolerance, h0, max_level, order, workers, scheduler, correction,
+         preset, sample_spacing, overwrite, as_json, quiet):
     """Fit SOURCE into ambient B-spline tiles stored at --out.
 
     SOURCE is a grid file (.gtx, .nc, WW15MGH.DAC, .pgm), a catalogue name such as
@@ -46,6 +53,11 @@ def main(source, out, region, tolerance, h0, max_level, order, workers, correcti
     """
     from geoidspline.build import build_store
     from geoidspline.catalogue import open_source
+
+    if (out is None) == (update is None):
+        raise click.UsageError("give either --out STORE (a new fit) or --update STORE (a regional update)")
+    if update is not None:
+        return _update(source, update, region, blend_width, workers, correction, preset, as_json, quiet)
     from geoidspline.fit import FitParameters
     from geoidspline.region import GLOBAL, Region
 
@@ -54,7 +66,7 @@ def main(source, out, region, tolerance, h0, max_level, order, workers, correcti
         order=order, tolerance_m=tolerance,
         h0=defaults.h0 if h0 is None else h0,
         max_level=defaults.max_level if max_level is None else max_level,
-        workers=workers, sample_spacing_deg=sample_spacing,
+        workers=workers, sample_spacing_deg=sample_spacing, scheduler=scheduler,
     )
     fit_region = Region.from_bounds(*region) if region else GLOBAL
     src = open_source(source, correction, preset)
@@ -91,6 +103,35 @@ def main(source, out, region, tolerance, h0, max_level, order, workers, correcti
                    f"max {info['max_error_m']:.4f} m, RMS {info['rms_error_m']:.4f} m")
     click.echo(f"time       {info['wall_seconds']:.1f} s")
     if not result.converged:
+        sys.exit(3)
+
+
+def _update(source, store, region, blend_width, workers, correction, preset, as_json, quiet):
+    from geoidspline.catalogue import open_source
+    from geoidspline.region import Region
+    from geoidspline.update import update_store
+
+    if region is None:
+        raise click.UsageError("--update needs --region S W N E")
+    src = open_source(source, correction, preset)
+    started = time.perf_counter()
+    record = update_store(store, src, Region.from_bounds(*region), blend_width_km=blend_width, workers=workers)
+    record["wall_seconds"] = round(time.perf_counter() - started, 2)
+    if as_json:
+        click.echo(json.dumps(record, indent=1))
+        return
+    click.echo(f"store      {store}  version {record['previous_version']} -> {record['store_version']}")
+    click.echo(f"source     {record['source']} ({record['model']})")
+    s, w, n, e = record["region"]
+    click.echo(f"region     S {s:g}  W {w:g}  N {n:g}  E {e:g}, blend {record['blend_width_km']:g} km")
+    click.echo(f"tiles      {record['tiles_rewritten']} rewritten, {record['coefficients_added']:+,d} coefficients")
+    if record["nodes_in_region"]:
+        click.echo(f"region     {record['nodes_in_region']:,} nodes: max |error| {record['max_error_m']:.4f} m, "
+                   f"RMS {record['rms_error_m']:.4f} m")
+    if not record["converged"]:
+        click.echo(f"tolerance  {record['tolerance_m']:g} m NOT reached with the store's levels")
+    click.echo(f"time       {record['wall_seconds']:.1f} s")
+    if not record["converged"]:
         sys.exit(3)
 
 

@@ -31,15 +31,14 @@ from __future__ import annotations
 import logging
 import math
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, asdict
-import multiprocessing
 
 import numpy as np
 import scipy.sparse as sp
 import qdldl
 
 from . import _kernels
+from . import distributed as _distributed
 from .errors import FitError
 from .region import Region, GLOBAL
 from .spline import AmbientSpline, LevelSpline, directions, tile_of_indices
@@ -68,6 +67,13 @@ class FitParameters:
     ``sample_spacing_deg`` is the lattice spacing (degrees) at which a spherical-harmonic
     source is synthesised for the fit (``None``: 90/N degrees for degree N, at most a
     quarter of h0); grids always give their own nodes.
+    ``workers`` and ``scheduler`` say where the blocks of a level are solved
+    (:func:`geoidspline.distributed.solve_problems`): ``scheduler=None`` means local
+    processes per ``workers`` (1: in this process); ``"local"`` a dask LocalCluster of
+    ``workers`` single-threaded processes started for each level; any other value is
+    the address of a running dask scheduler (``tcp://``, ``tls://``, ``inproc://`` or
+    ``ucx://``), whose workers solve the blocks. Every choice gives the same
+    coefficients.
     """
 
     order: int = 4
@@ -85,6 +91,7 @@ class FitParameters:
     untiled_max_unknowns: int = 20_000
     workers: int = 1
     sample_spacing_deg: float | None = None
+    scheduler: str | None = None
 
     def __post_init__(self):
         if not 2 <= self.order <= 8:
@@ -105,6 +112,15 @@ class FitParameters:
             raise FitError(f"workers must be at least 1, got {self.workers}")
         if self.sample_spacing_deg is not None and not 0 < self.sample_spacing_deg <= 5:
             raise FitError(f"sample spacing must be within (0, 5] degrees, got {self.sample_spacing_deg}")
+        if self.scheduler is not None and not (
+            isinstance(self.scheduler, str)
+            and (self.scheduler == "local"
+                 or self.scheduler.startswith(_distributed.SCHEDULER_PREFIXES))
+        ):
+            raise FitError(
+                f"scheduler must be 'local' or a dask scheduler address (tcp://, tls://, inproc:// "
+                f"or ucx://), got {self.scheduler!r}"
+            )
 
     def spacing(self, level: int) -> float:
         return self.h0 / 2.0 ** level
@@ -284,16 +300,6 @@ def solve_local_problem(problem: LocalProblem):
     return keys[problem.own], solution[problem.own], time.perf_counter() - start
 
 
-def _worker_init():
-    # one solver per process: keep numba and BLAS from oversubscribing the cores
-    try:
-        import numba
-
-        numba.set_num_threads(1)
-    except Exception:  # pragma: no cover - numba always present in practice
-        pass
-
-
 # ---------------------------------------------------------------------------------
 # node bookkeeping
 
@@ -409,11 +415,12 @@ def _sites_for_level(nodes: _Nodes, ray_mask, h, order, keys, radial_offsets, si
     return np.concatenate(pts_all), np.concatenate(idx_all)
 
 
-def _local_problems(level, h, params: FitParameters, keys, points, values, force_tiles=False):
+def _local_problems(level, h, params: FitParameters, keys, points, values, force_tiles=False, overlay=None):
     order = params.order
     # Overlays fit residuals, which are near zero wherever the data do not pin them
     # down: a ridge keeps their coefficients there small (level 0 must not be biased).
-    ridge = params.overlay_ridge if level > 0 else 1e-10
+    overlay = level > 0 if overlay is None else overlay
+    ridge = params.overlay_ridge if overlay else 1e-10
     if keys.size <= params.untiled_max_unknowns and not force_tiles:
         yield LocalProblem(
             tile=("whole",), h=h, order=order, regularization=params.regularization, ridge=ridge,
@@ -466,38 +473,23 @@ def _local_problems(level, h, params: FitParameters, keys, points, values, force
         )
 
 
-def _solve_level(problems, workers, progress=None):
-    keys_out, coefs_out, count = [], [], 0
-    if workers > 1:
-        ctx = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init) as pool:
-            for own_keys, own_coefs, _ in pool.map(solve_local_problem, problems):
-                keys_out.append(own_keys)
-                coefs_out.append(own_coefs)
-                count += 1
-                if progress:
-                    progress(1)
-    else:
-        for problem in problems:
-            own_keys, own_coefs, _ = solve_local_problem(problem)
-            keys_out.append(own_keys)
-            coefs_out.append(own_coefs)
-            count += 1
-            if progress:
-                progress(1)
-    keys = np.concatenate(keys_out) if keys_out else np.empty(0, np.int64)
-    coefs = np.concatenate(coefs_out) if coefs_out else np.empty(0)
+def _solve_level(problems, params: FitParameters, progress=None):
+    results = _distributed.solve_problems(problems, params.workers, params.scheduler, progress)
+    keys = np.concatenate([r[0] for r in results]) if results else np.empty(0, np.int64)
+    coefs = np.concatenate([r[1] for r in results]) if results else np.empty(0)
     order = np.argsort(keys)
-    return keys[order], coefs[order], count
+    return keys[order], coefs[order], len(results)
 
 
 def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, progress=None,
-              force_tiles=False) -> FitResult:
+              force_tiles=False, base_is_overlay=False) -> FitResult:
     """Fit the nodes of a :class:`~geoidspline.sources.NodeSample` over ``region``.
 
     ``sample`` must cover the region plus the support margin of level 0 (see
     :func:`fit_source`, which asks the source for exactly that). ``progress``, when
-    given, is called with the number of local problems just solved.
+    given, is called with the number of local problems just solved. With
+    ``base_is_overlay`` the sample holds residuals of an existing spline (a regional
+    update) and level 0 is refined and regularised like any overlay.
     """
     refinement = refinement or OverlayRefinement(params.refine_radius)
     start = time.perf_counter()
@@ -509,7 +501,7 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
     levels: list[LevelSpline] = []
     reports: list[LevelReport] = []
     converged = False
-    violating = region_dirs
+    violating = region_dirs[np.abs(errors) > params.tolerance_m] if base_is_overlay else region_dirs
     # a level much finer than the data spacing is not determined between the nodes
     data_spacing = max(nodes.dlat_rad, nodes.dlon_rad * float(np.cos(np.radians(np.abs(nodes.latitude)).mean())))
     data_limited = False
@@ -534,8 +526,9 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
         )
         values = nodes.values[node_of_site] - AmbientSpline(levels).evaluate_points(points) if levels \
             else nodes.values[node_of_site].copy()
-        problems = list(_local_problems(level, h, params, keys, points, values, force_tiles))
-        own_keys, own_coefs, solved = _solve_level(problems, params.workers, progress)
+        problems = list(_local_problems(level, h, params, keys, points, values, force_tiles,
+                                        overlay=level > 0 or base_is_overlay))
+        own_keys, own_coefs, solved = _solve_level(problems, params, progress)
         if own_keys.size != keys.size:
             raise FitError(f"level {level}: tiles returned {own_keys.size} of {keys.size} coefficients")
         lv = LevelSpline(level, h, params.order, own_keys, own_coefs)

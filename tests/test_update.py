@@ -1,0 +1,255 @@
+"""Regional updates: new data inside, old store outside, atomic and locked."""
+
+import hashlib
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import geoidspline
+from geoidspline.build import build_store
+from geoidspline.errors import CoordinateError, StoreError
+from geoidspline.fit import FitParameters
+from geoidspline.grid import GeoidGrid
+from geoidspline.readers import write_gtx
+from geoidspline.region import GLOBAL, Region
+from geoidspline.sources import Provenance
+from geoidspline.spline import directions
+from geoidspline.store import verify_store
+from geoidspline.update import update_store
+
+REGION = Region(0, 10, 20, 30)
+BLEND_KM = 300.0
+PARAMS = FitParameters(h0=0.2, max_level=3, tolerance_m=0.05, tile_size=0.4)
+
+
+def base_field(lat, lon):
+    p, l = np.radians(lat), np.radians(lon)
+    return 20 * np.sin(2 * p) * np.cos(l) + 10 * np.cos(p) ** 2 * np.sin(2 * l) + 5
+
+
+def bump(lat, lon):
+    return 3 * np.exp(-((lat - 10) ** 2 + (lon - 20) ** 2) / 20)
+
+
+def grid(field, name, step=1.0, **prov):
+    lat = np.arange(-90, 90 + 1e-9, step)
+    lon = np.arange(-180, 180 - 1e-9, step)
+    lat2, lon2 = np.meshgrid(lat, lon, indexing="ij")
+    values = field(lat2, lon2).astype(np.float32).astype(float)
+    return GeoidGrid(lat, lon, values, Provenance(source=name, model=name, tide_system="tide_free", **prov))
+
+
+@pytest.fixture(scope="module")
+def base_store(tmp_path_factory):
+    path = tmp_path_factory.mktemp("update") / "base"
+    build_store(grid(base_field, "base"), path, GLOBAL, PARAMS)
+    return path
+
+
+@pytest.fixture
+def store(base_store, tmp_path):
+    import shutil
+
+    path = tmp_path / "store"
+    shutil.copytree(base_store, path)
+    return path
+
+
+def new_grid():
+    return grid(lambda la, lo: base_field(la, lo) + bump(la, lo), "new")
+
+
+def snapshot(path):
+    return {p.relative_to(path).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(Path(path).rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def updated(base_store, tmp_path_factory):
+    import shutil
+
+    path = tmp_path_factory.mktemp("updated") / "store"
+    shutil.copytree(base_store, path)
+    before = geoidspline.open_store(path).manifest
+    record = update_store(path, new_grid(), REGION, blend_width_km=BLEND_KM)
+    return path, before, record
+
+
+def test_values_inside_follow_the_new_data(updated):
+    path, _, record = updated
+    store = geoidspline.open_store(path)
+    assert record["converged"] and record["max_error_m"] <= PARAMS.tolerance_m
+    rng = np.random.default_rng(1)
+    lat, lon = rng.uniform(0, 20, 3000), rng.uniform(10, 30, 3000)
+    truth = base_field(lat, lon) + bump(lat, lon)
+    # between the 1° nodes a little more than the node tolerance
+    assert np.abs(store.undulation(lat, lon) - truth).max() < 2 * PARAMS.tolerance_m
+
+
+def test_far_values_and_tiles_are_unchanged(updated, base_store):
+    path, before, record = updated
+    after = geoidspline.open_store(path).manifest
+    old = {tuple(e["tile"]): (e["file"], e["sha256"]) for e in before["tiles"]}
+    new = {tuple(e["tile"]): (e["file"], e["sha256"]) for e in after["tiles"]}
+    changed = [t for t in new if new[t] != old.get(t)]
+    assert 0 < len(changed) == record["tiles_rewritten"] < len(old) / 4
+    # a changed tile's cube lies within reach of the blend zone: its B-splines are
+    # centred in the zone, and a tile owns those whose support centre it holds
+    size = after["spline"]["tile_size"]
+    reach = np.degrees(np.sqrt(3) * size + 2 * PARAMS.h0)
+    zone = REGION.expanded(BLEND_KM / 111.195 + reach)
+    for tile in changed:
+        centre = (np.array(tile) + 0.5) * size
+        centre /= np.linalg.norm(centre)
+        lat = np.degrees(np.arcsin(centre[2]))
+        lon = np.degrees(np.arctan2(centre[1], centre[0]))
+        assert zone.contains(lat, lon), tile
+    # every unchanged tile file is byte-identical to the original
+    for tile, (name, digest) in new.items():
+        if tile not in changed:
+            assert hashlib.sha256((path / name).read_bytes()).hexdigest() == digest
+            assert (base_store / name).read_bytes() == (path / name).read_bytes()
+    # and far from the region the geoid is the old one, to rounding
+    rng = np.random.default_rng(2)
+    lat, lon = rng.uniform(-60, 60, 5000), rng.uniform(-180, 180, 5000)
+    far = ~REGION.expanded(40).contains(lat, lon)
+    old_store = geoidspline.open_store(base_store)
+    np.testing.assert_allclose(geoidspline.open_store(path).undulation(lat[far], lon[far]),
+                               old_store.undulation(lat[far], lon[far]), atol=1e-12)
+
+
+def test_smooth_across_the_region_edge(updated):
+    """No step at the edge: value and gradient change in proportion to the step across
+    it (a stacked-grid lookup would jump by the bump's size there)."""
+    path, _, _ = updated
+    spline = geoidspline.open_store(path).spline
+    lat = np.linspace(2, 18, 9)
+    edge = directions(lat, np.full(lat.size, 30.0))  # east edge of the region
+    east = directions(lat, np.full(lat.size, 30.0 + 1e-6)) - edge
+    jumps = []
+    for delta in (1.0, 0.1):
+        a = spline.evaluate_points(edge - delta * east, nderiv=1)
+        b = spline.evaluate_points(edge + delta * east, nderiv=1)
+        jumps.append(np.abs(b - a))
+    assert np.all(jumps[0] > 0)
+    np.testing.assert_allclose(jumps[0] / jumps[1], 10.0, rtol=0.05)
+
+
+def test_manifest_records_the_update(updated):
+    path, before, record = updated
+    after = geoidspline.open_store(path).manifest
+    assert after["store_version"] == before["store_version"] + 1
+    last = after["history"][-1]
+    assert last["action"] == "update" and last["source"] == "new"
+    assert last["region"] == list(REGION.as_tuple()) and last["previous_version"] == before["store_version"]
+    assert last["time"] and "sha256" in last
+    assert after["spline"]["coefficients"] == sum(lv["coefficients"] for lv in after["spline"]["levels"])
+    assert verify_store(path) == []
+
+
+@pytest.mark.parametrize("change, error, match", [
+    (dict(ellipsoid="GRS80"), StoreError, "ellipsoid"),
+    (dict(tide_system="mean_tide"), StoreError, "tide"),
+])
+def test_incompatible_sources_are_refused_before_writing(store, change, error, match):
+    before = snapshot(store)
+    source = new_grid()
+    source.provenance = Provenance(**{**source.provenance.as_dict(), "notes": (), **change})
+    with pytest.raises(error, match=match):
+        update_store(store, source, REGION)
+    assert snapshot(store) == before
+
+
+def test_region_outside_the_source_is_refused(store):
+    before = snapshot(store)
+    lat = np.arange(-10, 30.01, 1.0)
+    lon = np.arange(0, 40.01, 1.0)
+    lat2, lon2 = np.meshgrid(lat, lon, indexing="ij")
+    regional = GeoidGrid(lat, lon, base_field(lat2, lon2), Provenance(source="regional", tide_system="tide_free"))
+    with pytest.raises(CoordinateError, match="not inside the extent"):
+        update_store(store, regional, Region(40, 10, 50, 30))
+    assert snapshot(store) == before
+
+
+def test_read_only_and_locked_stores_are_refused(store, monkeypatch):
+    before = snapshot(store)
+    (store / ".lock").write_text(str(os.getppid()))  # a live process holds the lock
+    with pytest.raises(StoreError, match="another writer"):
+        update_store(store, new_grid(), REGION)
+    (store / ".lock").unlink()
+    assert snapshot(store) == before
+    import geoidspline.update as update_module
+
+    monkeypatch.setattr(update_module.os, "access", lambda *a, **k: False)
+    with pytest.raises(StoreError, match="read-only"):
+        update_store(store, new_grid(), REGION)
+    assert snapshot(store) == before
+
+
+UPDATE_SCRIPT = textwrap.dedent("""
+    import sys
+    sys.path.insert(0, {tests!r})
+    from test_update import new_grid, REGION, BLEND_KM
+    from geoidspline.update import update_store
+    update_store({store!r}, new_grid(), REGION, blend_width_km=BLEND_KM)
+""")
+
+
+@pytest.mark.parametrize("point", ["before-tiles", "during-tiles", "after-tiles", "before-manifest",
+                                   "manifest-written", "after-manifest"])
+def test_an_update_killed_anywhere_leaves_the_old_or_the_new_store(store, point):
+    old = geoidspline.open_store(store)
+    old_version = old.manifest["store_version"]
+    script = UPDATE_SCRIPT.format(tests=str(Path(__file__).parent), store=str(store))
+    env = dict(os.environ, GEOIDSPLINE_CRASH_AT=point)
+    run = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 77, run.stderr  # died at the crash point, no clean-up
+    assert verify_store(store) == []
+    reopened = geoidspline.open_store(store)
+    version = reopened.manifest["store_version"]
+    assert version == (old_version + 1 if point == "after-manifest" else old_version)
+    if version == old_version:
+        lat, lon = np.array([10.0, -40.0]), np.array([20.0, 100.0])
+        assert np.array_equal(reopened.undulation(lat, lon), old.undulation(lat, lon))
+    # the dead writer's lock does not block the next update
+    record = update_store(store, new_grid(), REGION, blend_width_km=BLEND_KM)
+    assert record["store_version"] == version + 1 and verify_store(store) == []
+    assert not (store / ".lock").exists()
+
+
+def test_sigkill_during_an_update(store):
+    import signal
+    import time
+
+    script = UPDATE_SCRIPT.format(tests=str(Path(__file__).parent), store=str(store))
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    time.sleep(3.0)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=60)
+    assert verify_store(store) == []
+    assert geoidspline.open_store(store).manifest["store_version"] in (1, 2)
+
+
+def test_cli_update_and_verify(store, tmp_path):
+    source = write_gtx(tmp_path / "new.gtx", new_grid())
+    run = subprocess.run([sys.executable, "-m", "geoidspline", "fit", str(source), "--update", str(store),
+                          "--region", "0", "10", "20", "30", "--blend-width", "300", "--json", "-q"],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert json.loads(run.stdout)["store_version"] == 2
+    run = subprocess.run([sys.executable, "-m", "geoidspline", "info", str(store), "--verify"],
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0 and "every tile matches" in run.stdout
+    live = sorted(e["file"] for e in json.loads((store / "manifest.json").read_text())["tiles"])
+    victim = store / live[0]
+    victim.write_bytes(victim.read_bytes()[:-10])
+    run = subprocess.run([sys.executable, "-m", "geoidspline", "info", str(store), "--verify"],
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 1 and victim.name in run.stdout and "truncated" in run.stdout
+    assert "Traceback" not in run.stderr
