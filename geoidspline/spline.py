@@ -261,10 +261,13 @@ class BrickIndex:
     The folded values are computed per brick in dense (side³) blocks, each from its
     parent brick's block by separable subdivision (recursively up to the coarsest
     level, for :data:`_FOLD_CHUNK_BRICKS` bricks at a time), then cut to the band.
-    Memory: :attr:`nbytes`. Immutable once built; evaluation is thread-safe.
+    With ``fold=False`` no folded tables are built (every level is evaluated from its
+    own table and the levels are summed): a fraction of the build time and memory, for
+    small batches. Memory: :attr:`nbytes`. Immutable once built; evaluation is
+    thread-safe.
     """
 
-    def __init__(self, levels, order):
+    def __init__(self, levels, order, fold=True):
         bits = _kernels.BRICK_BITS
         cells = 1 << bits
         side = cells + order - 1
@@ -301,7 +304,7 @@ class BrickIndex:
             own_cols.append(cols)
             values.append(own)
             value_base += own.size
-            if i == 0 or self.depths[i] is None:
+            if i == 0 or self.depths[i] is None or not fold:
                 fold_bases.append(base + value_base - own.size)
                 fold_cols.append(cols)
                 band_lo2.append(-np.inf if i == 0 else np.inf)
@@ -449,11 +452,18 @@ class BrickIndex:
                                  self.fold_cols, self.own_base, self.own_cols, self.values, out)
 
 
+#: Batches from this size on use the folded index (worth its build time).
+FOLDED_FROM_POINTS = 2048
+
+
 class AmbientSpline:
     """The sum of hierarchical overlay levels: S = Σ_ℓ S_ℓ (thesis §5.2).
 
-    Evaluation is thread-safe: the object is immutable after construction and the
-    kernels only read it.
+    Evaluation is thread-safe: the levels are immutable and the kernels only read them.
+    The query indexes are built on first use: a level-by-level one for small batches
+    (cheap to build, so a one-point query in a fresh process stays fast) and the folded
+    one (one level per point) for batches of :data:`FOLDED_FROM_POINTS` points or more.
+    Two threads may both build an index the first time; they build identical ones.
     """
 
     def __init__(self, levels):
@@ -463,7 +473,22 @@ class AmbientSpline:
             raise ValueError(f"all levels must share one spline order, got {sorted(orders)}")
         self.levels = tuple(levels)
         self.order = orders.pop() if orders else 4
-        self.index = BrickIndex(self.levels, self.order)
+        self._folded = None
+        self._plain = None
+
+    @property
+    def index(self) -> BrickIndex:
+        """The folded query index (built on first use)."""
+        if self._folded is None:
+            self._folded = BrickIndex(self.levels, self.order)
+        return self._folded
+
+    def _index_for(self, count):
+        if count >= FOLDED_FROM_POINTS or self._folded is not None:
+            return self.index
+        if self._plain is None:
+            self._plain = BrickIndex(self.levels, self.order, fold=False)
+        return self._plain
 
     @property
     def coefficient_count(self) -> int:
@@ -474,7 +499,7 @@ class AmbientSpline:
         points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
         width = {0: 1, 1: 4, 2: 10}[nderiv]
         out = np.zeros((points.shape[0], width))
-        self.index.add_to(points, out, nderiv)  # orders many points itself (locality)
+        self._index_for(points.shape[0]).add_to(points, out, nderiv)  # orders many points itself
         bad = ~np.all(np.isfinite(points), axis=1)
         out[bad] = np.nan
         return out[:, 0] if nderiv == 0 else out

@@ -228,3 +228,24 @@ def test_fitted_spline_folds_exactly():
             "shell 2h0": u * rng.uniform(1 - 2 * levels[0].h, 1 + 2 * levels[0].h, (3000, 1))}
     for name, points in sets.items():
         assert_matches_reference(result.spline, levels, points, name)
+
+
+def test_small_batches_use_the_unfolded_index_and_agree_with_the_folded_one():
+    from geoidspline.spline import FOLDED_FROM_POINTS
+
+    rng = np.random.default_rng(21)
+    h0, order = 0.2, 4
+    levels = []
+    for level in range(3):
+        h = h0 / 2**level
+        r = np.arange(int(-1.3 / h), int(1.3 / h))
+        idx = np.array(np.meshgrid(r, r, r, indexing="ij")).reshape(3, -1).T
+        idx = idx[rng.random(len(idx)) < (1.0 if level == 0 else 0.3)]
+        levels.append(LevelSpline.from_indices(level, h, order, idx, rng.normal(size=len(idx))))
+    small = AmbientSpline(levels)
+    u = rng.normal(size=(FOLDED_FROM_POINTS - 1, 3))
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    plain = small.evaluate_points(u, nderiv=2)
+    assert small._folded is None and small._plain is not None
+    folded = AmbientSpline(levels).evaluate_points(np.vstack([u, u[:1]]), nderiv=2)[:-1]
+    np.testing.assert_allclose(plain, folded, rtol=1e-10, atol=1e-9 / (h0 / 4) ** 2)
