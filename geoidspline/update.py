@@ -29,7 +29,7 @@ from .region import Region
 from .sources import NodeSample
 from .spline import AmbientSpline, LevelSpline, directions
 from .store import (
-    StoreLock, TILE_DIR, TileStore, _commit, _crash_point, _error_stats, _group_by_tile, _load_manifest,
+    StoreLock, TILE_DIR, TileStore, _commit, _crash_point, _error_stats, _group_by_tile,
     _now, _tile_stats, _write_tile_entry, tile_groups,
 )
 
