@@ -463,7 +463,9 @@ class AmbientSpline:
     The query indexes are built on first use: a level-by-level one for small batches
     (cheap to build, so a one-point query in a fresh process stays fast) and the folded
     one (one level per point) for batches of :data:`FOLDED_FROM_POINTS` points or more.
-    Two threads may both build an index the first time; they build identical ones.
+    The two differ by rounding only (1e-12 m); which one serves a call depends on the
+    batch size alone. Two threads may both build an index the first time; they build
+    identical ones.
     """
 
     def __init__(self, levels):
@@ -484,7 +486,8 @@ class AmbientSpline:
         return self._folded
 
     def _index_for(self, count):
-        if count >= FOLDED_FROM_POINTS or self._folded is not None:
+        # by batch size only, so a result never depends on what was evaluated before
+        if count >= FOLDED_FROM_POINTS:
             return self.index
         if self._plain is None:
             self._plain = BrickIndex(self.levels, self.order, fold=False)

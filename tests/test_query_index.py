@@ -247,5 +247,7 @@ def test_small_batches_use_the_unfolded_index_and_agree_with_the_folded_one():
     u /= np.linalg.norm(u, axis=1)[:, None]
     plain = small.evaluate_points(u, nderiv=2)
     assert small._folded is None and small._plain is not None
+    small.evaluate_points(np.vstack([u, u[:1]]))  # builds the folded index
+    assert np.array_equal(small.evaluate_points(u, nderiv=2), plain)  # small batches keep the plain one
     folded = AmbientSpline(levels).evaluate_points(np.vstack([u, u[:1]]), nderiv=2)[:-1]
     np.testing.assert_allclose(plain, folded, rtol=1e-10, atol=1e-9 / (h0 / 4) ** 2)
