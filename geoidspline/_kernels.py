@@ -581,7 +581,8 @@ def evaluate_bricks(points, inv_hs, band_lo2, band_hi2, order, nderiv, presence,
     from ``fold_base``/``own_base`` (bits COL_SHIFT-31), its first local k and length.
     ``out`` has 1 (value), 4 (+ gradient) or 10 (+ Hessian xx yy zz xy xz yz) columns.
     NaN points are skipped. Visit many points in :func:`query_order` (neighbours share
-    bricks and cache lines).
+    bricks and cache lines): a reordered copy of the points is faster than visiting
+    them in place through an index (measured 79 against 240 ns a point).
     """
     m = points.shape[0]
     width = out.shape[1]
@@ -630,3 +631,16 @@ def evaluate_bricks(points, inv_hs, band_lo2, band_hi2, order, nderiv, presence,
                                    brick, values, wx, wy, wz, result)
             for r in range(width):
                 out[s, r] += result[r]
+
+
+@_pjit
+def unit_vectors(latitude, longitude, out):
+    """Directions (cos φ cos λ, cos φ sin λ, sin φ) of latitude/longitude in degrees."""
+    d2r = np.pi / 180.0
+    for s in numba.prange(latitude.shape[0]):
+        phi = latitude[s] * d2r
+        lam = longitude[s] * d2r
+        cos_phi = np.cos(phi)
+        out[s, 0] = cos_phi * np.cos(lam)
+        out[s, 1] = cos_phi * np.sin(lam)
+        out[s, 2] = np.sin(phi)

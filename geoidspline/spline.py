@@ -43,10 +43,13 @@ def check_coordinates(latitude, longitude):
 
 def directions(latitude, longitude):
     """Unit vectors (..., 3) for latitude/longitude in degrees (no range check)."""
-    phi = np.radians(latitude)
-    lam = np.radians(longitude)
-    cos_phi = np.cos(phi)
-    return np.stack([cos_phi * np.cos(lam), cos_phi * np.sin(lam), np.sin(phi)], axis=-1)
+    latitude, longitude = np.broadcast_arrays(np.asarray(latitude, dtype=np.float64),
+                                              np.asarray(longitude, dtype=np.float64))
+    shape = latitude.shape
+    out = np.empty((latitude.size, 3))
+    # one compiled, threaded pass instead of numpy's temporaries (a third of a query)
+    _kernels.unit_vectors(np.ascontiguousarray(latitude).ravel(), np.ascontiguousarray(longitude).ravel(), out)
+    return out.reshape(shape + (3,))
 
 
 def tile_of_indices(indices, h, order, tile_size):
