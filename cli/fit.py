@@ -38,7 +38,8 @@ log = logging.getLogger("geoidspline.cli")
 @click.option("--preset", type=click.Choice(["nga-f477", "nga-hsynth", "generic"]), default=None,
               help="Synthesis conventions for a model SOURCE [default: chosen from the model].")
 @click.option("--sample-spacing", type=float, default=None,
-              help="Lattice spacing in degrees at which a model SOURCE is synthesised [default: 90/N].")
+              help="Lattice spacing in degrees at which a model SOURCE is synthesised "
+                   "[default: 90/N for degree N, at most a quarter of h0].")
 @click.option("--overwrite", is_flag=True, help="Replace an existing store at --out.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @verbosity_options
