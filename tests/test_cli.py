@@ -411,3 +411,24 @@ def test_group_dispatches_to_the_commands(small_store, api):
     assert json.loads(result.stdout)["tiles"] == small_store.info["tiles"]
     for name in ("fit", "query", "info"):
         assert runner.invoke(geoidspline_main, [name, "--help"]).exit_code == 0
+
+
+def test_large_plain_batches_take_the_vectorised_parser_with_identical_output(small_store, tmp_path):
+    """Hundreds of valid rows go through the one-pass parser; one bad row among them
+    sends its batch back to the row-by-row parser, which names the line."""
+    rng = np.random.default_rng(8)
+    lat = rng.uniform(12, 28, 500)
+    lon = rng.uniform(22, 38, 500)
+    rows = [f"{a:.6f},{b:.6f},name{i}" for i, (a, b) in enumerate(zip(lat, lon))]
+    runner = CliRunner()
+    good = runner.invoke(query_main, ["--store", str(small_store.path), "--input", "-"], input="\n".join(rows) + "\n")
+    assert good.exit_code == 0
+    values = [float(line.rsplit(",", 1)[1]) for line in good.output.strip().splitlines()]
+    expected = geoidspline.open_store(small_store.path).undulation(lat, lon)
+    np.testing.assert_allclose(values, expected, atol=0.6e-4)
+    rows[250] = "95,30,bad"
+    bad = runner.invoke(query_main, ["--store", str(small_store.path), "--input", "-"], input="\n".join(rows) + "\n")
+    assert bad.exit_code == 1
+    out = bad.output.strip().splitlines()
+    assert out[250].startswith("ERROR: line 251: latitude 95")
+    assert out[:250] == good.output.strip().splitlines()[:250]
