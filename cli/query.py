@@ -466,6 +466,12 @@ def _stream(q: Query, stream):
         line_numbers = [n for n, _ in numbered]
         fields, numbers, problems = q.parse(rows, line_numbers)
         values, lat, lon = q.evaluate(numbers, line_numbers, problems)
+        if not problems and not jsonl and q.plain:
+            # the common case formatted in one comprehension (NaN prints as "nan", as below)
+            p = q.precision
+            out.write("\n".join(f"{row.rstrip()},{v:.{p}f}" for row, v in zip(rows, values[:, 0].tolist())) + "\n")
+            out.flush()
+            continue
         lines = []
         for i, row in enumerate(rows):
             if i in problems:
