@@ -274,6 +274,14 @@ class _Collector:
             self.sC[n, m] = sc
             self.sS[n, m] = ss
 
+    def model(self, name, gm, radius, tide_system, notes, digest) -> "HarmonicModel":
+        """The collected coefficients as a :class:`HarmonicModel` of this file."""
+        return HarmonicModel(
+            name=name, gm=float(gm), radius=float(radius), max_degree=self.nmax, tide_system=tide_system,
+            C=self.C, S=self.S, source_path=str(self.path), sha256=digest,
+            sigma_C=self.sC, sigma_S=self.sS, notes=notes,
+        )
+
     def check_complete(self, first_degree, where):
         n_idx, m_idx = np.nonzero(np.tril(self.line_of == 0))
         keep = n_idx >= first_degree
@@ -432,20 +440,7 @@ def read_icgem(path, *, max_degree: int | None = None, check_tide_system: bool =
     tide, notes = _check_tide_system(path, name, coll.C[2, 0], declared, "the header's tide_system", check_tide_system)
     if declared is None and tide is None:
         notes = notes + ("tide_system not stated in the header",)
-    return HarmonicModel(
-        name=name,
-        gm=gm,
-        radius=radius,
-        max_degree=nmax,
-        tide_system=tide,
-        C=coll.C,
-        S=coll.S,
-        source_path=str(path),
-        sha256=digest,
-        sigma_C=coll.sC,
-        sigma_S=coll.sS,
-        notes=notes,
-    )
+    return coll.model(name, gm, radius, tide, notes, digest)
 
 
 # --------------------------------------------------------------------------------------
@@ -549,20 +544,7 @@ def read_nga(
         coll.add(lineno, n, m, c, s, sc, ss)
     coll.check_complete(2, "truncated file or incomplete model")
     tide, notes = _check_tide_system(path, name, coll.C[2, 0], tide_system, source_label, check_tide_system)
-    return HarmonicModel(
-        name=name,
-        gm=float(gm),
-        radius=float(radius),
-        max_degree=nmax,
-        tide_system=tide,
-        C=coll.C,
-        S=coll.S,
-        source_path=str(path),
-        sha256=digest,
-        sigma_C=coll.sC,
-        sigma_S=coll.sS,
-        notes=notes,
-    )
+    return coll.model(name, gm, radius, tide, notes, digest)
 
 
 _UNITS = {"cm": 0.01, "m": 1.0, "mm": 0.001}
