@@ -40,12 +40,16 @@ log = logging.getLogger("geoidspline.cli")
 @click.option("--sample-spacing", type=float, default=None,
               help="Lattice spacing in degrees at which a model SOURCE is synthesised "
                    "[default: 90/N for degree N, at most a quarter of h0].")
+@click.option("--method", type=click.Choice(["least-squares", "interpolation"]), default="least-squares",
+              show_default=True,
+              help="How level 0 is computed: least squares (any source) or quasi-interpolation of a model "
+                   "SOURCE (no linear solves: the way to millimetre-level global stores).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing store at --out.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @verbosity_options
 @user_errors
 def main(source, out, update, blend_width, region, tolerance, h0, max_level, order, workers, scheduler, correction,
-         preset, sample_spacing, overwrite, as_json, quiet):
+         preset, sample_spacing, method, overwrite, as_json, quiet):
     """Fit SOURCE into ambient B-spline tiles stored at --out.
 
     SOURCE is a grid file (.gtx, .nc, WW15MGH.DAC, .pgm), a catalogue name such as
@@ -59,7 +63,7 @@ def main(source, out, update, blend_width, region, tolerance, h0, max_level, ord
         raise click.UsageError("give either --out STORE (a new fit) or --update STORE (a regional update)")
     if update is not None:
         return _update(source, update, region, blend_width, workers, correction, preset, as_json, quiet)
-    from geoidspline.fit import FitParameters
+    from geoidspline.fit import FitParameters, check_method
     from geoidspline.region import GLOBAL, Region
 
     defaults = FitParameters()
@@ -67,10 +71,11 @@ def main(source, out, update, blend_width, region, tolerance, h0, max_level, ord
         order=order, tolerance_m=tolerance,
         h0=defaults.h0 if h0 is None else h0,
         max_level=defaults.max_level if max_level is None else max_level,
-        workers=workers, sample_spacing_deg=sample_spacing, scheduler=scheduler,
+        workers=workers, sample_spacing_deg=sample_spacing, scheduler=scheduler, method=method,
     )
     fit_region = Region.from_bounds(*region) if region else GLOBAL
     src = open_source(source, correction, preset)
+    check_method(src, params)
     log.info("source %s (%s), region %s", src.provenance.source, src.provenance.model, fit_region.as_tuple())
     started = time.perf_counter()
     bar = None

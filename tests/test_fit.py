@@ -203,3 +203,14 @@ def test_fit_straight_from_a_spherical_harmonic_model():
     err = np.abs(check.truth - result.spline.undulation(check.latitude, check.longitude))
     assert err.max() < 3 * 0.01
     assert np.sqrt(np.mean(err**2)) < 0.01
+
+
+@pytest.mark.parametrize("count", [0, 1, 5, 3000])
+@pytest.mark.parametrize("chunk", [1, 7, 1_000_000])
+def test_union_of_shifts_equals_unique_of_all_shifts(count, chunk):
+    from geoidspline.fit import union_of_shifts
+
+    keys = np.unique(np.random.default_rng(count).integers(0, 10**6, count))
+    shifts = np.array([-7, 0, 3, 100])
+    expected = np.unique((keys[:, None] + shifts[None, :]).ravel())
+    np.testing.assert_array_equal(union_of_shifts(keys, shifts, chunk), expected)
