@@ -525,7 +525,7 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
     ``(level, seconds, lattice points)`` of it go into its report.
     """
     refinement = refinement or OverlayRefinement(params.refine_radius)
-    start = time.perf_counter()
+    start = time.perf_counter() - (first_level[1] if first_level is not None else 0.0)
     nodes = _Nodes.from_sample(sample, region)
     if not np.any(nodes.in_region):
         raise FitError(f"no data nodes inside the region {region.as_tuple()}")
