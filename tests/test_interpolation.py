@@ -204,3 +204,35 @@ def test_cli_fits_a_model_by_interpolation_and_refuses_a_grid(toy, tmp_path):
     refused = CliRunner().invoke(fit_main, [str(gtx), "--method", "interpolation", "--out", str(tmp_path / "g")])
     assert refused.exit_code == 1 and refused.stderr.startswith("ERROR: ") and "exact everywhere" in refused.stderr
     assert "Traceback" not in refused.output and not (tmp_path / "g").exists()
+
+
+def test_deflection_of_a_model_store_matches_differences_of_the_exact_synthesis(toy):
+    """ξ, η of a store fitted from a model agree with central differences of the exact
+    synthesis, within the fit error turned into a slope: a spline error of at most ε on
+    cells of size h R varies by at most 2 (n-1)² ε / (h R) per metre (Markov's
+    inequality for degree n-1 polynomials on the cell), n the spline order."""
+    from geoidspline.queries import deflection, gaussian_mean_radius
+
+    h, order = 0.02, 4
+    region = Region(10, 10, 30, 40)
+    params = FitParameters(h0=h, order=order, max_level=0, tolerance_m=1.0, method="interpolation")
+    spline = fit_source(toy, region, params).spline
+    check = check_points(toy, region, count=3000, seed=5)
+    eps = np.abs(check.truth - spline.undulation(check.latitude, check.longitude)).max()
+    rng = np.random.default_rng(6)
+    lat = rng.uniform(13, 27, 300)
+    lon = rng.uniform(13, 37, 300)
+    got = deflection(spline, lat, lon)
+    radius = gaussian_mean_radius(lat)
+    step = 1e-3  # degrees: truncation |N'''| step² / 6 is ~1e-12 m per m here
+    dn_dphi = (toy.undulation(lat + step, lon) - toy.undulation(lat - step, lon)) / (2 * np.radians(step))
+    dn_dlam = (toy.undulation(lat, lon + step) - toy.undulation(lat, lon - step)) / (2 * np.radians(step))
+    xi = -np.degrees(dn_dphi / radius) * 3600
+    eta = -np.degrees(dn_dlam / (radius * np.cos(np.radians(lat)))) * 3600
+    slope_bound = 2 * (order - 1) ** 2 * eps / (h * 6_371_000.0)  # metres per metre
+    bound_arcsec = np.degrees(slope_bound) * 3600
+    assert 0 < eps < 2e-3
+    assert np.abs(got.xi_arcsec - xi).max() < bound_arcsec
+    assert np.abs(got.eta_arcsec - eta).max() < bound_arcsec
+    # and the comparison is not vacuous: the deflections are far larger than the bound
+    assert np.abs(xi).max() > 20 * bound_arcsec
