@@ -124,7 +124,12 @@ def cells_meet_sphere(cells, h, radius):
     """Whether each cell (M, 3) of spacing h meets the sphere |x| = radius.
 
     The box is convex and |x| continuous, so it meets the sphere exactly when the
-    nearest point is inside or on it and the farthest outside or on it.
+    nearest point is inside or on it and the farthest outside or on it. "On" has a
+    relative slack of 1e-9: where the sphere touches a cell face (the poles and the four
+    equator points on the axes, whenever 1/h is an integer) rounding of ``k h`` must not
+    drop the outer cell (at h = 0.005, -201 h + h rounds below -1): level 0 then misses
+    the B-splines outside the south pole, and an overlay fitting the residual at the
+    outer sites there made a 70 mm error at the pole.
     """
     m = cells.shape[0]
     out = np.empty(m, dtype=np.bool_)
@@ -140,7 +145,7 @@ def cells_meet_sphere(cells, h, radius):
             elif hi < 0.0:
                 near += hi * hi
             far += max(lo * lo, hi * hi)
-        out[s] = near <= r2 <= far
+        out[s] = near <= r2 * (1.0 + 1e-9) and r2 * (1.0 - 1e-9) <= far
     return out
 
 

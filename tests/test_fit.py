@@ -214,3 +214,50 @@ def test_union_of_shifts_equals_unique_of_all_shifts(count, chunk):
     shifts = np.array([-7, 0, 3, 100])
     expected = np.unique((keys[:, None] + shifts[None, :]).ravel())
     np.testing.assert_array_equal(union_of_shifts(keys, shifts, chunk), expected)
+
+
+@pytest.mark.parametrize("h", [0.1, 0.04, 0.005, 0.0025])
+def test_cells_touching_the_sphere_at_the_axis_points_meet_it(h):
+    """Where 1/h is an integer the sphere touches cell faces at (±1, 0, 0), (0, ±1, 0),
+    (0, 0, ±1): the cells just outside must count, whatever the rounding of k h."""
+    n = round(1 / h)
+    outside, beyond = [], []
+    for axis in range(3):
+        for sign in (1, -1):
+            cell = np.zeros(3, np.int64)
+            cell[axis] = n if sign > 0 else -n - 1
+            outside.append(cell.copy())
+            cell[axis] += sign
+            beyond.append(cell)
+    assert _kernels.cells_meet_sphere(np.array(outside), h, 1.0).all()
+    assert not _kernels.cells_meet_sphere(np.array(beyond), h, 1.0).any()
+
+
+def test_overlays_at_the_poles_fit_both_sides_of_the_sphere():
+    """An overlay over a polar cap improves the poles like everywhere else (it used to
+    fit rays with their outer sites dropped at the pole and make it 20 times worse)."""
+    from geoidspline.fit import fit_source
+    from geoidspline.harmonics import GeoidSynthesis, HarmonicModel
+
+    rng = np.random.default_rng(7)
+    nmax = 24
+    C = np.zeros((nmax + 1, nmax + 1))
+    S = np.zeros((nmax + 1, nmax + 1))
+    for n in range(2, nmax + 1):
+        C[n, : n + 1] = rng.normal(size=n + 1) * 1e-6 / n
+        S[n, 1 : n + 1] = rng.normal(size=n) * 1e-6 / n
+    C[2, 0] = -0.484165371736e-3
+    model = GeoidSynthesis(HarmonicModel(name="toy24", gm=3.986004415e14, radius=6378136.3, max_degree=nmax,
+                                         tide_system="tide_free", C=C, S=S), preset="generic")
+    # at h = 0.005, -201 h + h rounds below -1: level 0 lost the cells outside the south
+    # pole, and the overlay's outer sites there saw a level 0 with B-splines missing
+    cap = Region(-90, -180, -88, 180)
+    base = fit_source(model, cap, FitParameters(h0=0.005, max_level=0, tolerance_m=1.0, method="interpolation"))
+    tolerance = 0.25 * base.node_max_error_m
+    refined = fit_source(model, cap, FitParameters(h0=0.005, max_level=1, tolerance_m=tolerance,
+                                                   method="interpolation", sample_spacing_deg=0.02))
+    lat = np.concatenate([[-90.0], rng.uniform(-90, -89, 300)])
+    lon = np.concatenate([[0.0], rng.uniform(-180, 180, 300)])
+    err = np.abs(model.undulation(lat, lon) - refined.spline.undulation(lat, lon))
+    assert refined.levels[1].coefficients > 0
+    assert err.max() < 2 * tolerance
