@@ -19,11 +19,16 @@ numba cache load, PROJ grid opening), then the three variants are timed in turn 
 figure reported is the median over the R runs of (wall time / N), in ns per point; the
 ratio is pyproj / ours (> 1: ours is faster).
 
+Before the warm-up it times opening the store (the manifest only), reading every tile
+(with sha256 checks) and building the folded query index, separately.
+
 It also measures the first-query latency of a cold process: the wall time of
-``geoid-query --store STORE LAT LON`` as a subprocess (interpreter start, imports, store
-opening with sha256 checks, numba cache load, one query), median of 5 runs after one
-untimed priming run (that one may compile numba's cache if it is empty; its time is
-reported separately). LAT LON is the centre of the store's region.
+``geoid-query --store STORE LAT LON`` as a subprocess (interpreter start, imports,
+opening the manifest, reading and checking the few tiles around the point, one numpy
+evaluation: numba is not imported), median of 5 runs after one untimed priming run
+(reported separately). LAT LON is the centre of the store's region. ``--cold-only``
+measures just that. The load averages before and after are recorded (the machine is
+shared).
 
 Before timing, it checks that PROJ's z really is N (at grid nodes it must equal the
 GTX values, between nodes their bilinear interpolation) and reports how far our store is
@@ -36,6 +41,7 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
+import os
 import shutil
 import statistics
 import subprocess
@@ -135,16 +141,24 @@ def cold_query(store: Path, lat: float, lon: float, runs: int = COLD_RUNS) -> di
             "value_m": float(value)}
 
 
-def run(store: Path, points: int, repeat: int, cold: bool = True) -> dict:
+def region_centre(manifest: dict):
+    s, w, n, e = manifest["region"]
+    return 0.5 * (s + n), (w + 0.5 * (e - w) + 180.0) % 360.0 - 180.0  # east = west + span
+
+
+def run(store: Path, points: int, repeat: int, cold: bool = True, cold_runs: int = COLD_RUNS) -> dict:
     import numba
 
     import geoidspline
 
+    load_before = os.getloadavg()
     all_threads = numba.config.NUMBA_NUM_THREADS
     lat, lon = random_points(points)
     zeros = np.zeros(points)
 
     t_open, st = timed(geoidspline.open_store, store)
+    t_read, _ = timed(lambda: st.spline.full)
+    t_index, _ = timed(lambda: st.spline.index)
     transformer = proj_transformer()
     proj_check = verify_proj(transformer)
 
@@ -181,8 +195,7 @@ def run(store: Path, points: int, repeat: int, cold: bool = True) -> dict:
     region = st.manifest["region"]
     inside = st.covers(lat, lon)
     diff = results["ours-all"][inside] - results["pyproj"][inside]
-    s, w, n, e = region
-    centre = (0.5 * (s + n), (w + 0.5 * (e - w) + 180.0) % 360.0 - 180.0)  # east = west + span
+    centre = region_centre(st.manifest)
     out = {
         "date": dt.datetime.now(dt.timezone.utc).replace(microsecond=0).isoformat(),
         "git_commit": git_commit(Path(__file__).resolve().parent.parent),
@@ -191,6 +204,10 @@ def run(store: Path, points: int, repeat: int, cold: bool = True) -> dict:
         "store_coefficients": st.manifest["spline"]["coefficients"],
         "store_region": region,
         "store_open_s": t_open,
+        "store_read_all_tiles_s": t_read,
+        "index_build_s": t_index,
+        "index_bytes": int(st.spline.index.nbytes),
+        "spline_order": st.spline.order,
         "points": points,
         "repeat": repeat,
         "seed": SEED,
@@ -210,7 +227,8 @@ def run(store: Path, points: int, repeat: int, cold: bool = True) -> dict:
         },
     }
     if cold:
-        out["cold_query"] = cold_query(store, *centre)
+        out["cold_query"] = cold_query(store, *centre, runs=cold_runs)
+    out["load_average_before_after"] = [list(load_before), list(os.getloadavg())]
     return out
 
 
@@ -218,7 +236,9 @@ def print_table(r: dict) -> None:
     med = r["median_ns_per_point"]
     print(f"{r['points']:,} random points uniform on the sphere, {r['repeat']} repeats, medians "
           f"({r['machine']['nproc']} CPUs: {r['machine']['cpu_model']})")
-    print(f"store {r['store']} ({r['store_coefficients']:,} coefficients, opened in {r['store_open_s']:.2f} s)")
+    print(f"store {r['store']} ({r['store_coefficients']:,} coefficients, order {r['spline_order']}; manifest "
+          f"opened in {r['store_open_s']:.3f} s, every tile read in {r['store_read_all_tiles_s']:.2f} s, "
+          f"index built in {r['index_build_s']:.2f} s, {r['index_bytes'] / 1e6:.0f} MB)")
     print()
     print("| variant | ns/point (median) | min..max | pyproj / this |")
     print("|---|---:|---:|---:|")
@@ -233,11 +253,13 @@ def print_table(r: dict) -> None:
     if c["points"]:
         print(f"ours - pyproj inside the store's region: {c['points']:,} points, max {c['max_abs_m']:.3f} m, "
               f"RMS {c['rms_m']:.3f} m (PROJ is bilinear on 15'; not an accuracy figure)")
+    print("load average before / after: " + " / ".join(" ".join(f"{v:.2f}" for v in la)
+                                                      for la in r["load_average_before_after"]))
     if "cold_query" in r:
         q = r["cold_query"]
         print(f"cold process `geoid-query --store STORE {q['command'][-2]} {q['command'][-1]}`: median "
               f"{q['median_s'] * 1e3:.0f} ms over {len(q['runs_s'])} runs "
-              f"(priming run {q['priming_run_s'] * 1e3:.0f} ms)")
+              f"({', '.join(f'{t * 1e3:.0f}' for t in q['runs_s'])}; priming run {q['priming_run_s'] * 1e3:.0f} ms)")
 
 
 def main(argv=None) -> int:
@@ -248,11 +270,27 @@ def main(argv=None) -> int:
     parser.add_argument("--repeat", type=int, default=5, help="timed repetitions (default 5)")
     parser.add_argument("--json", type=Path, default=None, help="also write the results as JSON to this file")
     parser.add_argument("--no-cold", action="store_true", help="skip the cold-process geoid-query latency")
+    parser.add_argument("--cold-only", action="store_true", help="only the cold-process geoid-query latency")
+    parser.add_argument("--cold-runs", type=int, default=COLD_RUNS, help=f"timed cold runs (default {COLD_RUNS})")
     args = parser.parse_args(argv)
-    if args.points < 1 or args.repeat < 1:
-        parser.error("--points and --repeat must be positive")
-    result = run(args.store, args.points, args.repeat, cold=not args.no_cold)
-    print_table(result)
+    if args.points < 1 or args.repeat < 1 or args.cold_runs < 1:
+        parser.error("--points, --repeat and --cold-runs must be positive")
+    if args.cold_only:
+        manifest = json.loads((args.store / "manifest.json").read_text())
+        before = os.getloadavg()
+        result = {"date": dt.datetime.now(dt.timezone.utc).replace(microsecond=0).isoformat(),
+                  "git_commit": git_commit(Path(__file__).resolve().parent.parent), "machine": machine_info(),
+                  "store": str(args.store), "store_coefficients": manifest["spline"]["coefficients"],
+                  "cold_query": cold_query(args.store, *region_centre(manifest), runs=args.cold_runs)}
+        result["load_average_before_after"] = [list(before), list(os.getloadavg())]
+        q = result["cold_query"]
+        print(f"cold process `geoid-query --store {args.store} {q['command'][-2]} {q['command'][-1]}` = "
+              f"{q['value_m']}: median {q['median_s'] * 1e3:.0f} ms over {len(q['runs_s'])} runs "
+              f"({', '.join(f'{t * 1e3:.0f}' for t in q['runs_s'])}; priming run {q['priming_run_s'] * 1e3:.0f} ms); "
+              f"load average before / after {before[0]:.2f} / {os.getloadavg()[0]:.2f}")
+    else:
+        result = run(args.store, args.points, args.repeat, cold=not args.no_cold, cold_runs=args.cold_runs)
+        print_table(result)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(result, indent=1) + "\n")

@@ -19,32 +19,13 @@ from __future__ import annotations
 import numpy as np
 import numba
 
-KEY_BITS = 21
-KEY_OFFSET = 1 << (KEY_BITS - 1)
-_KEY_MASK = (1 << KEY_BITS) - 1
-MAX_INDEX = KEY_OFFSET - 16  # room for the n-1 neighbours of the outermost cell
+from ._keys import KEY_BITS, KEY_OFFSET, MAX_INDEX, pack_keys, unpack_keys  # noqa: F401 (re-exported)
 
 # cache=True keeps compiled code in __pycache__ so a cold process does not recompile.
 _jit = numba.njit(cache=True, nogil=True, fastmath=False)
 _pjit = numba.njit(cache=True, nogil=True, parallel=True, fastmath=False)
 # small helpers of the query loop, inlined into it at numba's IR level
 _ijit = numba.njit(cache=True, nogil=True, fastmath=False, inline="always")
-
-
-def pack_keys(index):
-    """Pack integer triples (..., 3) into int64 keys (no range check)."""
-    index = np.asarray(index, dtype=np.int64) + KEY_OFFSET
-    return (index[..., 0] << (2 * KEY_BITS)) | (index[..., 1] << KEY_BITS) | index[..., 2]
-
-
-def unpack_keys(keys):
-    """Inverse of :func:`pack_keys`: int64 keys to integer triples (..., 3)."""
-    keys = np.asarray(keys, dtype=np.int64)
-    out = np.empty(keys.shape + (3,), dtype=np.int64)
-    out[..., 0] = (keys >> (2 * KEY_BITS)) & _KEY_MASK
-    out[..., 1] = (keys >> KEY_BITS) & _KEY_MASK
-    out[..., 2] = keys & _KEY_MASK
-    return out - KEY_OFFSET
 
 
 @_jit
@@ -255,6 +236,7 @@ _HASH_MULT = np.uint64(0x9E3779B97F4A7C15)
 COL_KBITS = 5
 COL_SHIFT = 2 * COL_KBITS
 _COL_KMASK = (1 << COL_KBITS) - 1
+_U = np.uint64  # unsigned indices: no negative-index wraparound code in the hot loops
 
 
 @_ijit
@@ -335,12 +317,14 @@ def _pick4(w0, w1, w2, w3, i):
 
 
 @_ijit
-def _value_cubic(fx, fy, fz, ax, ay, az, base, cols, brick, values):
+def _value_cubic(fx, fy, fz, ax, ay, az, base, colsf, side, brick, values):
     """Value of one brick table of a cubic spline at a point: the hot path of queries.
 
-    ``fx`` is x / h, ``ax`` its cell; ``cols[brick]`` are the brick's column entries,
-    ``base`` its first value. Same sum as :func:`_eval_bricks_point`, with the weights
-    in registers and a column's four coefficients read at once when its run holds them.
+    ``fx`` is x / h, ``ax`` its cell; ``colsf`` the column entries (bricks, side, side)
+    flattened, ``base`` the brick's first value. Same sum as :func:`_eval_bricks_point`,
+    with the weights in registers and a column's four coefficients read at once when its
+    run holds them. Indices are unsigned, so numba emits no negative-index wraparound
+    (10-15 % faster, measured on order 6).
     """
     x0, x1, x2, x3 = _cubic_weights(fx - ax)
     y0, y1, y2, y3 = _cubic_weights(fy - ay)
@@ -349,23 +333,149 @@ def _value_cubic(fx, fy, fz, ax, ay, az, base, cols, brick, values):
     ly = ay & ((1 << BRICK_BITS) - 1)
     lz = az & ((1 << BRICK_BITS) - 1)
     acc = 0.0
+    row0 = _U((brick * side + lx) * side + ly)
     for p in range(4):
         wx = _pick4(x0, x1, x2, x3, p)
+        rp = row0 + _U(p * side)
         for q in range(4):
-            packed = cols[brick, lx + p, ly + q]
+            packed = colsf[rp + _U(q)]
             length = packed & _COL_KMASK
             if length == 0:
                 continue
             start = lz - ((packed >> COL_KBITS) & _COL_KMASK)
             offset = base + (packed >> COL_SHIFT) + start
             if start >= 0 and start + 4 <= length:
-                col = values[offset] * z0 + values[offset + 1] * z1 + values[offset + 2] * z2 + values[offset + 3] * z3
+                o = _U(offset)
+                col = values[o] * z0 + values[o + _U(1)] * z1 + values[o + _U(2)] * z2 + values[o + _U(3)] * z3
             else:
                 col = 0.0
                 for r in range(4):
                     if 0 <= start + r < length:
                         col += values[offset + r] * _pick4(z0, z1, z2, z3, r)
             acc += wx * _pick4(y0, y1, y2, y3, q) * col
+    return acc
+
+
+@_ijit
+def _quintic_weights(t):
+    """The six order-6 (quintic) B-spline weights of a point at t in [0, 1) of its cell."""
+    s = 1.0 - t
+    t2 = t * t
+    t3 = t2 * t
+    t4 = t2 * t2
+    t5 = t4 * t
+    c = 1.0 / 120.0
+    return (s * s * s * s * s * c,
+            (26.0 - 50.0 * t + 20.0 * t2 + 20.0 * t3 - 20.0 * t4 + 5.0 * t5) * c,
+            (66.0 - 60.0 * t2 + 30.0 * t4 - 10.0 * t5) * c,
+            (26.0 + 50.0 * t + 20.0 * t2 - 20.0 * t3 - 20.0 * t4 + 10.0 * t5) * c,
+            (1.0 + 5.0 * t + 10.0 * t2 + 10.0 * t3 + 5.0 * t4 - 5.0 * t5) * c,
+            t5 * c)
+
+
+@_ijit
+def _pick6(w0, w1, w2, w3, w4, w5, i):
+    if i == 0:
+        return w0
+    if i == 1:
+        return w1
+    if i == 2:
+        return w2
+    if i == 3:
+        return w3
+    if i == 4:
+        return w4
+    return w5
+
+
+@_ijit
+def _value_quintic(fx, fy, fz, ax, ay, az, base, colsf, side, brick, values):
+    """Value of one brick table of an order-6 spline at a point (as :func:`_value_cubic`):
+    closed-form weights in registers, a column's six coefficients read at once when its
+    run holds them."""
+    x0, x1, x2, x3, x4, x5 = _quintic_weights(fx - ax)
+    y0, y1, y2, y3, y4, y5 = _quintic_weights(fy - ay)
+    z0, z1, z2, z3, z4, z5 = _quintic_weights(fz - az)
+    mask = (1 << BRICK_BITS) - 1
+    lx = ax & mask
+    ly = ay & mask
+    lz = az & mask
+    acc = 0.0
+    row0 = _U((brick * side + lx) * side + ly)
+    for p in range(6):
+        wx = _pick6(x0, x1, x2, x3, x4, x5, p)
+        rp = row0 + _U(p * side)
+        for q in range(6):
+            packed = colsf[rp + _U(q)]
+            length = packed & _COL_KMASK
+            if length == 0:
+                continue
+            start = lz - ((packed >> COL_KBITS) & _COL_KMASK)
+            o = base + (packed >> COL_SHIFT) + start
+            if start >= 0 and start + 6 <= length:
+                u = _U(o)
+                col = ((values[u] * z0 + values[u + _U(1)] * z1) + (values[u + _U(2)] * z2 + values[u + _U(3)] * z3)
+                       + (values[u + _U(4)] * z4 + values[u + _U(5)] * z5))
+            else:
+                col = 0.0
+                for r in range(6):
+                    if 0 <= start + r < length:
+                        col += values[o + r] * _pick6(z0, z1, z2, z3, z4, z5, r)
+            acc += wx * _pick6(y0, y1, y2, y3, y4, y5, q) * col
+    return acc
+
+
+@_ijit
+def _weights_any(t, order, w):
+    """The order B-spline weights of a point at t in [0, 1) of its cell into w (any order).
+
+    In-place de Boor recursion on uniform knots (Piegl & Tiller, *The NURBS Book*,
+    A2.2, whose denominators are all the degree here); ``w[j]`` weights B-spline
+    ``k = a - order + 1 + j``, as in :func:`bspline_weights`. No allocation.
+    """
+    w[0] = 1.0
+    for deg in range(1, order):
+        saved = 0.0
+        inv = 1.0 / deg
+        for r in range(deg):
+            temp = w[r] * inv
+            w[r] = saved + (r + 1 - t) * temp
+            saved = (t + deg - r - 1) * temp
+        w[deg] = saved
+
+
+@_ijit
+def _value_any(fx, fy, fz, ax, ay, az, order, base, cols, brick, values, wx, wy, wz):
+    """Value of one brick table at a point for any spline order (see :func:`_value_cubic`).
+
+    ``wx``, ``wy``, ``wz`` are work arrays of length ``order``.
+    """
+    _weights_any(fx - ax, order, wx)
+    _weights_any(fy - ay, order, wy)
+    _weights_any(fz - az, order, wz)
+    lx = ax & ((1 << BRICK_BITS) - 1)
+    ly = ay & ((1 << BRICK_BITS) - 1)
+    lz = az & ((1 << BRICK_BITS) - 1)
+    acc = 0.0
+    for p in range(order):
+        row = 0.0
+        for q in range(order):
+            packed = cols[brick, lx + p, ly + q]
+            length = packed & _COL_KMASK
+            if length == 0:
+                continue
+            start = lz - ((packed >> COL_KBITS) & _COL_KMASK)
+            offset = base + (packed >> COL_SHIFT) + start
+            col = 0.0
+            if start >= 0 and start + order <= length:
+                for r in range(order):
+                    col += values[offset + r] * wz[r]
+            else:
+                for r in range(order):
+                    if 0 <= start + r < length:
+                        col += values[offset + r] * wz[r]
+            row += wy[q] * col
+        acc += wx[p] * row
     return acc
 
 
@@ -454,6 +564,34 @@ def _find_brick(lev, x, y, z, inv_hs, presence, slots, slot_start, slot_mask):
     az = int(np.floor(fz))
     brick = _hash_find(slots, slot_start[lev], slot_mask[lev],
                        _pack(ax >> BRICK_BITS, ay >> BRICK_BITS, az >> BRICK_BITS))
+    return brick, fx, fy, fz, ax, ay, az
+
+
+@_ijit
+def _find_brick_cached(lev, x, y, z, inv_hs, presence, slots, slot_start, slot_mask, last_key, last_brick):
+    """:func:`_find_brick` remembering the last brick key looked up on each level
+    (``last_key``/``last_brick``, per thread): points visited in a locality-preserving
+    order mostly stay in the brick of the point before, and then neither the presence
+    map nor the hash table is read. Halved the kernel's time (measured, 1M sorted
+    points: 145 -> 68 ns on a 4.7 M-coefficient store). A brick key names one brick, so
+    the answer (brick or none) is the one the lookup would give.
+    """
+    inv_h = inv_hs[lev]
+    fx = x * inv_h
+    fy = y * inv_h
+    fz = z * inv_h
+    ax = int(np.floor(fx))
+    ay = int(np.floor(fy))
+    az = int(np.floor(fz))
+    key = _pack(ax >> BRICK_BITS, ay >> BRICK_BITS, az >> BRICK_BITS)
+    if key == last_key[lev]:
+        return last_brick[lev], fx, fy, fz, ax, ay, az
+    if _present(presence, lev, x, y, z):
+        brick = _hash_find(slots, slot_start[lev], slot_mask[lev], key)
+    else:
+        brick = -1
+    last_key[lev] = key
+    last_brick[lev] = brick
     return brick, fx, fy, fz, ax, ay, az
 
 
@@ -592,7 +730,9 @@ def evaluate_bricks(points, inv_hs, band_lo2, band_hi2, order, nderiv, presence,
     m = points.shape[0]
     width = out.shape[1]
     nlev = inv_hs.shape[0]
-    fast = order == 4 and nderiv == 0
+    side = fold_cols.shape[1]
+    fold_colsf = fold_cols.reshape(-1)
+    own_colsf = own_cols.reshape(-1)
     # chunks, so the work arrays are allocated once per chunk and not per point
     chunk = 4096
     nchunks = (m + chunk - 1) // chunk
@@ -601,26 +741,38 @@ def evaluate_bricks(points, inv_hs, band_lo2, band_hi2, order, nderiv, presence,
         wy = np.empty((3, order))
         wz = np.empty((3, order))
         result = np.empty(width)
-        for s in range(c * chunk, min(m, (c + 1) * chunk)):
+        lo = c * chunk
+        hi = min(m, lo + chunk)
+        if nderiv == 0:
+            # values only: one loop per order (see _undulation_at4)
+            last_key = np.full(nlev, -1, dtype=np.int64)
+            last_brick = np.full(nlev, -1, dtype=np.int64)
+            for s in range(lo, hi):
+                x = points[s, 0]
+                y = points[s, 1]
+                z = points[s, 2]
+                if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+                    continue
+                if order == 4:
+                    out[s, 0] += _undulation_at4(x, y, z, inv_hs, band_lo2, band_hi2, presence, slots, slot_start,
+                                                 slot_mask, fold_base, fold_colsf, own_base, own_colsf, side, values,
+                                                 last_key, last_brick)
+                elif order == 6:
+                    out[s, 0] += _undulation_at6(x, y, z, inv_hs, band_lo2, band_hi2, presence, slots, slot_start,
+                                                 slot_mask, fold_base, fold_colsf, own_base, own_colsf, side, values,
+                                                 last_key, last_brick)
+                else:
+                    out[s, 0] += _undulation_atn(x, y, z, order, inv_hs, band_lo2, band_hi2, presence, slots,
+                                                 slot_start, slot_mask, fold_base, fold_cols, own_base, own_cols,
+                                                 values, wx[0], wy[0], wz[0], last_key, last_brick)
+            continue
+        for s in range(lo, hi):
             x = points[s, 0]
             y = points[s, 1]
             z = points[s, 2]
             if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
                 continue
             r2 = x * x + y * y + z * z
-            if fast:
-                acc = 0.0
-                for lev in range(nlev - 1, -1, -1):
-                    brick, fx, fy, fz, ax, ay, az = _find_brick(lev, x, y, z, inv_hs, presence, slots,
-                                                                slot_start, slot_mask)
-                    if brick < 0:
-                        continue
-                    if band_lo2[lev] <= r2 <= band_hi2[lev]:
-                        acc += _value_cubic(fx, fy, fz, ax, ay, az, fold_base[brick], fold_cols, brick, values)
-                        break
-                    acc += _value_cubic(fx, fy, fz, ax, ay, az, own_base[brick], own_cols, brick, values)
-                out[s, 0] += acc
-                continue
             for r in range(width):
                 result[r] = 0.0
             for lev in range(nlev - 1, -1, -1):
@@ -638,14 +790,266 @@ def evaluate_bricks(points, inv_hs, band_lo2, band_hi2, order, nderiv, presence,
                 out[s, r] += result[r]
 
 
+# ---------------------------------------------------------------------------------
+# undulations of latitude/longitude batches in one compiled call
+#
+# The large-batch path of AmbientSpline.undulation: a parallel counting sort of the
+# points on a latitude/longitude Morton grid (no trigonometry needed for the key),
+# then each point's direction and value computed in that order and written back to
+# its own position. Every phase runs on all threads; nothing is copied in between.
+
+LL_LAT_BITS = 7  # 2**7 latitude rows and 2**8 longitude columns of 180/128 = 1.41 degrees
+LL_LON_BITS = 8
+LL_BUCKETS = 1 << (LL_LAT_BITS + LL_LON_BITS)  # Morton codes < 2**15; one more for NaN
+_LL_LAT_SCALE = (1 << LL_LAT_BITS) / 180.0
+_LL_LON_SCALE = (1 << LL_LON_BITS) / 360.0
+
+
+@_ijit
+def _spread2(v):
+    """Insert one zero bit between each of the low 8 bits of v."""
+    v = v & 0xFF
+    v = (v | (v << 4)) & 0x0F0F
+    v = (v | (v << 2)) & 0x3333
+    v = (v | (v << 1)) & 0x5555
+    return v
+
+
+@_ijit
+def _latlon_bucket(la, lo):
+    """Morton code of the point's cell on the latitude/longitude sort grid (NaN: last)."""
+    if la != la or lo != lo:
+        return LL_BUCKETS
+    i = min(max(int((la + 90.0) * _LL_LAT_SCALE), 0), (1 << LL_LAT_BITS) - 1)
+    w = lo + 180.0
+    if w < 0.0 or w >= 360.0:
+        w -= 360.0 * np.floor(w / 360.0)
+    j = min(max(int(w * _LL_LON_SCALE), 0), (1 << LL_LON_BITS) - 1)
+    return _spread2(j) | (_spread2(i) << 1)
+
+
+# sin and cos of one angle at once (fdlibm's k_sin.c/k_cos.c polynomials on [-pi/4, pi/4]
+# after a Cody-Waite reduction by pi/2), in less time than two libm calls (directions
+# took ~30 ns a point with libm). Absolute error at most 1.2e-16 on [-pi, pi] (libm's:
+# 0.6e-16; 1.3 ulp where |value| > 1e-3; checked against mpmath), i.e. below 1e-14 m
+# in N: the unit vector only needs absolute accuracy.
+_PIO2_HI = 1.57079632673412561417e+00  # first 33 bits of pi/2: n * _PIO2_HI is exact
+_PIO2_LO = 6.07710050650619224932e-11  # pi/2 - _PIO2_HI
+_TWO_OVER_PI = 6.36619772367581382433e-01
+_S1, _S2, _S3 = -1.66666666666666324348e-01, 8.33333333332248946124e-03, -1.98412698298579493134e-04
+_S4, _S5, _S6 = 2.75573137070700676789e-06, -2.50507602534068634195e-08, 1.58969099521155010221e-10
+_C1, _C2, _C3 = 4.16666666666666019037e-02, -1.38888888888741095749e-03, 2.48015872894767294178e-05
+_C4, _C5, _C6 = -2.75573143513906633035e-07, 2.08757232129817482790e-09, -1.13596475577881948265e-11
+
+
+@_ijit
+def _sincos(x):
+    """(sin x, cos x) for |x| <= 2 pi (radians; the reduction's absolute error is about
+    1e-21 there, growing with |x|). NaN gives NaN."""
+    n = np.floor(x * _TWO_OVER_PI + 0.5)
+    r = (x - n * _PIO2_HI) - n * _PIO2_LO
+    z = r * r
+    sin_r = r + (z * r) * (_S1 + z * (_S2 + z * (_S3 + z * (_S4 + z * (_S5 + z * _S6)))))
+    hz = 0.5 * z
+    w = 1.0 - hz
+    cos_r = w + (((1.0 - w) - hz) + z * (z * (_C1 + z * (_C2 + z * (_C3 + z * (_C4 + z * (_C5 + z * _C6)))))))
+    if n != n:
+        return n, n
+    q = int(n) & 3
+    if q == 0:
+        return sin_r, cos_r
+    if q == 1:
+        return cos_r, -sin_r
+    if q == 2:
+        return -sin_r, -cos_r
+    return -cos_r, sin_r
+
+
+@_ijit
+def _direction(latitude, longitude):
+    """Unit vector of latitude/longitude in degrees: the one formula of every compiled
+    path (:func:`unit_vectors`, :func:`undulation_latlon`), so they agree bit for bit.
+    Longitudes are wrapped to [-180, 180) first."""
+    if longitude < -180.0 or longitude >= 180.0:
+        longitude -= 360.0 * np.floor((longitude + 180.0) / 360.0)
+    d2r = np.pi / 180.0
+    sin_phi, cos_phi = _sincos(latitude * d2r)
+    sin_lam, cos_lam = _sincos(longitude * d2r)
+    return cos_phi * cos_lam, cos_phi * sin_lam, sin_phi
+
+
+@_ijit
+def _undulation_at4(x, y, z, inv_hs, band_lo2, band_hi2, presence, slots, slot_start, slot_mask, fold_base,
+                    fold_colsf, own_base, own_colsf, side, values, last_key, last_brick):
+    """A cubic spline's value at one point: from the finest level down, the first level
+    with a brick at the point whose band holds it ends the sum (see
+    :func:`evaluate_bricks`). One function per order (here 4; :func:`_undulation_at6`,
+    :func:`_undulation_atn`), each in its own loop: one descent inlined with all three
+    value codes in it ran 1.6 times slower. ``last_key``/``last_brick``: the brick
+    cache of :func:`_find_brick_cached`."""
+    r2 = x * x + y * y + z * z
+    acc = 0.0
+    for lev in range(inv_hs.shape[0] - 1, -1, -1):
+        brick, fx, fy, fz, ax, ay, az = _find_brick_cached(lev, x, y, z, inv_hs, presence, slots, slot_start,
+                                                           slot_mask, last_key, last_brick)
+        if brick < 0:
+            continue
+        if band_lo2[lev] <= r2 <= band_hi2[lev]:
+            acc += _value_cubic(fx, fy, fz, ax, ay, az, fold_base[brick], fold_colsf, side, brick, values)
+            break
+        acc += _value_cubic(fx, fy, fz, ax, ay, az, own_base[brick], own_colsf, side, brick, values)
+    return acc
+
+
+@_ijit
+def _undulation_at6(x, y, z, inv_hs, band_lo2, band_hi2, presence, slots, slot_start, slot_mask, fold_base,
+                    fold_colsf, own_base, own_colsf, side, values, last_key, last_brick):
+    """:func:`_undulation_at4` for order 6."""
+    r2 = x * x + y * y + z * z
+    acc = 0.0
+    for lev in range(inv_hs.shape[0] - 1, -1, -1):
+        brick, fx, fy, fz, ax, ay, az = _find_brick_cached(lev, x, y, z, inv_hs, presence, slots, slot_start,
+                                                           slot_mask, last_key, last_brick)
+        if brick < 0:
+            continue
+        if band_lo2[lev] <= r2 <= band_hi2[lev]:
+            acc += _value_quintic(fx, fy, fz, ax, ay, az, fold_base[brick], fold_colsf, side, brick, values)
+            break
+        acc += _value_quintic(fx, fy, fz, ax, ay, az, own_base[brick], own_colsf, side, brick, values)
+    return acc
+
+
+@_ijit
+def _undulation_atn(x, y, z, order, inv_hs, band_lo2, band_hi2, presence, slots, slot_start, slot_mask, fold_base,
+                    fold_cols, own_base, own_cols, values, wx, wy, wz, last_key, last_brick):
+    """:func:`_undulation_at4` for any order; ``wx``, ``wy``, ``wz``: work arrays of length order."""
+    r2 = x * x + y * y + z * z
+    acc = 0.0
+    for lev in range(inv_hs.shape[0] - 1, -1, -1):
+        brick, fx, fy, fz, ax, ay, az = _find_brick_cached(lev, x, y, z, inv_hs, presence, slots, slot_start,
+                                                           slot_mask, last_key, last_brick)
+        if brick < 0:
+            continue
+        if band_lo2[lev] <= r2 <= band_hi2[lev]:
+            acc += _value_any(fx, fy, fz, ax, ay, az, order, fold_base[brick], fold_cols, brick, values, wx, wy, wz)
+            break
+        acc += _value_any(fx, fy, fz, ax, ay, az, order, own_base[brick], own_cols, brick, values, wx, wy, wz)
+    return acc
+
+
+@_pjit
+def undulation_latlon(latitude, longitude, nblocks, order, inv_hs, band_lo2, band_hi2, presence, slots, slot_start,
+                      slot_mask, fold_base, fold_cols, own_base, own_cols, values, out):
+    """Spline values at the directions of latitude/longitude (degrees) into out.
+
+    Returns the number of invalid coordinates (a latitude beyond ±90° or infinite, an
+    infinite longitude); when there are any, ``out`` is left unset. NaN gives NaN.
+
+    1. per block of points (``nblocks`` in parallel): the Morton code of the point's
+       1.41° latitude/longitude cell, and a histogram of the codes per block;
+    2. exclusive prefix sums over (code, block): a stable order by cell;
+    3. per block in parallel: the latitude, longitude and position of each point
+       scattered to its place in that order;
+    4. per chunk of the ordered points in parallel: the direction (:func:`_direction`)
+       and the value (:func:`_undulation_at4` and its siblings), in the sorted order
+       (neighbours share bricks and cache lines);
+    5. per block in parallel: each value written to the point's own position.
+
+    Each point's value does not depend on the order, the blocks or the thread count,
+    and equals :func:`evaluate_bricks` at the directions :func:`unit_vectors` gives.
+    Transient memory: 36 bytes per point (work arrays kept from call to call made no
+    measurable difference).
+    """
+    m = latitude.shape[0]
+    nb = LL_BUCKETS + 1
+    code = np.empty(m, dtype=np.int32)
+    counts = np.zeros((nblocks, nb), dtype=np.int64)
+    invalid = np.zeros(nblocks, dtype=np.int64)
+    size = (m + nblocks - 1) // nblocks
+    for blk in numba.prange(nblocks):
+        bad = 0
+        for s in range(blk * size, min(m, (blk + 1) * size)):
+            la = latitude[s]
+            lo = longitude[s]
+            if abs(la) > 90.0 or abs(lo) == np.inf:
+                bad += 1
+            b = _latlon_bucket(la, lo)
+            code[s] = b
+            counts[blk, b] += 1
+        invalid[blk] = bad
+    nbad = 0
+    for blk in range(nblocks):
+        nbad += invalid[blk]
+    if nbad:
+        return nbad
+    total = 0
+    for b in range(nb):
+        for blk in range(nblocks):
+            c = counts[blk, b]
+            counts[blk, b] = total
+            total += c
+    order_lat = np.empty(m)
+    order_lon = np.empty(m)
+    order_idx = np.empty(m, dtype=np.int64)
+    for blk in numba.prange(nblocks):
+        for s in range(blk * size, min(m, (blk + 1) * size)):
+            b = code[s]
+            p = counts[blk, b]
+            counts[blk, b] = p + 1
+            order_lat[p] = latitude[s]
+            order_lon[p] = longitude[s]
+            order_idx[p] = s
+    side = fold_cols.shape[1]
+    fold_colsf = fold_cols.reshape(-1)
+    own_colsf = own_cols.reshape(-1)
+    # results in the sorted order first, scattered in a pass of their own: writing
+    # out[order_idx[p]] from the evaluation loop made it 1.6 times slower (measured)
+    ordered = np.empty(m)
+    chunk = 4096
+    nchunks = (m + chunk - 1) // chunk
+    nlev = inv_hs.shape[0]
+    for c in numba.prange(nchunks):
+        lo = c * chunk
+        hi = min(m, lo + chunk)
+        last_key = np.full(nlev, -1, dtype=np.int64)  # per chunk: see _find_brick_cached
+        last_brick = np.full(nlev, -1, dtype=np.int64)
+        # one loop per order, so that each inlines only its own value code
+        if order == 4:
+            for p in range(lo, hi):
+                x, y, z = _direction(order_lat[p], order_lon[p])
+                ordered[p] = _undulation_at4(x, y, z, inv_hs, band_lo2, band_hi2, presence, slots, slot_start,
+                                             slot_mask, fold_base, fold_colsf, own_base, own_colsf, side,
+                                             values, last_key, last_brick) if x == x and z == z else np.nan
+        elif order == 6:
+            for p in range(lo, hi):
+                x, y, z = _direction(order_lat[p], order_lon[p])
+                ordered[p] = _undulation_at6(x, y, z, inv_hs, band_lo2, band_hi2, presence, slots, slot_start,
+                                             slot_mask, fold_base, fold_colsf, own_base, own_colsf, side,
+                                             values, last_key, last_brick) if x == x and z == z else np.nan
+        else:
+            wx = np.empty(order)
+            wy = np.empty(order)
+            wz = np.empty(order)
+            for p in range(lo, hi):
+                x, y, z = _direction(order_lat[p], order_lon[p])
+                ordered[p] = _undulation_atn(x, y, z, order, inv_hs, band_lo2, band_hi2, presence, slots,
+                                             slot_start, slot_mask, fold_base, fold_cols, own_base, own_cols,
+                                             values, wx, wy, wz, last_key, last_brick) if x == x and z == z else np.nan
+    for blk in numba.prange(nblocks):
+        for p in range(blk * size, min(m, (blk + 1) * size)):
+            out[order_idx[p]] = ordered[p]
+    return 0
+
+
 @_pjit
 def unit_vectors(latitude, longitude, out):
-    """Directions (cos φ cos λ, cos φ sin λ, sin φ) of latitude/longitude in degrees."""
-    d2r = np.pi / 180.0
+    """Directions (cos φ cos λ, cos φ sin λ, sin φ) of latitude/longitude in degrees
+    (:func:`_direction`)."""
     for s in numba.prange(latitude.shape[0]):
-        phi = latitude[s] * d2r
-        lam = longitude[s] * d2r
-        cos_phi = np.cos(phi)
-        out[s, 0] = cos_phi * np.cos(lam)
-        out[s, 1] = cos_phi * np.sin(lam)
-        out[s, 2] = np.sin(phi)
+        out[s, 0], out[s, 1], out[s, 2] = _direction(latitude[s], longitude[s])
+
+
+def numba_threads() -> int:
+    """Threads numba's parallel loops use now (``numba.set_num_threads``)."""
+    return numba.get_num_threads()
+

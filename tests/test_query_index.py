@@ -16,6 +16,7 @@ import pytest
 from scipy.interpolate import BSpline
 
 from geoidspline import _kernels
+from geoidspline._numpy_eval import bspline_weights, evaluate_levels
 from geoidspline.fit import FitParameters, fit_nodes
 from geoidspline.region import Region
 from geoidspline.sources import NodeSample
@@ -118,13 +119,18 @@ def point_sets(rng, levels, count=3000):
 
 
 def assert_matches_reference(spline, levels, points, label=""):
+    """The compiled folded index and the numpy evaluator both equal the reference."""
     hf = min(lv.h for lv in levels)
     for nderiv in (0, 1, 2):
-        got = spline.evaluate_points(points, nderiv=nderiv).reshape(len(points), -1)
         want = reference_evaluate(levels, points, nderiv)
+        folded = np.zeros_like(want)
+        spline.index.add_to(points, folded, nderiv)
+        folded[~np.isfinite(points).all(axis=1)] = np.nan
+        by_numpy = evaluate_levels(spline.levels, points, nderiv)
         tol = np.array([1e-9] + [1e-9 / hf] * 3 + [1e-9 / hf**2] * 6)[:want.shape[1]]
-        err = np.abs(got - want).max(axis=0)
-        assert np.all(err <= tol), f"{label} nderiv={nderiv}: max |error| {err} > {tol}"
+        for name, got in (("folded", folded), ("numpy", by_numpy)):
+            err = np.abs(got - want).max(axis=0)
+            assert np.all(err <= tol), f"{label} {name} nderiv={nderiv}: max |error| {err} > {tol}"
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -136,7 +142,7 @@ def test_folded_evaluation_equals_the_level_by_level_sum(seed):
         assert_matches_reference(spline, levels, points, name)
 
 
-@pytest.mark.parametrize("order", [3, 5])
+@pytest.mark.parametrize("order", [3, 5, 6])
 def test_other_orders_fold_exactly(order):
     levels = random_overlays(7, order=order, nlevels=3)
     spline = AmbientSpline(levels)
@@ -230,7 +236,10 @@ def test_fitted_spline_folds_exactly():
         assert_matches_reference(result.spline, levels, points, name)
 
 
-def test_small_batches_use_the_unfolded_index_and_agree_with_the_folded_one():
+def test_small_batches_use_numpy_and_agree_with_the_folded_index():
+    """Below FOLDED_FROM_POINTS the numpy evaluator answers and no index is built; it
+    equals the compiled folded index to 1e-9 m (values), 1e-9 m per finest cell
+    (gradients, Hessians), on and off the sphere."""
     from geoidspline.spline import FOLDED_FROM_POINTS
 
     rng = np.random.default_rng(21)
@@ -245,9 +254,116 @@ def test_small_batches_use_the_unfolded_index_and_agree_with_the_folded_one():
     small = AmbientSpline(levels)
     u = rng.normal(size=(FOLDED_FROM_POINTS - 1, 3))
     u /= np.linalg.norm(u, axis=1)[:, None]
+    u[:500] *= rng.uniform(0.9, 1.1, (500, 1))
+    u[7] = np.nan
     plain = small.evaluate_points(u, nderiv=2)
-    assert small._folded is None and small._plain is not None
-    small.evaluate_points(np.vstack([u, u[:1]]))  # builds the folded index
-    assert np.array_equal(small.evaluate_points(u, nderiv=2), plain)  # small batches keep the plain one
+    assert small._folded is None  # nothing built for a small batch
+    np.testing.assert_array_equal(plain, evaluate_levels(levels, u, 2))
     folded = AmbientSpline(levels).evaluate_points(np.vstack([u, u[:1]]), nderiv=2)[:-1]
-    np.testing.assert_allclose(plain, folded, rtol=1e-10, atol=1e-9 / (h0 / 4) ** 2)
+    hf = h0 / 4
+    tol = np.array([1e-9] + [1e-9 / hf] * 3 + [1e-9 / hf**2] * 6)
+    assert np.isnan(plain[7]).all() and np.isnan(folded[7]).all()
+    ok = np.isfinite(u).all(axis=1)
+    err = np.abs(plain[ok] - folded[ok]).max(axis=0)
+    assert np.all(err <= tol), err
+    assert np.abs(plain[ok, 0]).max() > 1.0  # real values, not zeros
+
+
+@pytest.mark.parametrize("order", [2, 3, 4, 5, 6])
+def test_numpy_weights_equal_the_compiled_ones(order):
+    t = np.array([0.0, 0.25, 0.6180339887, 0.999])
+    nderiv = 2 if order >= 3 else 1
+    got = bspline_weights(t, order, nderiv)
+    for i, ti in enumerate(t):
+        want = np.zeros((3, order))
+        _kernels.bspline_weights(ti, order, nderiv, want)
+        np.testing.assert_allclose(got[:, i, :], want[:nderiv + 1], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(got[0].sum(axis=1), 1.0, atol=1e-15)
+
+
+def test_numpy_evaluator_far_points_and_empty_levels():
+    levels = random_overlays(2, nlevels=2)
+    points = np.array([[1e300, 0.0, 0.0], [0.0, -5e6, 0.0], [0.6, 0.0, 0.8], [np.inf, 0.0, 0.0]])
+    out = evaluate_levels(levels, points, 1)
+    np.testing.assert_array_equal(out[:2], 0.0)  # no B-spline out there
+    np.testing.assert_allclose(out[2], reference_evaluate(levels, points[2:3], 1)[0], atol=1e-9 / levels[-1].h)
+    assert np.isnan(out[3]).all()
+    empty = LevelSpline(0, 0.1, 4, np.zeros(0, np.int64), np.zeros(0))
+    np.testing.assert_array_equal(evaluate_levels([empty], points[:3], 2), 0.0)
+
+
+@pytest.mark.parametrize("order", [4, 3, 6])
+def test_latlon_batches_in_one_call_equal_directions_then_points(order):
+    """AmbientSpline.undulation on a large batch (fused sort, directions and kernel) gives
+    bitwise the values of evaluate_points at directions(), for any thread count and
+    block split, and the reference sum to 1e-9 m; NaN gives NaN."""
+    import numba
+
+    from geoidspline.spline import FOLDED_FROM_POINTS
+
+    levels = random_overlays(31, order=order, nlevels=4 if order == 4 else 3)
+    spline = AmbientSpline(levels)
+    rng = np.random.default_rng(32)
+    count = 140_000 if order == 4 else 3 * FOLDED_FROM_POINTS  # 140,000: two blocks on two threads
+    lat = np.degrees(np.arcsin(rng.uniform(-1, 1, count)))
+    lon = rng.uniform(-540, 540, count)  # any longitude is wrapped
+    lat[::101] = np.nan
+    lon[::103] = np.nan
+    lat[5], lat[6] = 90.0, -90.0
+    want = spline.evaluate_points(directions(lat, lon))
+    threads = numba.get_num_threads()
+    try:
+        for n in sorted({1, threads}):
+            numba.set_num_threads(n)
+            np.testing.assert_array_equal(spline.undulation(lat, lon), want)
+    finally:
+        numba.set_num_threads(threads)
+    assert np.isnan(want[::101]).all() and np.isnan(want[::103]).all()
+    ok = np.flatnonzero(np.isfinite(lat) & np.isfinite(lon))[:3000]
+    ref = reference_evaluate(levels, directions(lat[ok], lon[ok]))[:, 0]
+    np.testing.assert_allclose(want[ok], ref, rtol=0, atol=1e-9)
+    assert np.abs(ref).max() > 1.0
+    # broadcasting, and the small-batch (numpy) answer to the same points, to rounding
+    grid = spline.undulation(lat[:64, None], lon[None, :64])
+    assert grid.shape == (64, 64)
+    np.testing.assert_array_equal(grid, spline.undulation(np.repeat(lat[:64], 64), np.tile(lon[:64], 64)).reshape(64, 64))
+    np.testing.assert_allclose(spline.undulation(lat[ok[:100]], lon[ok[:100]]), want[ok[:100]], rtol=0, atol=1e-9)
+
+
+def test_latlon_batches_refuse_bad_coordinates():
+    from geoidspline.errors import CoordinateError
+    from geoidspline.spline import FOLDED_FROM_POINTS
+
+    spline = AmbientSpline(random_overlays(2, nlevels=2))
+    lat = np.zeros(FOLDED_FROM_POINTS)
+    lon = np.zeros(FOLDED_FROM_POINTS)
+    for bad_lat, bad_lon, words in ((90.5, 0.0, "latitude"), (np.inf, 0.0, "latitude"), (0.0, -np.inf, "longitude")):
+        la, lo = lat.copy(), lon.copy()
+        la[-1], lo[-1] = bad_lat, bad_lon
+        with pytest.raises(CoordinateError, match=words):
+            spline.undulation(la, lo)
+    np.testing.assert_array_equal(AmbientSpline([]).undulation(lat, lon), 0.0)
+
+
+def test_compiled_directions_agree_with_numpy_trigonometry():
+    """Large batches compute directions with their own sin/cos (fdlibm polynomials):
+    within 2.3e-16 of numpy's per component (2 ulp of 1), unit length to 4.5e-16,
+    on the axes to 1.3e-16, any longitude wrapped."""
+    from geoidspline._numpy_eval import unit_vectors as numpy_unit_vectors
+    from geoidspline.spline import FOLDED_FROM_POINTS
+
+    rng = np.random.default_rng(41)
+    n = 20 * FOLDED_FROM_POINTS
+    lat = np.degrees(np.arcsin(rng.uniform(-1, 1, n)))
+    lon = rng.uniform(-180, 180, n)
+    lat[:8] = [0, 0, 0, 0, 90, -90, 45, -45]
+    lon[:8] = [0, 90, -180, -90, 0, 0, 135, -45]
+    got = directions(lat, lon)  # the compiled path from FOLDED_FROM_POINTS points on
+    want = numpy_unit_vectors(lat, lon)
+    assert np.abs(got - want).max() <= 2.3e-16
+    assert np.abs(np.linalg.norm(got, axis=1) - 1.0).max() <= 4.5e-16
+    axes = [[1, 0, 0], [0, 1, 0], [-1, 0, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]]
+    np.testing.assert_allclose(got[:6], axes, rtol=0, atol=1.3e-16)  # cos(pi/2 rounded) = 6.1e-17
+    np.testing.assert_array_equal(np.abs(got[:6]).max(axis=1), 1.0)
+    wrapped = directions(lat, lon + 360.0 * rng.integers(-3, 4, n))
+    assert np.abs(wrapped - got).max() <= 1e-13  # the wrap rounds the longitude, not the formula

@@ -16,7 +16,7 @@ from geoidspline.build import build_store, check_points
 from geoidspline.errors import GeoidSplineError, StoreCorruptError, StoreError
 from geoidspline.fit import FitParameters
 from geoidspline.spline import directions
-from geoidspline.store import FORMAT_NAME, FORMAT_VERSION, write_store
+from geoidspline.store import FORMAT_NAME, FORMAT_VERSION, TileStore, write_store
 
 
 def _snapshot(root: Path) -> dict:
@@ -354,31 +354,60 @@ def _delete(path: Path):
     path.unlink()
 
 
+def _point_needing(store, tile, region, seed=5):
+    """A (lat, lon) in region whose query reads ``tile``."""
+    lat, lon = _random_points(region, 2000, seed)
+    for la, lo in zip(lat, lon):
+        if tuple(tile) in store.spline.tiles_at(directions(la, lo)):
+            return la, lo
+    raise AssertionError(f"no point of {region} needs tile {tile}")
+
+
 @pytest.mark.parametrize(
     "damage, words",
     [(_truncate, "bytes"), (_alter_byte, "sha256"), (_delete, "missing")],
     ids=["truncated", "altered-byte", "deleted"],
 )
-def test_damaged_tile_is_refused_naming_the_file(store_copy, damage, words):
+def test_damaged_tile_is_refused_naming_the_file(small_store, store_copy, damage, words):
     tile = _largest_tile(store_copy)
     path = store_copy / tile["file"]
     size = path.stat().st_size
     damage(path)
     if damage is _alter_byte:
         assert path.stat().st_size == size
+    # read at once: opening fails
     with pytest.raises(StoreCorruptError, match=words) as err:
-        geoidspline.open_store(store_copy)
+        TileStore.open(store_copy, lazy=False)
     assert Path(tile["file"]).name in str(err.value)
     assert isinstance(err.value, GeoidSplineError)
+    if damage is not _alter_byte:
+        # a missing or resized file is found by opening, even lazily
+        with pytest.raises(StoreCorruptError, match=words) as err:
+            geoidspline.open_store(store_copy)
+        assert Path(tile["file"]).name in str(err.value)
+        return
+    # lazily, an altered tile is refused by every query that reads it, never used
+    store = geoidspline.open_store(store_copy)
+    lat, lon = _point_needing(store, tile["tile"], small_store.region)
+    for _ in range(2):
+        with pytest.raises(StoreCorruptError, match="sha256") as err:
+            store.undulation(lat, lon)
+        assert Path(tile["file"]).name in str(err.value)
+    with pytest.raises(StoreCorruptError, match="sha256"):
+        store.undulation(*_random_points(small_store.region, 5000, seed=6))  # a batch reads every tile
 
 
-def test_coefficient_count_disagreeing_with_manifest_is_refused(store_copy):
+def test_coefficient_count_disagreeing_with_manifest_is_refused(small_store, store_copy):
     m = _manifest(store_copy)
     entry = max(m["tiles"], key=lambda e: e["coefficients"])
     entry["coefficients"] += 1
     (store_copy / "manifest.json").write_text(json.dumps(m))
     with pytest.raises(StoreCorruptError, match="coefficients") as err:
-        geoidspline.open_store(store_copy)
+        TileStore.open(store_copy, lazy=False)
+    assert Path(entry["file"]).name in str(err.value)
+    store = geoidspline.open_store(store_copy)
+    with pytest.raises(StoreCorruptError, match="coefficients") as err:
+        store.undulation(*_point_needing(store, entry["tile"], small_store.region))
     assert Path(entry["file"]).name in str(err.value)
 
 
@@ -422,8 +451,9 @@ def test_foreign_or_newer_manifest_is_refused(store_copy):
 
 
 def test_open_store_keeps_no_files_open(small_store):
-    """Opening reads everything at once: the store object does not keep files open."""
+    """Tiles are read whole when needed: the store object does not keep files open."""
     store = geoidspline.open_store(small_store.path)
+    store.undulation(*_random_points(small_store.region, 3000, seed=4))  # reads every tile
     fd_dir = Path("/proc/self/fd")
     if not fd_dir.is_dir():
         pytest.skip("no /proc")
