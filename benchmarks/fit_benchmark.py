@@ -67,6 +67,14 @@ SCENARIOS = {
         "global EGM96 (degree 360, NGA F477 with CORRCOEF) from its coefficients: quintic "
         "quasi-interpolation at h = 0.0045, least-squares overlays where nodes exceed 1.5 mm",
     ),
+    "egm96-cm": (
+        ["{shared}/egm96/egm96_to360.ascii.gz", "--correction", "{shared}/egm96/CORRCOEF.gz",
+         "--method", "interpolation", "--order", "4", "--h0", "0.004", "--max-level", "1",
+         "--tolerance", "0.007"],
+        {"check_max_error_m": 0.01, "node_max_error_m": 0.01},
+        "global EGM96 (NGA F477 with CORRCOEF) to 1 cm with cubics, the query benchmark's store: "
+        "quasi-interpolation at h = 0.004, least-squares overlays where nodes exceed 7 mm",
+    ),
     "egm2008-120-mm": (
         ["{shared}/egm2008/EGM2008_120.gfc", "--method", "interpolation", "--order", "6",
          "--h0", "0.011", "--max-level", "1", "--tolerance", "0.0008", "--sample-spacing", "0.0833"],
