@@ -239,6 +239,57 @@ _COL_KMASK = (1 << COL_KBITS) - 1
 _U = np.uint64  # unsigned indices: no negative-index wraparound code in the hot loops
 
 
+@_jit
+def brick_entries(keys, order, bits):
+    """Every (brick, coefficient) pair of a level: a B-spline is listed in each brick of
+    ``2**bits`` cells a side whose tables hold it (1 to 8, see
+    :class:`geoidspline.spline._Members`).
+
+    Returns ``(brick_keys, local (E, 3), coefficient index)``, entries grouped by
+    coefficient; ``local = k - brick 2**bits + order - 1`` per axis. One counting pass
+    and one filling pass: the numpy version built (N, 3) temporaries per combination.
+    """
+    n = keys.size
+    mask = (1 << KEY_BITS) - 1
+    total = 0
+    for c in range(n):
+        m = 1
+        for d in range(3):
+            a = ((keys[c] >> ((2 - d) * KEY_BITS)) & mask) - KEY_OFFSET
+            if ((a + order - 1) >> bits) != (a >> bits):
+                m *= 2
+        total += m
+    brick_keys = np.empty(total, np.int64)
+    local = np.empty((total, 3), np.int64)
+    coef = np.empty(total, np.int64)
+    a3 = np.empty(3, np.int64)
+    b3 = np.empty(3, np.int64)
+    e = 0
+    for c in range(n):
+        for d in range(3):
+            a3[d] = ((keys[c] >> ((2 - d) * KEY_BITS)) & mask) - KEY_OFFSET
+        for combo in range(8):
+            ok = True
+            for d in range(3):
+                lo = a3[d] >> bits
+                if (combo >> d) & 1:
+                    hi = (a3[d] + order - 1) >> bits
+                    if hi == lo:
+                        ok = False
+                        break
+                    b3[d] = hi
+                else:
+                    b3[d] = lo
+            if not ok:
+                continue
+            brick_keys[e] = _pack(b3[0], b3[1], b3[2])
+            for d in range(3):
+                local[e, d] = a3[d] - (b3[d] << bits) + order - 1
+            coef[e] = c
+            e += 1
+    return brick_keys, local, coef
+
+
 @_ijit
 def _hash_slot(key, mask):
     h = np.uint64(key) * _HASH_MULT

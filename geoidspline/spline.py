@@ -187,20 +187,8 @@ class _Members:
     def __init__(self, lv, order):
         bits = _kernels.BRICK_BITS
         side = (1 << bits) + order - 1
-        idx = lv.indices
-        low = idx >> bits
-        high = (idx + order - 1) >> bits
-        coef_parts, brick_parts = [], []
-        for combo in range(8):
-            use_high = np.array([(combo >> d) & 1 for d in range(3)], dtype=bool)
-            valid = np.all(~use_high | (high != low), axis=1)
-            coef_parts.append(np.flatnonzero(valid))
-            brick_parts.append(np.where(use_high, high, low)[valid])
-        coef = np.concatenate(coef_parts)
-        brick = np.concatenate(brick_parts)
-        local = idx[coef] - (brick << bits) + (order - 1)
+        bkey, local, coef = _kernels.brick_entries(lv.keys, order, bits)
         flat = (local[:, 0] * side + local[:, 1]) * side + local[:, 2]
-        bkey = _kernels.pack_keys(brick)
         perm = np.lexsort((flat, bkey))
         self.entry_keys = bkey[perm]
         self.local = local[perm]
