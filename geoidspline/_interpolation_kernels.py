@@ -68,24 +68,27 @@ def lattice_lookup(grid, lat0, dlat, lon0, dlon, latitude, longitude, out):
     Longitudes are taken modulo 360 into [lon0 + 2 dlon, lon0 + 2 dlon + 360).
     """
     n = latitude.size
-    for p in numba.prange(n):
+    nchunk = max(1, min(64, n // 65536))
+    for c in numba.prange(nchunk):
+        # weights allocated per chunk, not per point (tens of millions of points)
         w_lat = np.empty(6)
         w_lon = np.empty(6)
-        y = (latitude[p] - lat0) / dlat
-        i = int(math.floor(y))
-        _lagrange6(y - i, w_lat)
-        lon = longitude[p] - (lon0 + 2 * dlon)
-        lon = lon - 360.0 * math.floor(lon / 360.0)
-        x = lon / dlon + 2
-        j = int(math.floor(x))
-        _lagrange6(x - j, w_lon)
-        acc = 0.0
-        for a in range(6):
-            row = 0.0
-            for b in range(6):
-                row += w_lon[b] * grid[i - 2 + a, j - 2 + b]
-            acc += w_lat[a] * row
-        out[p] = acc
+        for p in range(n * c // nchunk, n * (c + 1) // nchunk):
+            y = (latitude[p] - lat0) / dlat
+            i = int(math.floor(y))
+            _lagrange6(y - i, w_lat)
+            lon = longitude[p] - (lon0 + 2 * dlon)
+            lon = lon - 360.0 * math.floor(lon / 360.0)
+            x = lon / dlon + 2
+            j = int(math.floor(x))
+            _lagrange6(x - j, w_lon)
+            acc = 0.0
+            for a in range(6):
+                row = 0.0
+                for b in range(6):
+                    row += w_lon[b] * grid[i - 2 + a, j - 2 + b]
+                acc += w_lat[a] * row
+            out[p] = acc
 
 
 @_pjit

@@ -60,14 +60,12 @@ def centred_bspline_samples(order: int) -> np.ndarray:
     """Values of the order-``order`` cardinal B-spline at integer offsets from its centre.
 
     Symmetric, summing to 1: ``[1, 4, 1] / 6`` for cubics, ``[1, 6, 1] / 8`` for quadratics.
+    The centre is a knot for even orders (the weights at t = 0, whose last is B(0) = 0)
+    and a cell centre for odd ones (t = 1/2).
     """
-    from scipy.interpolate import BSpline
-
-    basis = BSpline.basis_element(np.arange(order + 1, dtype=float), extrapolate=False)
-    half = (order - 1) // 2 if order % 2 else order // 2 - 1
-    offsets = np.arange(-half, half + 1) + order / 2.0
-    values = np.nan_to_num(basis(offsets))
-    return values / values.sum()
+    weights = np.zeros((1, order))
+    _kernels.bspline_weights(0.0 if order % 2 == 0 else 0.5, order, 0, weights)
+    return weights[0, :-1] if order % 2 == 0 else weights[0]
 
 
 def prefilter_taps(order: int, terms: int | None = None) -> np.ndarray:
@@ -104,22 +102,15 @@ def sample_band(source, latitude_south: float, latitude_north: float, spacing_de
     values = sample.undulation[:, :columns]  # the last column repeats the first (+360)
     if values.shape[1] != columns or not np.isclose(sample.longitude[0], -180.0):
         raise FitError(f"lattice of {source!r} does not start at -180 with {columns} columns")
-    rows = [values]
-    lat0 = float(lat[0])
     half_turn = columns // 2
-    if lat[0] <= -90.0 + 1e-9:
-        below = np.roll(values[_PAD:0:-1], -half_turn, axis=1)
-        rows.insert(0, below)
-        lat0 -= _PAD * step
-    else:
-        rows.insert(0, np.repeat(values[:1], _PAD, axis=0))
-        lat0 -= _PAD * step
-    if lat[-1] >= 90.0 - 1e-9:
-        above = np.roll(values[-2:-2 - _PAD:-1], -half_turn, axis=1)
-        rows.append(above)
-    else:
-        rows.append(np.repeat(values[-1:], _PAD, axis=0))
-    grid = np.concatenate(rows, axis=0)
+    # beyond a pole: the rows inside it, half a turn away; elsewhere the band already
+    # holds the stencil's rows, so the padding is never read
+    below = (np.roll(values[_PAD:0:-1], -half_turn, axis=1) if lat[0] <= -90.0 + 1e-9
+             else np.repeat(values[:1], _PAD, axis=0))
+    above = (np.roll(values[-2:-2 - _PAD:-1], -half_turn, axis=1) if lat[-1] >= 90.0 - 1e-9
+             else np.repeat(values[-1:], _PAD, axis=0))
+    grid = np.concatenate([below, values, above], axis=0)
+    lat0 = float(lat[0]) - _PAD * step
     grid = np.concatenate([grid[:, -_PAD:], grid, grid[:, :_PAD]], axis=1)
     return np.ascontiguousarray(grid), lat0, step, NodeSample(lat, sample.longitude, sample.undulation)
 
@@ -138,9 +129,10 @@ def interpolate_level(source, keys, h: float, order: int, spacing_deg: float,
                       terms: int | None = None):
     """Coefficients (metres) of B-splines ``keys`` (sorted) by quasi-interpolation.
 
-    Returns ``(coefficients, band)`` where ``band`` is the :class:`NodeSample` of the
-    lattice synthesised for the lookups (it covers every latitude the coefficients
-    depend on, all longitudes) and the number of lattice points sampled.
+    Returns ``(coefficients, band, lattice_points)``: ``band`` is the
+    :class:`NodeSample` of the lattice synthesised for the lookups (every latitude the
+    coefficients depend on, all longitudes), ``lattice_points`` the number of lattice
+    points sampled.
     """
     from . import _interpolation_kernels as kern
     from .fit import union_of_shifts

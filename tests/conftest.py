@@ -89,6 +89,35 @@ def store_copy(tmp_path, small_store) -> Path:
     return Path(shutil.copytree(small_store.path, tmp_path / "store_copy"))
 
 
+def random_synthesis(nmax, seed, name):
+    """Generic-preset synthesis of a random model: C̄nm, S̄nm ~ N(0, (1e-6 / n)²) for
+    n = 2..nmax (N of a few metres) and EGM96's C̄20, which the normal field removes."""
+    from geoidspline.harmonics import GeoidSynthesis, HarmonicModel
+
+    rng = np.random.default_rng(seed)
+    C = np.zeros((nmax + 1, nmax + 1))
+    S = np.zeros((nmax + 1, nmax + 1))
+    for n in range(2, nmax + 1):
+        C[n, : n + 1] = rng.normal(size=n + 1) * 1e-6 / n
+        S[n, 1 : n + 1] = rng.normal(size=n) * 1e-6 / n
+    C[2, 0] = -0.484165371736e-3
+    model = HarmonicModel(name=name, gm=3.986004415e14, radius=6378136.3, max_degree=nmax,
+                          tide_system="tide_free", C=C, S=S)
+    return GeoidSynthesis(model, preset="generic")
+
+
+@pytest.fixture(scope="session")
+def make_synthesis():
+    """:func:`random_synthesis`, for tests that need their own degree or seed."""
+    return random_synthesis
+
+
+@pytest.fixture(scope="session")
+def toy24():
+    """A random degree-24 model's synthesis (seed 7)."""
+    return random_synthesis(24, 7, "toy24")
+
+
 @pytest.fixture(scope="session")
 def analytic():
     """The analytic field the synthetic grid samples: ``analytic(lat, lon)`` in metres."""

@@ -177,24 +177,13 @@ def test_keys_cover_the_index_range_of_the_finest_level():
     assert 1.0 / params.spacing(12) + 8 < _kernels.MAX_INDEX
 
 
-def test_fit_straight_from_a_spherical_harmonic_model():
+def test_fit_straight_from_a_spherical_harmonic_model(make_synthesis):
     """A degree-12 model is fitted from its synthesis; the store is checked against
     the exact synthesis at random points that were not fit sites."""
     from geoidspline.fit import fit_source
     from geoidspline.build import check_points
-    from geoidspline.harmonics import GeoidSynthesis, HarmonicModel
 
-    rng = np.random.default_rng(11)
-    nmax = 12
-    C = np.zeros((nmax + 1, nmax + 1))
-    S = np.zeros((nmax + 1, nmax + 1))
-    for n in range(2, nmax + 1):
-        C[n, : n + 1] = rng.normal(size=n + 1) * 1e-6 / n
-        S[n, 1 : n + 1] = rng.normal(size=n) * 1e-6 / n
-    C[2, 0] = -0.484165371736e-3  # the normal field removes most of it
-    model = HarmonicModel(name="toy12", gm=3.986004415e14, radius=6378136.3, max_degree=nmax,
-                          tide_system="tide_free", C=C, S=S)
-    synthesis = GeoidSynthesis(model, preset="generic")
+    synthesis = make_synthesis(12, 11, "toy12")
     region = Region(10, 10, 30, 40)
     params = FitParameters(h0=0.1, tolerance_m=0.01, max_level=3, sample_spacing_deg=1.0)
     result = fit_source(synthesis, region, params)
@@ -233,22 +222,13 @@ def test_cells_touching_the_sphere_at_the_axis_points_meet_it(h):
     assert not _kernels.cells_meet_sphere(np.array(beyond), h, 1.0).any()
 
 
-def test_overlays_at_the_poles_fit_both_sides_of_the_sphere():
+def test_overlays_at_the_poles_fit_both_sides_of_the_sphere(toy24):
     """An overlay over a polar cap improves the poles like everywhere else (it used to
     fit rays with their outer sites dropped at the pole and make it 20 times worse)."""
     from geoidspline.fit import fit_source
-    from geoidspline.harmonics import GeoidSynthesis, HarmonicModel
 
+    model = toy24
     rng = np.random.default_rng(7)
-    nmax = 24
-    C = np.zeros((nmax + 1, nmax + 1))
-    S = np.zeros((nmax + 1, nmax + 1))
-    for n in range(2, nmax + 1):
-        C[n, : n + 1] = rng.normal(size=n + 1) * 1e-6 / n
-        S[n, 1 : n + 1] = rng.normal(size=n) * 1e-6 / n
-    C[2, 0] = -0.484165371736e-3
-    model = GeoidSynthesis(HarmonicModel(name="toy24", gm=3.986004415e14, radius=6378136.3, max_degree=nmax,
-                                         tide_system="tide_free", C=C, S=S), preset="generic")
     # at h = 0.005, -201 h + h rounds below -1: level 0 lost the cells outside the south
     # pole, and the overlay's outer sites there saw a level 0 with B-splines missing
     cap = Region(-90, -180, -88, 180)

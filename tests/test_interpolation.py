@@ -9,28 +9,11 @@ from geoidspline import _kernels
 from geoidspline.build import check_points
 from geoidspline.errors import FitError
 from geoidspline.fit import FitParameters, _touching_keys, active_cells, fit_source
-from geoidspline.harmonics import GeoidSynthesis, HarmonicModel
 from geoidspline.interpolation import (
     centred_bspline_samples, interpolate_level, prefilter_taps, sample_band,
 )
 from geoidspline.region import GLOBAL, Region
-from geoidspline.spline import AmbientSpline, LevelSpline, directions
-
-
-@pytest.fixture(scope="module")
-def toy():
-    """A random degree-24 model with a Kaula-like 1/n decay (N of a few metres)."""
-    rng = np.random.default_rng(7)
-    nmax = 24
-    C = np.zeros((nmax + 1, nmax + 1))
-    S = np.zeros((nmax + 1, nmax + 1))
-    for n in range(2, nmax + 1):
-        C[n, : n + 1] = rng.normal(size=n + 1) * 1e-6 / n
-        S[n, 1 : n + 1] = rng.normal(size=n) * 1e-6 / n
-    C[2, 0] = -0.484165371736e-3
-    model = HarmonicModel(name="toy24", gm=3.986004415e14, radius=6378136.3, max_degree=nmax,
-                          tide_system="tide_free", C=C, S=S)
-    return GeoidSynthesis(model, preset="generic")
+from geoidspline.spline import AmbientSpline, LevelSpline
 
 
 @pytest.mark.parametrize("order", [3, 4, 5, 6])
@@ -80,13 +63,13 @@ def test_filter_axis_equals_a_dense_correlation():
         np.testing.assert_allclose(out, expected[where[:, 0], where[:, 1], where[:, 2]], rtol=1e-12, atol=1e-12)
 
 
-def test_band_lookup_is_exact_to_the_lagrange_error_across_the_poles(toy):
+def test_band_lookup_is_exact_to_the_lagrange_error_across_the_poles(toy24):
     """6x6 Lagrange lookups on the padded band equal the exact synthesis, also within a
     lattice step of either pole (rows reflected half a turn away) and across ±180."""
     from geoidspline._interpolation_kernels import lattice_lookup
 
     step = 0.25
-    grid, lat0, step, band = sample_band(toy, -90.0, 90.0, step)
+    grid, lat0, step, band = sample_band(toy24, -90.0, 90.0, step)
     assert band.latitude[0] == -90.0 and band.latitude[-1] == 90.0
     rng = np.random.default_rng(5)
     lat = np.concatenate([rng.uniform(-90, 90, 500), rng.uniform(89.6, 90, 100), rng.uniform(-90, -89.6, 100),
@@ -95,16 +78,16 @@ def test_band_lookup_is_exact_to_the_lagrange_error_across_the_poles(toy):
     got = np.empty(lat.size)
     lattice_lookup(grid, lat0, step, -180.0 - 3 * step, step, lat, lon, got)
     # degree 24 at 0.25 deg: k delta = 0.105, Lagrange-6 error ~ (k delta)^6 / 6! * |N| ~ 1e-9 * |N|
-    np.testing.assert_allclose(got, toy.undulation(lat, lon), rtol=0, atol=1e-6)
+    np.testing.assert_allclose(got, toy24.undulation(lat, lon), rtol=0, atol=1e-6)
 
 
-def test_spline_interpolates_the_source_at_the_bspline_centres(toy):
+def test_spline_interpolates_the_source_at_the_bspline_centres(toy24):
     """With many prefilter terms the quasi-interpolant is the interpolating spline: at
     B-spline centres near the sphere it equals the radially constant extension."""
     h, order = 0.02, 4
     region = Region(10, 10, 30, 40)
     keys = _touching_keys(active_cells(h, region), order)
-    coefs, _, _ = interpolate_level(toy, keys, h, order, spacing_deg=0.05, terms=16)
+    coefs, _, _ = interpolate_level(toy24, keys, h, order, spacing_deg=0.05, terms=16)
     spline = AmbientSpline([LevelSpline(0, h, order, keys, coefs)])
     centres = (_kernels.unpack_keys(keys) + order / 2.0) * h
     radius = np.linalg.norm(centres, axis=1)
@@ -114,39 +97,39 @@ def test_spline_interpolates_the_source_at_the_bspline_centres(toy):
     assert inner.sum() > 100
     values = spline.evaluate_points(centres[inner])
     # remainder ((1 - cos kh)/3)^17 with kh <= 0.5 and Lagrange error at 0.05 deg: << 1e-8 m
-    np.testing.assert_allclose(values, toy.undulation(lat[inner], lon[inner]), rtol=0, atol=1e-8)
+    np.testing.assert_allclose(values, toy24.undulation(lat[inner], lon[inner]), rtol=0, atol=1e-8)
 
 
 @pytest.mark.parametrize("order, rate", [(4, 3.7), (6, 5.6)])
-def test_error_converges_at_the_spline_order(toy, order, rate):
+def test_error_converges_at_the_spline_order(toy24, order, rate):
     """Halving h divides the error by about 2^order (cubic 16, quintic 64)."""
     region = Region(10, 10, 30, 40)
-    check = check_points(toy, region, count=2000, seed=1)
+    check = check_points(toy24, region, count=2000, seed=1)
     errors = []
     for h in (0.04, 0.02):
         params = FitParameters(h0=h, order=order, max_level=0, tolerance_m=1.0, method="interpolation")
-        result = fit_source(toy, region, params)
+        result = fit_source(toy24, region, params)
         errors.append(np.abs(check.truth - result.spline.undulation(check.latitude, check.longitude)).max())
     assert math.log2(errors[0] / errors[1]) > rate
 
 
-def test_global_fit_has_no_pole_artefact_and_stops_at_the_tolerance(toy):
+def test_global_fit_has_no_pole_artefact_and_stops_at_the_tolerance(toy24):
     """A global cubic fit: the polar caps are as good as the rest, the node statistics
     of the result are honest (checked again at random points), overlays follow."""
     params = FitParameters(h0=0.04, order=4, max_level=0, tolerance_m=1.0, method="interpolation")
-    result = fit_source(toy, GLOBAL, params)
+    result = fit_source(toy24, GLOBAL, params)
     assert result.converged and len(result.levels) == 1
-    check = check_points(toy, GLOBAL, count=5000, seed=2)
+    check = check_points(toy24, GLOBAL, count=5000, seed=2)
     err = np.abs(check.truth - result.spline.undulation(check.latitude, check.longitude))
     rng = np.random.default_rng(4)
     lat = np.concatenate([[90.0, -90.0], rng.uniform(89, 90, 200), rng.uniform(-90, -89, 200)])
     lon = np.concatenate([[0.0, 0.0], rng.uniform(-180, 180, 400)])
-    pole_err = np.abs(toy.undulation(lat, lon) - result.spline.undulation(lat, lon))
+    pole_err = np.abs(toy24.undulation(lat, lon) - result.spline.undulation(lat, lon))
     assert err.max() < 0.05 and pole_err.max() <= err.max()
     assert abs(result.node_max_error_m - err.max()) < 0.5 * err.max()
     # a tolerance below the level's error adds least-squares overlays where it is violated
     strict = FitParameters(h0=0.04, order=4, max_level=1, tolerance_m=0.5 * err.max(), method="interpolation")
-    refined = fit_source(toy, Region(10, 10, 30, 40), strict)
+    refined = fit_source(toy24, Region(10, 10, 30, 40), strict)
     assert len(refined.levels) == 2 and refined.levels[1].coefficients > 0
     assert refined.levels[1].max_error_m < refined.levels[0].max_error_m
 
@@ -176,7 +159,7 @@ def _write_gfc(path, model):
     return path
 
 
-def test_cli_fits_a_model_by_interpolation_and_refuses_a_grid(toy, tmp_path):
+def test_cli_fits_a_model_by_interpolation_and_refuses_a_grid(toy24, tmp_path):
     import json
     from click.testing import CliRunner
     from geoidspline.cli.fit import main as fit_main
@@ -185,7 +168,7 @@ def test_cli_fits_a_model_by_interpolation_and_refuses_a_grid(toy, tmp_path):
     from geoidspline.readers import write_gtx
     from geoidspline.sources import Provenance
 
-    model = _write_gfc(tmp_path / "toy24.gfc", toy.model)
+    model = _write_gfc(tmp_path / "toy24.gfc", toy24.model)
     store = tmp_path / "store"
     run = CliRunner().invoke(fit_main, [str(model), "--preset", "generic", "--method", "interpolation",
                                         "--region", "10", "10", "30", "40", "--h0", "0.02", "--max-level", "0",
@@ -206,7 +189,7 @@ def test_cli_fits_a_model_by_interpolation_and_refuses_a_grid(toy, tmp_path):
     assert "Traceback" not in refused.output and not (tmp_path / "g").exists()
 
 
-def test_deflection_of_a_model_store_matches_differences_of_the_exact_synthesis(toy):
+def test_deflection_of_a_model_store_matches_differences_of_the_exact_synthesis(toy24):
     """ξ, η of a store fitted from a model agree with central differences of the exact
     synthesis, within the fit error turned into a slope: a spline error of at most ε on
     cells of size h R varies by at most 2 (n-1)² ε / (h R) per metre (Markov's
@@ -216,8 +199,8 @@ def test_deflection_of_a_model_store_matches_differences_of_the_exact_synthesis(
     h, order = 0.02, 4
     region = Region(10, 10, 30, 40)
     params = FitParameters(h0=h, order=order, max_level=0, tolerance_m=1.0, method="interpolation")
-    spline = fit_source(toy, region, params).spline
-    check = check_points(toy, region, count=3000, seed=5)
+    spline = fit_source(toy24, region, params).spline
+    check = check_points(toy24, region, count=3000, seed=5)
     eps = np.abs(check.truth - spline.undulation(check.latitude, check.longitude)).max()
     rng = np.random.default_rng(6)
     lat = rng.uniform(13, 27, 300)
@@ -225,8 +208,8 @@ def test_deflection_of_a_model_store_matches_differences_of_the_exact_synthesis(
     got = deflection(spline, lat, lon)
     radius = gaussian_mean_radius(lat)
     step = 1e-3  # degrees: truncation |N'''| step² / 6 is ~1e-12 m per m here
-    dn_dphi = (toy.undulation(lat + step, lon) - toy.undulation(lat - step, lon)) / (2 * np.radians(step))
-    dn_dlam = (toy.undulation(lat, lon + step) - toy.undulation(lat, lon - step)) / (2 * np.radians(step))
+    dn_dphi = (toy24.undulation(lat + step, lon) - toy24.undulation(lat - step, lon)) / (2 * np.radians(step))
+    dn_dlam = (toy24.undulation(lat, lon + step) - toy24.undulation(lat, lon - step)) / (2 * np.radians(step))
     xi = -np.degrees(dn_dphi / radius) * 3600
     eta = -np.degrees(dn_dlam / (radius * np.cos(np.radians(lat)))) * 3600
     slope_bound = 2 * (order - 1) ** 2 * eps / (h * 6_371_000.0)  # metres per metre
