@@ -40,7 +40,7 @@ RUN pip install .
 
 # Compile the query kernels once into numba's cache so a container's first query does not
 # spend seconds in the JIT (a different CPU recompiles; the cache stays writable for any uid).
-RUN python -c "import numpy as np; from geoidspline.spline import AmbientSpline, LevelSpline; AmbientSpline([LevelSpline.from_indices(0, 0.1, 4, np.zeros((1, 3), dtype=np.int64), np.ones(1))]).undulation([0.0], [0.0])" \
+RUN python -c "import numpy as np; from geoidspline.hierarchy.ambient import AmbientSpline; from geoidspline.bspline.level import LevelSpline; AmbientSpline([LevelSpline.from_indices(0, 0.1, 4, np.zeros((1, 3), dtype=np.int64), np.ones(1))]).undulation([0.0], [0.0])" \
  && chmod -R a+rwX /var/cache/numba
 
 USER geoid

@@ -7,7 +7,7 @@
 The same fit (default: EGM96 15' over the Andes region -60 -90 15 -30 at 0.1 m) runs
 in this process once per mode:
 
-- ``serial``: ``FitParameters(workers=1)``, every block solved here;
+- ``serial``: ``Executor(workers=1)``, every block solved here;
 - ``pool``: ``workers=N``, the spawned process pool (``geoid-fit --workers N``);
 - ``local``: ``scheduler="local", workers=N``: a dask LocalCluster of N single-threaded
   worker processes started and closed for every level (``geoid-fit --scheduler local``);
@@ -19,7 +19,7 @@ Recorded per mode: wall time of ``fit_source`` (reading the source's nodes inclu
 the speed-up over ``serial``, whether the coefficients equal the serial ones bit for
 bit, and per level the blocks, unknowns and sites per block and the per-block solve
 seconds (measured inside the task, from ``solve_local_problem``; taken by wrapping
-``geoidspline.distributed.solve_problems``). Memory: every 0.25 s the RSS of each child
+``geoidspline.fitting.executors.solve_problems``). Memory: every 0.25 s the RSS of each child
 process of this one (the pool's or the cluster's workers; psutil), keeping the largest
 single worker and the largest sum; in ``cluster`` mode also the workers' own report
 (``client.run(psutil.Process().memory_info().rss)``) every 0.5 s, and their idle RSS
@@ -117,10 +117,10 @@ class WorkerRSS:
 
 
 class Recorder:
-    """Wraps geoidspline.distributed.solve_problems to keep per-level block figures."""
+    """Wraps geoidspline.fitting.executors.solve_problems to keep per-level block figures."""
 
     def __init__(self):
-        import geoidspline.distributed as module
+        import geoidspline.fitting.executors as module
 
         self.module = module
         self.real = module.solve_problems
@@ -161,32 +161,31 @@ class Recorder:
 
 
 def run_mode(mode, source, region, base_params, workers):
-    import dataclasses
-
-    from geoidspline.fit import fit_source
+    from geoidspline.fitting.driver import fit_source
+    from geoidspline.fitting.executors import Executor
 
     cluster = worker_rss = None
     if mode == "serial":
-        params = dataclasses.replace(base_params, workers=1, scheduler=None)
+        executor = Executor(workers=1)
     elif mode == "pool":
-        params = dataclasses.replace(base_params, workers=workers, scheduler=None)
+        executor = Executor(workers=workers)
     elif mode == "local":
-        params = dataclasses.replace(base_params, workers=workers, scheduler="local")
+        executor = Executor(workers=workers, scheduler="local")
     else:
         from dask.distributed import LocalCluster
 
         started = time.perf_counter()
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                               env={"NUMBA_NUM_THREADS": "1"},  # as geoidspline.distributed starts them
+                               env={"NUMBA_NUM_THREADS": "1"},  # as geoidspline.fitting.executors starts them
                                dashboard_address=":0", scheduler_kwargs={"dashboard": False})
         cluster_start = time.perf_counter() - started
-        params = dataclasses.replace(base_params, workers=workers, scheduler=cluster.scheduler_address)
+        executor = Executor(workers=workers, scheduler=cluster.scheduler_address)
         worker_rss = WorkerRSS(cluster.scheduler_address)
     children = ChildRSS()
     try:
         with Recorder() as rec:
             start = time.perf_counter()
-            result = fit_source(source, region, params)
+            result = fit_source(source, region, base_params, executor=executor)
             wall = time.perf_counter() - start
     finally:
         children.stop()
@@ -197,7 +196,7 @@ def run_mode(mode, source, region, base_params, workers):
     row = {
         "mode": mode,
         "workers": 1 if mode == "serial" else workers,
-        "scheduler": "address of a LocalCluster started before the fit" if mode == "cluster" else params.scheduler,
+        "scheduler": "address of a LocalCluster started before the fit" if mode == "cluster" else executor.scheduler,
         "wall_seconds": round(wall, 2),
         "fit_seconds": round(result.seconds, 2),
         "coefficients": int(sum(len(lv) for lv in result.spline.levels)),
@@ -224,7 +223,7 @@ def run_mode(mode, source, region, base_params, workers):
 
 _MEMORY_PROBE = r"""
 import pickle, resource, sys, psutil
-from geoidspline.fit import solve_local_problem
+from geoidspline.fitting.least_squares import solve_local_problem
 with open(sys.argv[1], "rb") as fh:
     small, big = pickle.load(fh)
 solve_local_problem(small)  # numba cache load / JIT and qdldl import, outside the measurement
@@ -257,10 +256,15 @@ def full_block_probe(h, node_spacing_deg, centre=(30.0, 45.0), width_blocks=4, s
 
     import numpy as np
 
-    from geoidspline.fit import (FitParameters, OverlayRefinement, _local_problems, _Nodes, _sites_for_level,
-                                 active_cells, solve_local_problem)
-    from geoidspline.region import GLOBAL, Region
-    from geoidspline.sources import NodeSample
+    from geoidspline.bspline.domain import active_cells
+    from geoidspline.fitting.least_squares import local_problems as _local_problems
+    from geoidspline.fitting.least_squares import solve_local_problem
+    from geoidspline.fitting.parameters import FitParameters
+    from geoidspline.fitting.sites import DataNodes as _Nodes
+    from geoidspline.fitting.sites import sites_for_level as _sites_for_level
+    from geoidspline.hierarchy.overlays import OverlayRefinement
+    from geoidspline.sources.base import NodeSample
+    from geoidspline.sphere.region import GLOBAL, Region
 
     params = FitParameters(h0=h, max_level=0, untiled_max_unknowns=0, tile_size=max(0.4, h))
     order = params.order
@@ -326,9 +330,9 @@ def full_block_probe(h, node_spacing_deg, centre=(30.0, 45.0), width_blocks=4, s
 
 
 def _unpack(keys):
-    from geoidspline import _kernels
+    from geoidspline.bspline.keys import unpack_keys
 
-    return _kernels.unpack_keys(keys)
+    return unpack_keys(keys)
 
 
 def main(argv=None) -> int:
@@ -353,9 +357,9 @@ def main(argv=None) -> int:
 
     import numpy as np
 
-    from geoidspline.catalogue import open_source
-    from geoidspline.fit import FitParameters
-    from geoidspline.region import Region
+    from geoidspline.fitting.parameters import FitParameters
+    from geoidspline.sources.resolve import open_source
+    from geoidspline.sphere.region import Region
 
     source = open_source(args.source)
     region = Region.from_bounds(*args.region)

@@ -50,9 +50,8 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import git_commit, machine_info  # noqa: E402
-
 import numpy as np
+from _common import git_commit, machine_info  # noqa: E402
 
 SEED = 20130101
 GTX = "egm96_15.gtx"
@@ -98,7 +97,7 @@ def _gtx_bilinear(grid, lat, lon):
 
 def verify_proj(transformer) -> dict:
     """PROJ's z must be N: equal to the GTX nodes, bilinear in between."""
-    from geoidspline.readers import read_grid
+    from geoidspline.sources.formats import read_grid
 
     grid = read_grid(Path(PROJ_DIR) / GTX)
     rng = np.random.default_rng(1)

@@ -1,18 +1,91 @@
-"""Shared plumbing of the commands: logging options and error handling."""
+"""The grammar every command shares: options, logging, errors, exit statuses.
+
+- ``-h/--help``, ``--version``, ``-v/-vv`` (more log output on stderr) and ``-q`` (errors
+  only) on every command;
+- the store is always ``--store DIR`` (older spellings stay as hidden aliases);
+- a user's mistake is one ``ERROR: ...`` line on stderr, never a traceback: exit status 1
+  for an error, 2 for a command line click cannot parse (its own convention), 3 when a
+  fit was written but did not reach its tolerance;
+- library messages name Python parameters (``sample_spacing_deg``); :func:`user_errors`
+  names the command-line option instead (``--sample-spacing``).
+"""
 
 from __future__ import annotations
 
+import errno
 import functools
 import logging
+import re
 import sys
 
 import click
 
+from geoidspline._version import __version__
 from geoidspline.errors import GeoidSplineError
+
+CONTEXT = {"help_option_names": ["-h", "--help"]}
+
+#: Library parameter names and the options that set them, for messages.
+OPTION_NAMES = {
+    "overwrite=True": "--overwrite",
+    "sample_spacing_deg": "--sample-spacing",
+    "height_in": "--height-in",
+    "blend_width_km": "--blend-width",
+    "tolerance_m": "--tolerance",
+    "max_level": "--max-level",
+}
+_OPTION_PATTERN = re.compile("|".join(re.escape(k) for k in sorted(OPTION_NAMES, key=len, reverse=True)))
+
+
+def for_the_command_line(message: str) -> str:
+    """A library message with its parameter names replaced by the options that set them."""
+    return _OPTION_PATTERN.sub(lambda m: OPTION_NAMES[m.group(0)], message)
+
+
+class _ErrorLines:
+    """click's own errors (bad option, missing argument) as ``ERROR:`` lines like every
+    other user error, with a pointer to ``--help``."""
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        if not standalone_mode:
+            return super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        try:
+            result = super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        except click.exceptions.Exit as exc:  # --help, --version
+            sys.exit(exc.exit_code)
+        except click.ClickException as exc:
+            hint = ""
+            if isinstance(exc, click.UsageError) and exc.ctx is not None:
+                hint = f" (see '{exc.ctx.command_path} --help')"
+            click.echo(f"ERROR: {exc.format_message()}{hint}", err=True)
+            sys.exit(exc.exit_code)
+        except click.Abort:
+            click.echo("ERROR: aborted", err=True)
+            sys.exit(130)
+        sys.exit(result if isinstance(result, int) else 0)
+
+
+class GeoidCommand(_ErrorLines, click.Command):
+    """A command of geoidspline."""
+
+
+class GeoidGroup(_ErrorLines, click.Group):
+    """``python -m geoidspline``: the commands under one name, with the same grammar."""
+
+
+def command(name: str, **kwargs):
+    """``click.command`` with the shared class and context settings."""
+    return click.command(name=name, cls=GeoidCommand, context_settings={**CONTEXT, **kwargs.pop("context", {})},
+                         **kwargs)
+
+
+def version_option(func):
+    return click.version_option(__version__, "--version", prog_name="geoidspline",
+                                message="%(prog)s %(version)s")(func)
 
 
 def verbosity_options(func):
-    """Add ``-v/--verbose`` (repeatable) and ``-q/--quiet``, and set up logging."""
+    """Add ``--version``, ``-v/--verbose`` (repeatable) and ``-q/--quiet``, and set up logging."""
 
     @click.option("-v", "--verbose", count=True, help="More log output on stderr (-vv for debug).")
     @click.option("-q", "--quiet", is_flag=True, help="Only errors on stderr; no progress bar.")
@@ -20,23 +93,53 @@ def verbosity_options(func):
     def wrapper(*args, verbose, quiet, **kwargs):
         level = logging.ERROR if quiet else (logging.WARNING, logging.INFO, logging.DEBUG)[min(verbose, 2)]
         logging.basicConfig(level=level, stream=sys.stderr, format="%(levelname)s: %(message)s", force=True)
-        return func(*args, quiet=quiet, **kwargs)
+        return func(*args, quiet=quiet, verbose=verbose, **kwargs)
 
-    return wrapper
+    return version_option(wrapper)
+
+
+def store_options(help_text: str, *, positional: bool = False, aliases=()):
+    """``--store DIR`` (and, for old scripts, a positional STORE or hidden alias options)
+    merged into the keyword argument ``store_path``."""
+
+    def decorate(func):
+        @functools.wraps(func)
+        def wrapper(*args, store_path, store_positional=None, **kwargs):
+            given = [v for v in [store_path, store_positional] + [kwargs.pop(f"store_alias_{i}") for i in
+                                                                  range(len(aliases))] if v is not None]
+            if len(set(given)) > 1:
+                raise click.UsageError(f"the store is given twice ({' and '.join(map(str, given))})")
+            return func(*args, store_path=given[0] if given else None, **kwargs)
+
+        wrapped = click.option("--store", "store_path", type=click.Path(), default=None, metavar="DIR",
+                               help=help_text)(wrapper)
+        for i, alias in enumerate(aliases):
+            wrapped = click.option(alias, f"store_alias_{i}", type=click.Path(), default=None, hidden=True)(wrapped)
+        if positional:
+            wrapped = click.argument("store_positional", required=False, metavar="[STORE]")(wrapped)
+        return wrapped
+
+    return decorate
 
 
 def user_errors(func):
-    """Report GeoidSplineError (and unreadable files) as ``ERROR: ...`` and exit 1."""
+    """Report GeoidSplineError and file-system faults as one ``ERROR: ...`` line, exit 1."""
 
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
         try:
             return func(*args, **kwargs)
         except GeoidSplineError as exc:
-            click.echo(f"ERROR: {exc}", err=True)
+            click.echo(f"ERROR: {for_the_command_line(str(exc))}", err=True)
             sys.exit(1)
-        except (FileNotFoundError, PermissionError, IsADirectoryError) as exc:
-            click.echo(f"ERROR: {exc.filename}: {exc.strerror}", err=True)
+        except OSError as exc:
+            if exc.errno == errno.EPIPE:  # the reader went away (| head): not an error of ours
+                sys.exit(0)
+            where = f"{exc.filename}: " if exc.filename else ""
+            click.echo(f"ERROR: {where}{exc.strerror or exc}", err=True)
+            sys.exit(1)
+        except MemoryError:
+            click.echo("ERROR: out of memory (try a smaller region or batch)", err=True)
             sys.exit(1)
         except KeyboardInterrupt:
             click.echo("ERROR: interrupted", err=True)

@@ -8,13 +8,13 @@ import time
 
 import click
 
-from ._common import user_errors, verbosity_options
+from ._common import command, store_options, user_errors, verbosity_options
 
 log = logging.getLogger("geoidspline.cli")
 
 
-@click.command(name="export", context_settings={"help_option_names": ["-h", "--help"]})
-@click.argument("store_path", metavar="STORE", type=click.Path())
+@command("export")
+@store_options("Tile store directory (may also be given as the argument STORE).", positional=True)
 @click.option("--out", "out", required=True, type=click.Path(dir_okay=False),
               help="Grid file to write: FILE.gtx (PROJ GTX), FILE.nc (CF netCDF) or FILE.tif (GeoTIFF, needs rasterio).")
 @click.option("--spacing", type=float, required=True, help="Node spacing in degrees (latitude and longitude).")
@@ -23,8 +23,8 @@ log = logging.getLogger("geoidspline.cli")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @verbosity_options
 @user_errors
-def main(store_path, out, spacing, region, as_json, quiet):
-    """Evaluate the tile store STORE every --spacing degrees and write the grid to --out.
+def main(store_path, out, spacing, region, as_json, quiet, verbose):
+    """Evaluate the tile store at --store every --spacing degrees and write the grid to --out.
 
     Nodes run from the south edge of the region northward and from its west edge
     eastward, up to the last node at or before the north/east edge (a region all around
@@ -33,8 +33,11 @@ def main(store_path, out, spacing, region, as_json, quiet):
     bilinearly: choose the spacing for the accuracy you need.
     """
     import geoidspline
-    from geoidspline.queries import export_grid
-    from geoidspline.region import Region
+
+    if store_path is None:
+        raise click.UsageError("give --store DIR, the store to export")
+    from geoidspline.query.export import export_grid
+    from geoidspline.sphere.region import Region
 
     store = geoidspline.open_store(store_path)
     started = time.perf_counter()

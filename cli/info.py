@@ -6,18 +6,20 @@ import json
 
 import click
 
-from ._common import user_errors, verbosity_options
+from geoidspline.sources.harmonics.presets import PRESETS
+
+from ._common import command, store_options, user_errors, verbosity_options
 
 
-@click.command(name="info", context_settings={"help_option_names": ["-h", "--help"]})
-@click.argument("store_path", metavar="STORE", type=click.Path())
+@command("info")
+@store_options("Tile store directory (may also be given as the argument STORE).", positional=True)
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @click.option("--check-against", "model_path", type=click.Path(), default=None, metavar="MODEL",
               help="Also compare the store with the exact synthesis of this spherical-harmonic model "
                    "(ICGEM .gfc or NGA ASCII) at random points (JSON key check_against).")
 @click.option("--correction", "correction_path", type=click.Path(), default=None,
               help="With --check-against: zeta-to-N correction coefficients (NGA CORRCOEF).")
-@click.option("--preset", type=click.Choice(["nga-f477", "nga-hsynth", "generic"]), default=None,
+@click.option("--preset", type=click.Choice(PRESETS), default=None,
               help="With --check-against: synthesis conventions [default: the store's, when it was fitted from "
                    "MODEL; else nga-f477, nga-hsynth for EGM2008].")
 @click.option("--points", type=click.IntRange(min=1), default=20_000, show_default=True,
@@ -27,8 +29,8 @@ from ._common import user_errors, verbosity_options
                    "altered tile and exit 1 if there is any.")
 @verbosity_options
 @user_errors
-def main(store_path, as_json, model_path, correction_path, preset, points, verify, quiet):
-    """Summary of the tile store STORE (a directory written by geoid-fit).
+def main(store_path, as_json, model_path, correction_path, preset, points, verify, quiet, verbose):
+    """Summary of the tile store at --store (a directory written by geoid-fit).
 
     With --check-against MODEL: max, RMS and 99th percentile of |store - model| at
     --points random points uniform in area over the store's region (seed fixed, so
@@ -36,12 +38,14 @@ def main(store_path, as_json, model_path, correction_path, preset, points, verif
     """
     import geoidspline
 
+    if store_path is None:
+        raise click.UsageError("give --store DIR, the store to describe")
     if model_path is None and (correction_path is not None or preset is not None):
         raise click.UsageError("--correction and --preset go with --check-against")
     if verify:
         import sys
 
-        from geoidspline.store import verify_store
+        from geoidspline.store.reader import verify_store
 
         problems = verify_store(store_path)
         if as_json:
@@ -55,7 +59,8 @@ def main(store_path, as_json, model_path, correction_path, preset, points, verif
     store = geoidspline.open_store(store_path)
     info = store.info()
     if model_path is not None:
-        from geoidspline.queries import check_against, load_synthesis
+        from geoidspline.query.validation import check_against
+        from geoidspline.sources.resolve import load_synthesis
 
         synthesis = load_synthesis(model_path, correction_path, preset, like_store=store)
         info["check_against"] = check_against(store, synthesis, points)

@@ -12,13 +12,14 @@ import sys
 
 import click
 
-from ._common import user_errors, verbosity_options
+from geoidspline.sources.harmonics.presets import PRESETS
+
+from ._common import command, store_options, user_errors, verbosity_options
 
 log = logging.getLogger("geoidspline.cli")
 
 BATCH_BYTES = 1 << 16
 
-PRESET_CHOICES = ("nga-f477", "nga-hsynth", "generic")  # geoidspline.harmonics.PRESETS
 DEFLECTION_COLUMNS = ("xi_arcsec", "eta_arcsec", "dNdn_m_per_m", "dNde_m_per_m")
 HEIGHT_OUTPUT = {"ellipsoidal": "orthometric_height_m", "orthometric": "ellipsoidal_height_m"}
 
@@ -96,7 +97,7 @@ class Query:
         self.fmt = fmt
         self.crs_dim = 2
         if crs is not None:
-            from geoidspline.queries import crs_info
+            from geoidspline.query.crs import crs_info
 
             _, self.crs_dim = crs_info(crs)
         if self.crs_dim == 3:
@@ -225,7 +226,7 @@ class Query:
         if self.crs is None:
             lat[good], lon[good] = numbers[good, 0], numbers[good, 1]
         elif good.any():
-            from geoidspline.queries import to_geodetic
+            from geoidspline.query.crs import to_geodetic
 
             z = numbers[good, 2] if self.crs_dim == 3 else None
             la, lo, h = to_geodetic(numbers[good, 0], numbers[good, 1], z, crs=self.crs)
@@ -244,17 +245,17 @@ class Query:
         undulation = np.asarray(self.source.undulation(la, lo), dtype=float).reshape(-1)
         values = {"undulation_m": undulation, "latitude_deg": la, "longitude_deg": lo}
         if self.deflection:
-            from geoidspline.queries import deflection
+            from geoidspline.query.derived import deflection
 
             d = deflection(self.source, la, lo)
             values.update(zip(DEFLECTION_COLUMNS, (np.asarray(v).reshape(-1) for v in d)))
         if self.height_in:
-            from geoidspline.queries import convert_height
+            from geoidspline.query.derived import convert_height
 
             height = h_known[idx] if self.crs_dim == 3 else numbers[idx, self.height_column]
             values[HEIGHT_OUTPUT[self.height_in]] = np.asarray(convert_height(undulation, height, self.height_in)).reshape(-1)
         if self.with_error:
-            from geoidspline.queries import tile_error_bound
+            from geoidspline.query.derived import tile_error_bound
 
             values["error_bound_m"] = np.asarray(tile_error_bound(self.source, la, lo)).reshape(-1)
         for k, (name, _) in enumerate(self.columns):
@@ -337,14 +338,13 @@ on, and the exit status is then 1.
 """
 
 
-@click.command(name="query", help=HELP, context_settings={"help_option_names": ["-h", "--help"],
-                                                          "ignore_unknown_options": True})
-@click.option("--store", "store_path", type=click.Path(), default=None, help="Tile store directory.")
+@command("query", help=HELP, context={"ignore_unknown_options": True})
+@store_options("Tile store directory.")
 @click.option("--model", "model_path", type=click.Path(), default=None,
               help="Spherical-harmonic model file (instead of --store): exact synthesis at each point.")
 @click.option("--correction", "correction_path", type=click.Path(), default=None,
               help="With --model: zeta-to-N correction coefficients (NGA CORRCOEF, centimetres).")
-@click.option("--preset", type=click.Choice(PRESET_CHOICES), default=None,
+@click.option("--preset", type=click.Choice(PRESETS), default=None,
               help="With --model: synthesis conventions [default: nga-f477; nga-hsynth for EGM2008].")
 @click.option("--input", "input_path", type=click.File("r"), default=None,
               help="CSV file of lat,lon[,...] rows ('-' for stdin); a header row is optional.")
@@ -366,7 +366,7 @@ on, and the exit status is then 1.
 @verbosity_options
 @user_errors
 def main(store_path, model_path, correction_path, preset, input_path, deflection, height_in, height_column,
-         crs, with_error, fmt, precision, coordinates, quiet):
+         crs, with_error, fmt, precision, coordinates, quiet, verbose):
     coordinates = tuple(coordinates) or None
     if (input_path is None) == (coordinates is None):
         raise click.UsageError("give either LAT LON or --input FILE (use '-' for stdin)")
@@ -380,7 +380,7 @@ def main(store_path, model_path, correction_path, preset, input_path, deflection
         raise click.UsageError("--height-column goes with --height-in")
 
     if crs is not None:
-        from geoidspline.queries import crs_info
+        from geoidspline.query.crs import crs_info
 
         if crs_info(crs)[1] == 3:
             if height_column is not None:
@@ -393,7 +393,7 @@ def main(store_path, model_path, correction_path, preset, input_path, deflection
 
         source = geoidspline.open_store(store_path)
     else:
-        from geoidspline.queries import load_synthesis
+        from geoidspline.sources.resolve import load_synthesis
 
         source = load_synthesis(model_path, correction_path, preset)
         log.info("model %s, preset %s, degree %d", source.model.name, source.preset, source.max_degree)

@@ -1,20 +1,41 @@
 """geoidspline: geoid undulations as C² ambient B-spline tiles (Lehmann 2013).
 
-Fit a geoid grid or spherical-harmonic model once into a tile store
-(:func:`geoidspline.fit.fit_source`, ``geoid-fit``), then answer point queries fast
-(:func:`open_store`, ``geoid-query``). Latitudes and longitudes are in degrees,
-heights and undulations in metres.
+Fit a geoid grid or spherical-harmonic model once into a tile store (:func:`fit`,
+``geoid-fit``), then answer point queries fast (:func:`open_store`, ``geoid-query``).
+Latitudes and longitudes are in degrees, heights and undulations in metres.
+
+The packages follow the method: :mod:`.sphere` (the reference manifold), :mod:`.bspline`
+(one level), :mod:`.hierarchy` (levels summed), :mod:`.fitting`, :mod:`.sources` (grids
+and harmonic models), :mod:`.store` (tiles on disk), :mod:`.query` (the query index and
+derived quantities), :mod:`.geodesy` (ellipsoids); see README's "Architecture".
 """
 
 from __future__ import annotations
 
-__version__ = "0.1.0"
+from ._version import __version__
+from .errors import CoordinateError, FitError, GeoidSplineError, InputFileError, StoreCorruptError, StoreError
+from .sphere.region import GLOBAL, Region
 
-__all__ = ["open_store", "__version__"]
+__all__ = ["open_store", "fit", "update", "Region", "GLOBAL", "__version__", "GeoidSplineError",
+           "InputFileError", "CoordinateError", "StoreError", "StoreCorruptError", "FitError"]
 
 
-def open_store(path):
-    """Open a tile store read-only; see :class:`geoidspline.store.TileStore`."""
-    from .store import TileStore
+def open_store(path, *, lazy: bool = True, verify: bool = True):
+    """Open a tile store read-only (:func:`geoidspline.api.open_store`)."""
+    from .api import open_store as _open
 
-    return TileStore.open(path)
+    return _open(path, lazy=lazy, verify=verify)
+
+
+def fit(source, store, **options):
+    """Fit a source into a new store and open it (:func:`geoidspline.api.fit`)."""
+    from .api import fit as _fit
+
+    return _fit(source, store, **options)
+
+
+def update(store, source, region, **options):
+    """A regional update of a store (:func:`geoidspline.api.update`)."""
+    from .api import update as _update
+
+    return _update(store, source, region, **options)

@@ -1,19 +1,19 @@
-"""``python -m geoidspline fit|query|info ...``: the three commands under one name."""
+"""``python -m geoidspline fit|update|query|info|export ...``: the commands under one name."""
 
 import click
 
-from geoidspline.cli import export, fit, info, query
+from geoidspline.cli import export, fit, info, query, update
+from geoidspline.cli._common import CONTEXT, GeoidGroup, version_option
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(cls=GeoidGroup, context_settings=CONTEXT)
+@version_option
 def main():
     """geoidspline: geoid undulations as C² ambient B-spline tiles."""
 
 
-main.add_command(fit.main, "fit")
-main.add_command(query.main, "query")
-main.add_command(info.main, "info")
-main.add_command(export.main, "export")
+for _module in (fit, update, query, info, export):
+    main.add_command(_module.main)
 
 if __name__ == "__main__":
     main()

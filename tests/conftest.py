@@ -14,12 +14,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from geoidspline.build import build_store
-from geoidspline.fit import FitParameters, FitResult
-from geoidspline.grid import GeoidGrid
-from geoidspline.readers import read_grid, write_gtx
-from geoidspline.region import Region
-from geoidspline.sources import Provenance
+from geoidspline.api import build_store
+from geoidspline.fitting.driver import FitResult
+from geoidspline.fitting.parameters import FitParameters
+from geoidspline.sources.base import Provenance
+from geoidspline.sources.formats import read_grid, write_gtx
+from geoidspline.sources.grid import GeoidGrid
+from geoidspline.sphere.region import Region
 
 #: Node spacing of the synthetic grid, degrees.
 SPACING_DEG = 2.0
@@ -92,7 +93,7 @@ def store_copy(tmp_path, small_store) -> Path:
 def random_synthesis(nmax, seed, name):
     """Generic-preset synthesis of a random model: C̄nm, S̄nm ~ N(0, (1e-6 / n)²) for
     n = 2..nmax (N of a few metres) and EGM96's C̄20, which the normal field removes."""
-    from geoidspline.harmonics import GeoidSynthesis, HarmonicModel
+    from geoidspline.sources.harmonics import GeoidSynthesis, HarmonicModel
 
     rng = np.random.default_rng(seed)
     C = np.zeros((nmax + 1, nmax + 1))

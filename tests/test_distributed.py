@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from geoidspline.distributed import solve_problems
-from geoidspline.errors import FitError
-from geoidspline.fit import FitParameters, fit_nodes
-from geoidspline.region import Region
-
 from test_fit import bumpy_field, lattice
+
+from geoidspline.errors import FitError
+from geoidspline.fitting.driver import fit_nodes
+from geoidspline.fitting.executors import Executor, solve_problems
+from geoidspline.fitting.parameters import FitParameters
+from geoidspline.sphere.region import Region
 
 REGION = Region(-20, -30, 20, 30)
 # small blocks and no untiled levels: every level is split into many blocks
@@ -26,7 +26,7 @@ def sample():
 @pytest.fixture(scope="module")
 def recorded(sample):
     """The serial fit, and the local problems of its levels (recorded on the way)."""
-    import geoidspline.distributed as module
+    import geoidspline.fitting.executors as module
 
     levels = []
     real = module.solve_problems
@@ -65,14 +65,14 @@ def test_the_serial_fit_has_many_blocks(serial):
 
 
 def test_process_pool_gives_the_serial_coefficients(sample, serial):
-    pooled = fit_nodes(sample, REGION, FitParameters(**PARAMS, workers=2))
+    pooled = fit_nodes(sample, REGION, FitParameters(**PARAMS), executor=Executor(workers=2))
     assert_same_coefficients(serial, pooled)
 
 
 def test_dask_local_cluster_gives_the_serial_coefficients(sample, serial):
     pytest.importorskip("dask.distributed")
     calls = []
-    on_dask = fit_nodes(sample, REGION, FitParameters(**PARAMS, workers=2, scheduler="local"),
+    on_dask = fit_nodes(sample, REGION, FitParameters(**PARAMS), executor=Executor(workers=2, scheduler="local"),
                         progress=calls.append)
     assert_same_coefficients(serial, on_dask)
     assert sum(calls) == sum(r.tiles_solved for r in serial.levels)
@@ -107,12 +107,12 @@ def test_a_failing_block_fails_the_dask_solve():
 @pytest.mark.parametrize("bad", ["tcp:/host:8786", "localhost:8786", "Local", "", "dask", 8786])
 def test_an_invalid_scheduler_is_refused(bad):
     with pytest.raises(FitError, match="scheduler"):
-        FitParameters(scheduler=bad)
+        Executor(scheduler=bad)
 
 
 @pytest.mark.parametrize("good", [None, "local", "tcp://10.0.0.1:8786", "tls://s:8786", "inproc://x", "ucx://y"])
 def test_valid_schedulers_are_accepted(good):
-    assert FitParameters(scheduler=good).scheduler == good
+    assert Executor(scheduler=good).scheduler == good
 
 
 def test_an_unreachable_scheduler_is_a_fit_error():

@@ -5,10 +5,13 @@ import math
 import numpy as np
 import pytest
 
-from geoidspline.fit import FitParameters, fit_nodes, active_cells
-from geoidspline.region import GLOBAL, Region
-from geoidspline.sources import NodeSample
-from geoidspline import _kernels
+from geoidspline._kernels.fitting import cells_meet_sphere
+from geoidspline.bspline.domain import active_cells
+from geoidspline.bspline.keys import MAX_INDEX
+from geoidspline.fitting.driver import fit_nodes
+from geoidspline.fitting.parameters import FitParameters
+from geoidspline.sources.base import NodeSample
+from geoidspline.sphere.region import GLOBAL, Region
 
 
 def smooth_field(lat, lon):
@@ -127,7 +130,7 @@ def test_c2_across_block_seams(tiled_and_whole):
     _, tiled = tiled_and_whole
     spline = tiled.spline
     lat, lon = random_points(REGION, 400, seed=3)
-    from geoidspline.spline import directions
+    from geoidspline.sphere.coordinates import directions
 
     u = directions(lat, lon)
     fine_h = spline.levels[-1].h
@@ -157,7 +160,7 @@ def test_restriction_derivatives_match_finite_differences_along_the_sphere():
     sample = lattice(smooth_field, 1.0, -60, 60, -90, 90)
     result = fit_nodes(sample, REGION, FitParameters(h0=0.1, max_level=0, tolerance_m=1e-6))
     lat, lon = random_points(REGION, 300, seed=4)
-    from geoidspline.spline import directions
+    from geoidspline.sphere.coordinates import directions
 
     u = directions(lat, lon)
     grad = result.spline.evaluate_points(u, nderiv=1)[:, 1:4]
@@ -174,14 +177,14 @@ def test_restriction_derivatives_match_finite_differences_along_the_sphere():
 
 def test_keys_cover_the_index_range_of_the_finest_level():
     params = FitParameters(h0=0.1, max_level=12)
-    assert 1.0 / params.spacing(12) + 8 < _kernels.MAX_INDEX
+    assert 1.0 / params.spacing(12) + 8 < MAX_INDEX
 
 
 def test_fit_straight_from_a_spherical_harmonic_model(make_synthesis):
     """A degree-12 model is fitted from its synthesis; the store is checked against
     the exact synthesis at random points that were not fit sites."""
-    from geoidspline.fit import fit_source
-    from geoidspline.build import check_points
+    from geoidspline.fitting.check_points import check_points
+    from geoidspline.fitting.driver import fit_source
 
     synthesis = make_synthesis(12, 11, "toy12")
     region = Region(10, 10, 30, 40)
@@ -197,7 +200,7 @@ def test_fit_straight_from_a_spherical_harmonic_model(make_synthesis):
 @pytest.mark.parametrize("count", [0, 1, 5, 3000])
 @pytest.mark.parametrize("chunk", [1, 7, 1_000_000])
 def test_union_of_shifts_equals_unique_of_all_shifts(count, chunk):
-    from geoidspline.fit import union_of_shifts
+    from geoidspline.bspline.keys import union_of_shifts
 
     keys = np.unique(np.random.default_rng(count).integers(0, 10**6, count))
     shifts = np.array([-7, 0, 3, 100])
@@ -218,14 +221,14 @@ def test_cells_touching_the_sphere_at_the_axis_points_meet_it(h):
             outside.append(cell.copy())
             cell[axis] += sign
             beyond.append(cell)
-    assert _kernels.cells_meet_sphere(np.array(outside), h, 1.0).all()
-    assert not _kernels.cells_meet_sphere(np.array(beyond), h, 1.0).any()
+    assert cells_meet_sphere(np.array(outside), h, 1.0).all()
+    assert not cells_meet_sphere(np.array(beyond), h, 1.0).any()
 
 
 def test_overlays_at_the_poles_fit_both_sides_of_the_sphere(toy24):
     """An overlay over a polar cap improves the poles like everywhere else (it used to
     fit rays with their outer sites dropped at the pole and make it 20 times worse)."""
-    from geoidspline.fit import fit_source
+    from geoidspline.fitting.driver import fit_source
 
     model = toy24
     rng = np.random.default_rng(7)

@@ -10,12 +10,13 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from geoidspline.catalogue import list_catalogue, resolve_source
 from geoidspline.errors import CoordinateError, InputFileError
-from geoidspline.grid import GeoidGrid
-from geoidspline.readers import GTX_NODATA, pgm_header, read_grid, write_gtx, write_netcdf
-from geoidspline.region import Region
-from geoidspline.sources import GeoidSource, Provenance
+from geoidspline.sources.base import GeoidSource, Provenance
+from geoidspline.sources.catalogue import list_catalogue
+from geoidspline.sources.formats import GTX_NODATA, pgm_header, read_grid, write_gtx, write_netcdf
+from geoidspline.sources.grid import GeoidGrid
+from geoidspline.sources.resolve import resolve_source
+from geoidspline.sphere.region import Region
 
 SHARED = Path("../shared/data")
 DAC = SHARED / "egm96" / "WW15MGH.DAC"
@@ -215,7 +216,7 @@ def test_netcdf_float32_coordinates_are_regularised(tmp_path):
 
 def test_netcdf_missing_units_warns_and_assumes_metres(tmp_path, caplog):
     path = _nc(tmp_path / "nounits.nc", LAT, LON, expected_values(), var_attrs={})
-    with caplog.at_level(logging.WARNING, logger="geoidspline.readers"):
+    with caplog.at_level(logging.WARNING, logger="geoidspline.sources"):
         grid = read_grid(path)
     assert "no units" in caplog.text and "assuming metres" in caplog.text
     np.testing.assert_allclose(grid.values, expected_values(), atol=1e-12)

@@ -1,4 +1,4 @@
-"""Tests of geoidspline.harmonics and geoidspline.constants.
+"""Tests of geoidspline.sources.harmonics and geoidspline.geodesy.
 
 Independent references: closed forms (normal field, P̄nm of low degree, T of one-term
 models), Gauss-Legendre quadrature, pyshtools (P̄nm and point synthesis; tests only),
@@ -19,9 +19,11 @@ import numpy as np
 import pyproj
 import pytest
 
-from geoidspline.constants import GRS80, PERMANENT_TIDE, WGS84
+from geoidspline._kernels import legendre
 from geoidspline.errors import CoordinateError, InputFileError
-from geoidspline.harmonics import (
+from geoidspline.geodesy.ellipsoids import GRS80, PERMANENT_TIDE, WGS84
+from geoidspline.sources.base import GeoidSource, NodeSample
+from geoidspline.sources.harmonics import (
     CorrectionModel,
     GeoidSynthesis,
     HarmonicModel,
@@ -31,10 +33,8 @@ from geoidspline.harmonics import (
     read_nga,
     read_nga_correction,
 )
-from geoidspline.harmonics import legendre
-from geoidspline.harmonics.synthesis import NGA_WGS84_J
-from geoidspline.region import GLOBAL, Region
-from geoidspline.sources import GeoidSource, NodeSample
+from geoidspline.sources.harmonics.synthesis import NGA_WGS84_J
+from geoidspline.sphere.region import GLOBAL, Region
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 if not DATA.is_dir():  # the work tree may sit elsewhere; the shared folder is fixed

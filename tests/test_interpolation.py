@@ -5,15 +5,18 @@ import math
 import numpy as np
 import pytest
 
-from geoidspline import _kernels
-from geoidspline.build import check_points
+from geoidspline.bspline.basis import centred_bspline_samples
+from geoidspline.bspline.domain import active_cells
+from geoidspline.bspline.keys import AXIS_STEPS, pack_keys, unpack_keys
+from geoidspline.bspline.keys import touching_keys as _touching_keys
+from geoidspline.bspline.level import LevelSpline
 from geoidspline.errors import FitError
-from geoidspline.fit import FitParameters, _touching_keys, active_cells, fit_source
-from geoidspline.interpolation import (
-    centred_bspline_samples, interpolate_level, prefilter_taps, sample_band,
-)
-from geoidspline.region import GLOBAL, Region
-from geoidspline.spline import AmbientSpline, LevelSpline
+from geoidspline.fitting.check_points import check_points
+from geoidspline.fitting.driver import fit_source
+from geoidspline.fitting.interpolation import interpolate_level, prefilter_taps, sample_band
+from geoidspline.fitting.parameters import FitParameters
+from geoidspline.hierarchy.ambient import AmbientSpline
+from geoidspline.sphere.region import GLOBAL, Region
 
 
 @pytest.mark.parametrize("order", [3, 4, 5, 6])
@@ -43,30 +46,31 @@ def test_centred_samples_are_the_known_ones():
 
 def test_filter_axis_equals_a_dense_correlation():
     from scipy.ndimage import correlate1d
-    from geoidspline._interpolation_kernels import filter_axis
+
+    from geoidspline._kernels.interpolation import filter_axis
 
     rng = np.random.default_rng(3)
     side, half = 14, 4
     cube = rng.normal(size=(side, side, side))
     taps = rng.normal(size=2 * half + 1)
     idx = np.stack(np.meshgrid(*[np.arange(-5, side - 5)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
-    keys = _kernels.pack_keys(idx)
+    keys = pack_keys(idx)
     order = np.argsort(keys)
     in_keys, in_values = keys[order], cube.reshape(-1)[order]
-    for axis, step in enumerate((1 << (2 * _kernels.KEY_BITS), 1 << _kernels.KEY_BITS, 1)):
+    for axis, step in enumerate(AXIS_STEPS):
         expected = correlate1d(cube, taps, axis=axis, mode="constant")
         inner = np.all((idx >= -5 + half) & (idx < side - 5 - half), axis=1)
         out_keys = np.sort(keys[inner])
         out = np.empty(out_keys.size)
         filter_axis(in_keys, in_values, out_keys, step, taps, out)
-        where = _kernels.unpack_keys(out_keys) + 5
+        where = unpack_keys(out_keys) + 5
         np.testing.assert_allclose(out, expected[where[:, 0], where[:, 1], where[:, 2]], rtol=1e-12, atol=1e-12)
 
 
 def test_band_lookup_is_exact_to_the_lagrange_error_across_the_poles(toy24):
     """6x6 Lagrange lookups on the padded band equal the exact synthesis, also within a
     lattice step of either pole (rows reflected half a turn away) and across ±180."""
-    from geoidspline._interpolation_kernels import lattice_lookup
+    from geoidspline._kernels.interpolation import lattice_lookup
 
     step = 0.25
     grid, lat0, step, band = sample_band(toy24, -90.0, 90.0, step)
@@ -89,7 +93,7 @@ def test_spline_interpolates_the_source_at_the_bspline_centres(toy24):
     keys = _touching_keys(active_cells(h, region), order)
     coefs, _, _ = interpolate_level(toy24, keys, h, order, spacing_deg=0.05, terms=16)
     spline = AmbientSpline([LevelSpline(0, h, order, keys, coefs)])
-    centres = (_kernels.unpack_keys(keys) + order / 2.0) * h
+    centres = (unpack_keys(keys) + order / 2.0) * h
     radius = np.linalg.norm(centres, axis=1)
     lat = np.degrees(np.arcsin(centres[:, 2] / radius))
     lon = np.degrees(np.arctan2(centres[:, 1], centres[:, 0]))
@@ -135,8 +139,8 @@ def test_global_fit_has_no_pole_artefact_and_stops_at_the_tolerance(toy24):
 
 
 def test_interpolation_refuses_a_grid_source_and_unknown_methods():
-    from geoidspline.grid import GeoidGrid
-    from geoidspline.sources import Provenance
+    from geoidspline.sources.base import Provenance
+    from geoidspline.sources.grid import GeoidGrid
 
     with pytest.raises(FitError, match="fit method must be one of"):
         FitParameters(method="kriging")
@@ -148,7 +152,7 @@ def test_interpolation_refuses_a_grid_source_and_unknown_methods():
 
 
 def _write_gfc(path, model):
-    lines = ["synthetic model for geoidspline.interpolation", "begin_of_head ======",
+    lines = ["synthetic model for geoidspline.fitting.interpolation", "begin_of_head ======",
              f"modelname {model.name}", f"earth_gravity_constant {model.gm!r}", f"radius {model.radius!r}",
              f"max_degree {model.max_degree}", "norm fully_normalized", "tide_system tide_free", "errors no",
              "key n m C S", "end_of_head ======"]
@@ -161,12 +165,14 @@ def _write_gfc(path, model):
 
 def test_cli_fits_a_model_by_interpolation_and_refuses_a_grid(toy24, tmp_path):
     import json
+
     from click.testing import CliRunner
+
     from geoidspline.cli.fit import main as fit_main
     from geoidspline.cli.info import main as info_main
-    from geoidspline.grid import GeoidGrid
-    from geoidspline.readers import write_gtx
-    from geoidspline.sources import Provenance
+    from geoidspline.sources.base import Provenance
+    from geoidspline.sources.formats import write_gtx
+    from geoidspline.sources.grid import GeoidGrid
 
     model = _write_gfc(tmp_path / "toy24.gfc", toy24.model)
     store = tmp_path / "store"
@@ -194,7 +200,8 @@ def test_deflection_of_a_model_store_matches_differences_of_the_exact_synthesis(
     synthesis, within the fit error turned into a slope: a spline error of at most ε on
     cells of size h R varies by at most 2 (n-1)² ε / (h R) per metre (Markov's
     inequality for degree n-1 polynomials on the cell), n the spline order."""
-    from geoidspline.queries import deflection, gaussian_mean_radius
+    from geoidspline.geodesy.ellipsoids import gaussian_mean_radius
+    from geoidspline.query.derived import deflection
 
     h, order = 0.02, 4
     region = Region(10, 10, 30, 40)

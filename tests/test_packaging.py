@@ -249,6 +249,14 @@ def test_setuptools_maps_cli_and_grids_into_geoidspline():
         assert (base.joinpath(*parts[n:]) / "__init__.py").is_file(), package
 
 
+def test_every_package_directory_is_installed():
+    """A new package under geoidspline/ must be listed, or a plain install would lack it."""
+    with open(PYPROJECT, "rb") as fh:
+        packages = set(tomllib.load(fh)["tool"]["setuptools"]["packages"])
+    found = {".".join(p.parent.relative_to(REPO).parts) for p in (REPO / "geoidspline").rglob("__init__.py")}
+    assert found <= packages, sorted(found - packages)
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(os.environ.get("GEOIDSPLINE_SLOW") != "1", reason="set GEOIDSPLINE_SLOW=1 (needs network, ~2 min)")
 def test_replay_docker(tmp_path):

@@ -1,4 +1,4 @@
-"""Derived quantities (geoidspline.queries) and the CLI options built on them.
+"""Derived quantities (geoidspline.query) and the CLI options built on them.
 
 Deflections against finite differences and analytic fields, tile error bounds, CRS and
 height conversions, grid export read back by PROJ and xarray, exact synthesis with
@@ -20,19 +20,19 @@ import pytest
 from click.testing import CliRunner
 
 import geoidspline
-from geoidspline import queries
 from geoidspline.__main__ import main as geoidspline_main
-from geoidspline.build import build_store
+from geoidspline.api import build_store
 from geoidspline.cli.export import main as export_main
 from geoidspline.cli.info import main as info_main
 from geoidspline.cli.query import main as query_main
-from geoidspline.constants import WGS84
 from geoidspline.errors import CoordinateError, GeoidSplineError
-from geoidspline.fit import FitParameters
-from geoidspline.harmonics import GeoidSynthesis, read_model
-from geoidspline.readers import read_grid
-from geoidspline.region import Region
-from geoidspline.spline import directions
+from geoidspline.fitting.parameters import FitParameters
+from geoidspline.geodesy.ellipsoids import WGS84
+from geoidspline.query import derived as queries
+from geoidspline.sources.formats import read_grid
+from geoidspline.sources.harmonics import GeoidSynthesis, read_model
+from geoidspline.sphere.coordinates import directions
+from geoidspline.sphere.region import Region
 
 DATA = Path("/work/shared/data/egm96")
 EGM96 = DATA / "egm96_to360.ascii.gz"
@@ -465,7 +465,7 @@ def test_query_new_usage_errors(small_store, model_file, source, args, words):
     given = ["--model", model_file] if source == "model" else ["--store", small_store.path]
     result = invoke(query_main, [*given, *args])
     assert result.exit_code == 2, result.output
-    assert "Error:" in result.stderr and words in result.stderr
+    assert result.stderr.startswith("ERROR: ") and words in result.stderr
     assert "Traceback" not in result.output
 
 
@@ -609,7 +609,7 @@ def gfc_text(nmax=GFC_NMAX, seed=7):
     """A tiny ICGEM model: C̄20 near the normal field's, the rest random with a decaying
     degree variance (a few metres of undulation per degree)."""
     rng = np.random.default_rng(seed)
-    lines = ["synthetic test model for geoidspline.queries", "begin_of_head ======",
+    lines = ["synthetic test model for geoidspline.query", "begin_of_head ======",
              "product_type gravity_field", "modelname TINYSYN", "earth_gravity_constant 3.986004415E+14",
              "radius 6378136.3", f"max_degree {nmax}", "norm fully_normalized", "tide_system tide_free",
              "errors no", "key n m C S", "end_of_head ======"]
@@ -668,7 +668,7 @@ def test_query_model_mode_matches_geoid_synthesis(model_file, tmp_path):
 
 def test_default_preset_rules(model_file):
     model = read_model(model_file)
-    assert queries.default_preset(model) == "nga-f477"  # geoidspline.harmonics' default
+    assert queries.default_preset(model) == "nga-f477"  # geoidspline.sources.harmonics' default
     assert queries.default_preset(SimpleNamespace(name="EGM2008")) == "nga-hsynth"
     assert queries.default_preset(SimpleNamespace(name="EGM96"), correction=object()) == "nga-f477"
     assert queries.default_preset(SimpleNamespace(name="EGM2008"), correction=object()) == "nga-f477"
@@ -714,7 +714,7 @@ def test_query_model_reproduces_nga_f477_egm96(egm96, tmp_path):
 
 def test_info_check_against_a_synthetic_model(model_store, model_file):
     """|store − model| at 2,000 random points uniform in area over the store's region
-    (seed 1), recomputed here independently of geoidspline.build.check_points."""
+    (seed 1), recomputed here independently of geoidspline.fitting.check_points.check_points."""
     points = 2000
     result = invoke(info_main, [model_store, "--check-against", model_file, "--points", points, "--json"])
     assert result.exit_code == 0, result.output

@@ -1,6 +1,6 @@
 """The query index folds the overlays: one level per point, the same sum as level by level.
 
-:class:`geoidspline.spline.BrickIndex` rewrites S_0 + … + S_ℓ on level ℓ's grid (B-spline
+:class:`geoidspline.query.index.BrickIndex` rewrites S_0 + … + S_ℓ on level ℓ's grid (B-spline
 subdivision) near the sphere, and evaluates a point on the finest level that has a
 brick there only. These tests compare it with a plain reference: the sum over levels
 of the order³ B-splines touching each point, found by ``np.searchsorted`` in each
@@ -15,12 +15,19 @@ import numpy as np
 import pytest
 from scipy.interpolate import BSpline
 
-from geoidspline import _kernels
-from geoidspline._numpy_eval import bspline_weights, evaluate_levels
-from geoidspline.fit import FitParameters, fit_nodes
-from geoidspline.region import Region
-from geoidspline.sources import NodeSample
-from geoidspline.spline import FOLD_BAND_CELLS, AmbientSpline, LevelSpline, directions
+from geoidspline._kernels import query as _kernels
+from geoidspline._kernels.common import bspline_weights as compiled_bspline_weights
+from geoidspline.bspline.basis import bspline_weights
+from geoidspline.bspline.evaluate import evaluate_levels
+from geoidspline.bspline.keys import pack_keys
+from geoidspline.bspline.level import LevelSpline
+from geoidspline.fitting.driver import fit_nodes
+from geoidspline.fitting.parameters import FitParameters
+from geoidspline.hierarchy.ambient import AmbientSpline
+from geoidspline.query.index import FOLD_BAND_CELLS
+from geoidspline.sources.base import NodeSample
+from geoidspline.sphere.coordinates import directions
+from geoidspline.sphere.region import Region
 
 # derivative multi-indices of the output columns: value, gradient, Hessian xx yy zz xy xz yz
 _COLUMNS = [(0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1),
@@ -47,7 +54,7 @@ def reference_evaluate(levels, points, nderiv=0):
         for p in range(n):
             for q in range(n):
                 for r in range(n):
-                    key = _kernels.pack_keys(cell - n + 1 + np.array([p, q, r]))
+                    key = pack_keys(cell - n + 1 + np.array([p, q, r]))
                     pos = np.minimum(np.searchsorted(lv.keys, key), len(lv) - 1)
                     coef = np.where(lv.keys[pos] == key, lv.coefficients[pos], 0.0)
                     for col in range(width):
@@ -240,7 +247,7 @@ def test_small_batches_use_numpy_and_agree_with_the_folded_index():
     """Below FOLDED_FROM_POINTS the numpy evaluator answers and no index is built; it
     equals the compiled folded index to 1e-9 m (values), 1e-9 m per finest cell
     (gradients, Hessians), on and off the sphere."""
-    from geoidspline.spline import FOLDED_FROM_POINTS
+    from geoidspline.hierarchy.ambient import FOLDED_FROM_POINTS
 
     rng = np.random.default_rng(21)
     h0, order = 0.2, 4
@@ -276,7 +283,7 @@ def test_numpy_weights_equal_the_compiled_ones(order):
     got = bspline_weights(t, order, nderiv)
     for i, ti in enumerate(t):
         want = np.zeros((3, order))
-        _kernels.bspline_weights(ti, order, nderiv, want)
+        compiled_bspline_weights(ti, order, nderiv, want)
         np.testing.assert_allclose(got[:, i, :], want[:nderiv + 1], rtol=0, atol=1e-15)
     np.testing.assert_allclose(got[0].sum(axis=1), 1.0, atol=1e-15)
 
@@ -299,7 +306,7 @@ def test_latlon_batches_in_one_call_equal_directions_then_points(order):
     block split, and the reference sum to 1e-9 m; NaN gives NaN."""
     import numba
 
-    from geoidspline.spline import FOLDED_FROM_POINTS
+    from geoidspline.hierarchy.ambient import FOLDED_FROM_POINTS
 
     levels = random_overlays(31, order=order, nlevels=4 if order == 4 else 3)
     spline = AmbientSpline(levels)
@@ -332,7 +339,7 @@ def test_latlon_batches_in_one_call_equal_directions_then_points(order):
 
 def test_latlon_batches_refuse_bad_coordinates():
     from geoidspline.errors import CoordinateError
-    from geoidspline.spline import FOLDED_FROM_POINTS
+    from geoidspline.hierarchy.ambient import FOLDED_FROM_POINTS
 
     spline = AmbientSpline(random_overlays(2, nlevels=2))
     lat = np.zeros(FOLDED_FROM_POINTS)
@@ -349,8 +356,8 @@ def test_compiled_directions_agree_with_numpy_trigonometry():
     """Large batches compute directions with their own sin/cos (fdlibm polynomials):
     within 2.3e-16 of numpy's per component (2 ulp of 1), unit length to 4.5e-16,
     on the axes to 1.3e-16, any longitude wrapped."""
-    from geoidspline._numpy_eval import unit_vectors as numpy_unit_vectors
-    from geoidspline.spline import FOLDED_FROM_POINTS
+    from geoidspline.hierarchy.ambient import FOLDED_FROM_POINTS
+    from geoidspline.sphere.coordinates import unit_vectors as numpy_unit_vectors
 
     rng = np.random.default_rng(41)
     n = 20 * FOLDED_FROM_POINTS

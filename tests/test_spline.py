@@ -4,9 +4,12 @@ import numpy as np
 import pytest
 from scipy.interpolate import BSpline
 
-from geoidspline import _kernels
+from geoidspline._kernels.common import bspline_weights as compiled_bspline_weights
+from geoidspline.bspline.keys import pack_keys, unpack_keys
+from geoidspline.bspline.level import LevelSpline
 from geoidspline.errors import CoordinateError
-from geoidspline.spline import AmbientSpline, LevelSpline, directions
+from geoidspline.hierarchy.ambient import AmbientSpline
+from geoidspline.sphere.coordinates import directions
 
 
 @pytest.mark.parametrize("order", [2, 3, 4, 5, 6])
@@ -14,7 +17,7 @@ from geoidspline.spline import AmbientSpline, LevelSpline, directions
 def test_weights_match_scipy_cardinal_bspline(order, t):
     out = np.zeros((3, order))
     nderiv = 2 if order >= 3 else 1
-    _kernels.bspline_weights(t, order, nderiv, out)
+    compiled_bspline_weights(t, order, nderiv, out)
     element = BSpline.basis_element(np.arange(order + 1), extrapolate=False)
     x = t + order - 1 - np.arange(order)
     np.testing.assert_allclose(out[0], element(x), atol=1e-15)
@@ -29,15 +32,15 @@ def test_weights_match_scipy_cardinal_bspline(order, t):
 def test_cubic_weights_are_the_documented_formulas():
     t = 0.3
     out = np.zeros((3, 4))
-    _kernels.bspline_weights(t, 4, 0, out)
+    compiled_bspline_weights(t, 4, 0, out)
     expected = [(1 - t) ** 3 / 6, (3 * t**3 - 6 * t**2 + 4) / 6, (-3 * t**3 + 3 * t**2 + 3 * t + 1) / 6, t**3 / 6]
     np.testing.assert_allclose(out[0], expected, rtol=1e-14)
 
 
 def test_key_packing_round_trip_and_order():
     idx = np.array([[-5, 3, 7], [0, 0, 0], [1000, -1000, 5], [-5, 3, 8]])
-    keys = _kernels.pack_keys(idx)
-    np.testing.assert_array_equal(_kernels.unpack_keys(keys), idx)
+    keys = pack_keys(idx)
+    np.testing.assert_array_equal(unpack_keys(keys), idx)
     # sorting keys sorts (i, j, k) lexicographically; z neighbours are consecutive keys
     assert keys[3] == keys[0] + 1
     assert np.all(np.argsort(keys) == np.lexsort(idx.T[::-1]))

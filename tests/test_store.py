@@ -12,11 +12,14 @@ import numpy as np
 import pytest
 
 import geoidspline
-from geoidspline.build import build_store, check_points
+from geoidspline.api import build_store
 from geoidspline.errors import GeoidSplineError, StoreCorruptError, StoreError
-from geoidspline.fit import FitParameters
-from geoidspline.spline import directions
-from geoidspline.store import FORMAT_NAME, FORMAT_VERSION, TileStore, write_store
+from geoidspline.fitting.check_points import check_points
+from geoidspline.fitting.parameters import FitParameters
+from geoidspline.sphere.coordinates import directions
+from geoidspline.store.format import FORMAT_NAME, FORMAT_VERSION
+from geoidspline.store.reader import TileStore
+from geoidspline.store.writer import write_store
 
 
 def _snapshot(root: Path) -> dict:
@@ -245,7 +248,7 @@ def test_overwrite_replaces_store_and_removes_old_tiles(small_store, store_copy)
 
 def _crash_after(monkeypatch, tiles_written):
     """Make write_store fail (as a crash would) after writing ``tiles_written`` tile files."""
-    import geoidspline.store as store_module
+    import geoidspline.store.writer as store_module
 
     real = store_module._write_tile_file
     calls = []
@@ -256,7 +259,7 @@ def _crash_after(monkeypatch, tiles_written):
         calls.append(args[0])
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(store_module, "_write_tile_file", failing)
+    monkeypatch.setattr(store_module, "write_tile_file", failing)
     return calls
 
 

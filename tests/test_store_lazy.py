@@ -17,12 +17,14 @@ import numpy as np
 import pytest
 
 import geoidspline
-from geoidspline import _keys
-from geoidspline.build import build_store
+from geoidspline.api import build_store
+from geoidspline.bspline import keys as _keys
+from geoidspline.bspline.level import tile_of_indices
 from geoidspline.errors import CoordinateError, StoreError
-from geoidspline.fit import FitParameters
-from geoidspline.spline import FOLDED_FROM_POINTS, directions, tile_of_indices
-from geoidspline.store import TileStore
+from geoidspline.fitting.parameters import FitParameters
+from geoidspline.hierarchy.ambient import FOLDED_FROM_POINTS
+from geoidspline.sphere.coordinates import directions
+from geoidspline.store.reader import TileStore
 
 
 def _points(rng, n, region=None):
@@ -82,7 +84,7 @@ def test_one_point_reads_few_tiles_and_gives_the_same_bits(small_store):
             np.testing.assert_array_equal(lazy.spline.evaluate_points(u, nderiv), eager.spline.evaluate_points(u, nderiv))
     assert lazy.spline.tiles_read < total
     # the derived quantities go through the same lazy spline
-    from geoidspline.queries import deflection
+    from geoidspline.query.derived import deflection
 
     for got, want in zip(deflection(lazy, lat[:5], lon[:5]), deflection(eager, lat[:5], lon[:5])):
         np.testing.assert_array_equal(got, want)

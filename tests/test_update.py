@@ -12,16 +12,16 @@ import numpy as np
 import pytest
 
 import geoidspline
-from geoidspline.build import build_store
+from geoidspline.api import build_store
 from geoidspline.errors import CoordinateError, StoreError
-from geoidspline.fit import FitParameters
-from geoidspline.grid import GeoidGrid
-from geoidspline.readers import write_gtx
-from geoidspline.region import GLOBAL, Region
-from geoidspline.sources import Provenance
-from geoidspline.spline import directions
-from geoidspline.store import verify_store
-from geoidspline.update import update_store
+from geoidspline.fitting.parameters import FitParameters
+from geoidspline.sources.base import Provenance
+from geoidspline.sources.formats import write_gtx
+from geoidspline.sources.grid import GeoidGrid
+from geoidspline.sphere.coordinates import directions
+from geoidspline.sphere.region import GLOBAL, Region
+from geoidspline.store.reader import verify_store
+from geoidspline.store.update import update_store
 
 REGION = Region(0, 10, 20, 30)
 BLEND_KM = 300.0
@@ -184,7 +184,7 @@ def test_read_only_and_locked_stores_are_refused(store, monkeypatch):
         update_store(store, new_grid(), REGION)
     (store / ".lock").unlink()
     assert snapshot(store) == before
-    import geoidspline.update as update_module
+    import geoidspline.store.update as update_module
 
     monkeypatch.setattr(update_module.os, "access", lambda *a, **k: False)
     with pytest.raises(StoreError, match="read-only"):
@@ -196,7 +196,7 @@ UPDATE_SCRIPT = textwrap.dedent("""
     import sys
     sys.path.insert(0, {tests!r})
     from test_update import new_grid, REGION, BLEND_KM
-    from geoidspline.update import update_store
+    from geoidspline.store.update import update_store
     update_store({store!r}, new_grid(), REGION, blend_width_km=BLEND_KM)
 """)
 

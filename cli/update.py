@@ -1,0 +1,81 @@
+"""geoid-update: a regional update of a store (new data inside a region, blended in)."""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+
+import click
+
+from geoidspline.sources.harmonics.presets import PRESETS
+
+from ._common import command, store_options, user_errors, verbosity_options
+
+
+@command("update")
+@click.argument("source")
+@store_options("The store to update (it must exist; it is changed atomically).")
+@click.option("--region", nargs=4, type=float, metavar="S W N E", required=True,
+              help="Region in degrees where SOURCE replaces the store's geoid: south west north east.")
+@click.option("--blend-width", type=click.FloatRange(min=0.0), default=100.0, show_default=True,
+              help="Width in km outside --region over which SOURCE fades into the store (0: sharpest).")
+@click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Worker processes solving blocks (same coefficients).")
+@click.option("--correction", type=click.Path(exists=True, dir_okay=False), default=None,
+              help="NGA zeta-to-N correction coefficients (CORRCOEF) for a model SOURCE.")
+@click.option("--preset", type=click.Choice(PRESETS), default=None,
+              help="Synthesis conventions for a model SOURCE [default: chosen from the model].")
+@click.option("--json", "as_json", is_flag=True, help="Print the update's history record as JSON.")
+@verbosity_options
+@user_errors
+def main(source, store_path, region, blend_width, workers, correction, preset, as_json, quiet, verbose):
+    """Replace the geoid of the store at --store by SOURCE inside --region.
+
+    The update fits overlays to w·(N_new − N_store) with the store's own parameters (w
+    fades from 1 inside the region to 0 over --blend-width km outside it), so the result
+    is still one C² spline with no step at the region's edge, and only the tiles owning
+    the new B-splines are rewritten. Refused before anything is written when the store
+    is read-only or being written by another process, the source's ellipsoid or tide
+    system differs from the store's, or the region lies outside the source's data or
+    the store's region. Exit status 3: written, but the store's tolerance was not
+    reached inside the region.
+    """
+    if store_path is None:
+        raise click.UsageError("give --store DIR, the store to update")
+    run_update(source, store_path, region, blend_width, workers, correction, preset, as_json, quiet)
+
+
+def run_update(source, store, region, blend_width, workers, correction, preset, as_json, quiet):
+    from geoidspline.fitting.executors import Executor
+    from geoidspline.sources.resolve import open_source
+    from geoidspline.sphere.region import Region
+    from geoidspline.store.update import update_store
+
+    if region is None:
+        raise click.UsageError("a regional update needs --region S W N E")
+    src = open_source(source, correction, preset)
+    started = time.perf_counter()
+    record = update_store(store, src, Region.from_bounds(*region), blend_width_km=blend_width,
+                          executor=Executor(workers=workers))
+    record["wall_seconds"] = round(time.perf_counter() - started, 2)
+    if as_json:
+        click.echo(json.dumps(record, indent=1))
+        sys.exit(0 if record["converged"] else 3)
+    click.echo(f"store      {store}  version {record['previous_version']} -> {record['store_version']}")
+    click.echo(f"source     {record['source']} ({record['model']})")
+    s, w, n, e = record["region"]
+    click.echo(f"region     S {s:g}  W {w:g}  N {n:g}  E {e:g}, blend {record['blend_width_km']:g} km")
+    click.echo(f"tiles      {record['tiles_rewritten']} rewritten, {record['coefficients_added']:+,d} coefficients")
+    if record["nodes_in_region"]:
+        click.echo(f"region     {record['nodes_in_region']:,} nodes: max |error| {record['max_error_m']:.4f} m, "
+                   f"RMS {record['rms_error_m']:.4f} m")
+    if not record["converged"]:
+        click.echo(f"tolerance  {record['tolerance_m']:g} m NOT reached with the store's levels")
+    click.echo(f"time       {record['wall_seconds']:.1f} s")
+    if not record["converged"]:
+        sys.exit(3)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

@@ -1,0 +1,86 @@
+"""The public operations: fit a source into a store, open a store, update a store.
+
+:func:`build_store` is the one way the command line, the tests and :func:`fit` make a
+store: fit, measure at check points that were not fit sites, write atomically.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+from .fitting.check_points import check_points
+from .fitting.driver import FitResult, fit_source
+from .fitting.executors import Executor
+from .fitting.parameters import FitParameters
+from .sphere.region import GLOBAL, Region
+from .store.reader import TileStore
+from .store.writer import write_store
+
+__all__ = ["build_store", "fit", "open_store", "update"]
+
+
+def open_store(path, *, lazy: bool = True, verify: bool = True) -> TileStore:
+    """Open a tile store read-only.
+
+    ``lazy`` (default) reads a tile when a query first needs it; ``lazy=False`` reads and
+    checks every tile now. ``verify`` checks each tile's sha256 as it is read (sizes are
+    always checked). See :class:`geoidspline.store.TileStore`.
+    """
+    return TileStore.open(path, verify=verify, lazy=lazy)
+
+
+def build_store(source, path, region: Region | None = None, params: FitParameters | None = None,
+                progress=None, overwrite=False, check_count=20_000,
+                executor: Executor | None = None) -> tuple[FitResult, dict]:
+    """Fit ``source`` over ``region``, measure it and write the store at ``path``.
+
+    Returns the fit result and the store's summary (``TileStore.info()``).
+    """
+    region = region or GLOBAL
+    params = params or FitParameters()
+    result = fit_source(source, region, params, progress=progress, executor=executor)
+    check = check_points(source, region, count=check_count)
+    write_store(path, result, source.provenance, check=check, overwrite=overwrite)
+    return result, TileStore.open(path).info()
+
+
+def _as_region(region) -> Region:
+    if region is None:
+        return GLOBAL
+    return region if isinstance(region, Region) else Region.from_bounds(*region)
+
+
+def fit(source, store, *, region=None, overwrite: bool = False, workers: int = 1, scheduler: str | None = None,
+        correction=None, preset: str | None = None, progress=None, **parameters) -> TileStore:
+    """Fit a geoid source into a new tile store at ``store`` and open it.
+
+    ``source``: a grid or model file path, a catalogue name (``"egm96-15"``) or a source
+    object (:class:`~geoidspline.sources.grid.GeoidGrid`,
+    :class:`~geoidspline.sources.harmonics.GeoidSynthesis`); ``correction`` and
+    ``preset`` apply to a model file. ``region``: (south, west, north, east) degrees or a
+    :class:`~geoidspline.sphere.Region` (default global). ``parameters``: any field of
+    :class:`~geoidspline.fitting.parameters.FitParameters` (``tolerance_m``, ``h0``,
+    ``max_level``, ``order``, ``method``, ...). ``workers``/``scheduler``: where blocks are
+    solved (:class:`~geoidspline.fitting.executors.Executor`), never stored.
+    """
+    from .sources.resolve import open_source
+
+    if isinstance(source, (str, bytes)) or hasattr(source, "__fspath__"):
+        source = open_source(source, correction, preset)
+    params = dataclasses.replace(FitParameters(), **parameters)
+    build_store(source, store, _as_region(region), params, progress=progress, overwrite=overwrite,
+                executor=Executor(workers=workers, scheduler=scheduler))
+    return TileStore.open(store)
+
+
+def update(store, source, region, *, blend_width_km: float = 100.0, workers: int = 1, correction=None,
+           preset: str | None = None, progress=None) -> dict:
+    """Replace the store's geoid inside ``region`` by ``source`` (a regional update,
+    :func:`geoidspline.store.update.update_store`); returns the update's history record."""
+    from .sources.resolve import open_source
+    from .store.update import update_store
+
+    if isinstance(source, (str, bytes)) or hasattr(source, "__fspath__"):
+        source = open_source(source, correction, preset)
+    return update_store(store, source, _as_region(region), blend_width_km=blend_width_km,
+                        executor=Executor(workers=workers), progress=progress)

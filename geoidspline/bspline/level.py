@@ -1,0 +1,60 @@
+"""One level of an ambient spline: sparse B-spline coefficients on one grid spacing."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import keys as _keys
+
+
+def tile_of_indices(indices, h, order, tile_size):
+    """Tile (integer triple) of each coefficient: the cube holding its support centre."""
+    centre = (np.asarray(indices, dtype=float) + order / 2.0) * h
+    return np.floor(centre / tile_size).astype(np.int64)
+
+
+@dataclass(frozen=True, eq=False)
+class LevelSpline:
+    """One level of an ambient spline: sparse B-spline coefficients on spacing ``h``.
+
+    ``keys`` are packed coefficient indices (see :mod:`geoidspline._kernels`), strictly
+    increasing; ``coefficients`` are in metres. The invariants are checked once here.
+    """
+
+    level: int
+    h: float
+    order: int
+    keys: np.ndarray
+    coefficients: np.ndarray
+
+    def __post_init__(self):
+        keys = np.ascontiguousarray(self.keys, dtype=np.int64)
+        coefs = np.ascontiguousarray(self.coefficients, dtype=np.float64)
+        if keys.ndim != 1 or keys.shape != coefs.shape:
+            raise ValueError("keys and coefficients must be 1-D arrays of the same length")
+        if keys.size > 1 and not np.all(keys[1:] > keys[:-1]):
+            raise ValueError("keys must be strictly increasing")
+        if not (self.h > 0 and np.isfinite(self.h)):
+            raise ValueError(f"h must be positive, got {self.h}")
+        if not 2 <= self.order <= 8:
+            raise ValueError(f"spline order must be within 2..8, got {self.order}")
+        if not np.all(np.isfinite(coefs)):
+            raise ValueError("coefficients must be finite")
+        object.__setattr__(self, "keys", keys)
+        object.__setattr__(self, "coefficients", coefs)
+
+    @classmethod
+    def from_indices(cls, level, h, order, indices, coefficients):
+        """Build from integer index triples (M, 3), in any order."""
+        keys = _keys.pack_keys(indices)
+        order_idx = np.argsort(keys, kind="stable")
+        return cls(level, h, order, keys[order_idx], np.asarray(coefficients, float)[order_idx])
+
+    @property
+    def indices(self) -> np.ndarray:
+        return _keys.unpack_keys(self.keys)
+
+    def __len__(self):
+        return int(self.keys.size)

@@ -1,0 +1,241 @@
+"""Fitting: hierarchical overlays of ambient B-splines, solved block by block.
+
+The algorithm (Lehmann 2013, §3-4 and §5.2; summarised in METHOD.md):
+
+1. Level 0 takes every cell of spacing ``h0`` that meets the unit sphere over the
+   region ("active cells", :mod:`geoidspline.bspline.domain`) and every B-spline
+   touching one of them.
+2. Data sites are rays (:mod:`geoidspline.fitting.sites`).
+3. The level is fitted to the residual of the levels before it by sparse least
+   squares (:mod:`geoidspline.fitting.least_squares`), or level 0 by quasi-interpolation
+   of an exact source (:mod:`geoidspline.fitting.interpolation`).
+4. The residual on the sphere is measured at every data node of the region; level
+   ``ℓ + 1`` takes the B-splines the refinement strategy selects
+   (:class:`geoidspline.hierarchy.overlays.OverlayRefinement`) and is fitted on every
+   site where those B-splines are non-zero, so each level is a C^(n-2) spline on R³.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..bspline.domain import active_cells
+from ..bspline.keys import touching_keys
+from ..bspline.level import LevelSpline
+from ..errors import FitError
+from ..hierarchy.ambient import AmbientSpline
+from ..hierarchy.overlays import OverlayRefinement
+from ..sphere.region import GLOBAL, Region
+from .executors import Executor
+from .interpolation import interpolate_level, lattice_spacing
+from .least_squares import local_problems
+from .parameters import MIN_H_PER_DATA_SPACING, FitParameters
+from .sites import DataNodes, sites_for_level
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class LevelReport:
+    level: int
+    h: float
+    coefficients: int
+    marked_cells: int
+    sites: int
+    tiles_solved: int
+    max_error_m: float
+    rms_error_m: float
+    nodes_above_tolerance: int
+    seconds: float
+
+
+@dataclass
+class FitResult:
+    spline: AmbientSpline
+    parameters: FitParameters
+    region: Region
+    levels: list = field(default_factory=list)
+    node_count: int = 0
+    node_max_error_m: float = float("nan")
+    node_rms_error_m: float = float("nan")
+    converged: bool = False
+    seconds: float = 0.0
+    # per-node arrays kept for tile statistics (sphere directions and errors)
+    node_directions: np.ndarray | None = None
+    node_errors: np.ndarray | None = None
+    # refinement stopped because the next level would be finer than the data resolve
+    data_limited: bool = False
+
+
+def solve_level(problems, executor: Executor, progress=None):
+    """Solve a level's local problems with ``executor``; its own keys (sorted), their
+    coefficients, and how many problems were solved."""
+    results = executor.solve(problems, progress)
+    keys = np.concatenate([r[0] for r in results]) if results else np.empty(0, np.int64)
+    coefs = np.concatenate([r[1] for r in results]) if results else np.empty(0)
+    order = np.argsort(keys)
+    return keys[order], coefs[order], len(results)
+
+
+def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, progress=None,
+              force_tiles=False, base_is_overlay=False, first_level=None,
+              executor: Executor | None = None) -> FitResult:
+    """Fit the nodes of a :class:`~geoidspline.sources.NodeSample` over ``region``.
+
+    ``sample`` must cover the region plus the support margin of level 0 (see
+    :func:`fit_source`, which asks the source for exactly that). ``progress``, when
+    given, is called with the number of local problems just solved. With
+    ``base_is_overlay`` the sample holds residuals of an existing spline (a regional
+    update) and level 0 is refined and regularised like any overlay. ``first_level``, a
+    :class:`LevelSpline` computed already (by quasi-interpolation), stands as level 0;
+    ``(level, seconds, lattice points)`` of it go into its report.
+    """
+    refinement = refinement or OverlayRefinement(params.refine_radius)
+    executor = executor or Executor()
+    start = time.perf_counter() - (first_level[1] if first_level is not None else 0.0)
+    nodes = DataNodes.from_sample(sample, region)
+    if not np.any(nodes.in_region):
+        raise FitError(f"no data nodes inside the region {region.as_tuple()}")
+    region_dirs = nodes.directions[nodes.in_region]
+    errors = nodes.values[nodes.in_region].copy()  # residual N - S at region nodes
+    levels: list[LevelSpline] = []
+    reports: list[LevelReport] = []
+    converged = False
+    violating = region_dirs[np.abs(errors) > params.tolerance_m] if base_is_overlay else region_dirs
+    # a level much finer than the data spacing is not determined between the nodes
+    data_spacing = max(nodes.dlat_rad, nodes.dlon_rad * float(np.cos(np.radians(np.abs(nodes.latitude)).mean())))
+    data_limited = False
+    for level in range(params.max_level + 1):
+        t0 = time.perf_counter()
+        h = params.spacing(level)
+        if level > 0 and h < MIN_H_PER_DATA_SPACING * data_spacing:
+            data_limited = True
+            log.warning(
+                "stopping at level %d: level %d (h=%.4g) would be finer than %.1f x the data spacing "
+                "(%.4g on the unit sphere); sample a model source finer with sample_spacing_deg",
+                level - 1, level, h, MIN_H_PER_DATA_SPACING, data_spacing,
+            )
+            break
+        if level == 0 and first_level is not None:
+            lv, seconds_before, site_count = first_level
+            t0 -= seconds_before
+            marked, solved = 0, 0
+        else:
+            keys, marked, site_cells = refinement.level_keys(level, h, params.order, region, violating)
+            if keys.size == 0:
+                converged = True
+                break
+            ray_mask = nodes.thinned(h, params.rays_per_cell)
+            points, node_of_site = sites_for_level(
+                nodes, ray_mask, h, params.order, keys, params.radial_offsets, site_cells
+            )
+            values = nodes.values[node_of_site] - AmbientSpline(levels).evaluate_points(points) if levels \
+                else nodes.values[node_of_site].copy()
+            problems = list(local_problems(level, h, params, keys, points, values, force_tiles,
+                                            overlay=level > 0 or base_is_overlay))
+            own_keys, own_coefs, solved = solve_level(problems, executor, progress)
+            if own_keys.size != keys.size:
+                raise FitError(f"level {level}: tiles returned {own_keys.size} of {keys.size} coefficients")
+            lv = LevelSpline(level, h, params.order, own_keys, own_coefs)
+            site_count = points.shape[0]
+        levels.append(lv)
+        errors -= AmbientSpline([lv]).evaluate_points(region_dirs)
+        above = np.abs(errors) > params.tolerance_m
+        violating = region_dirs[above]
+        report = LevelReport(
+            level=level, h=h, coefficients=len(lv), marked_cells=int(marked), sites=int(site_count),
+            tiles_solved=solved, max_error_m=float(np.abs(errors).max()),
+            rms_error_m=float(np.sqrt(np.mean(errors**2))), nodes_above_tolerance=int(above.sum()),
+            seconds=time.perf_counter() - t0,
+        )
+        reports.append(report)
+        log.info(
+            "level %d: h=%.6g, %d coefficients, %d sites, max |error| %.4f m, %d nodes above %.4g m (%.1f s)",
+            level, h, len(lv), site_count, report.max_error_m, report.nodes_above_tolerance,
+            params.tolerance_m, report.seconds,
+        )
+        if not above.any():
+            converged = True
+            break
+    spline = AmbientSpline(levels)
+    return FitResult(
+        spline=spline, parameters=params, region=region, levels=reports,
+        node_count=int(errors.size), node_max_error_m=float(np.abs(errors).max()),
+        node_rms_error_m=float(np.sqrt(np.mean(errors**2))), converged=converged,
+        seconds=time.perf_counter() - start, node_directions=region_dirs, node_errors=errors,
+        data_limited=data_limited,
+    )
+
+
+def support_margin_deg(params: FitParameters) -> float:
+    """Angular reach (degrees) of the level-0 B-splines beyond the region's cells."""
+    chord = params.order * params.h0 * math.sqrt(3.0)
+    return math.degrees(2.0 * math.asin(min(1.0, chord / 2.0)))
+
+
+def fit_source(source, region: Region | None = None, params: FitParameters | None = None,
+               progress=None, force_tiles=False, executor: Executor | None = None) -> FitResult:
+    """Fit a geoid source (grid or model) over ``region`` (default: global)."""
+    params = params or FitParameters()
+    region = region or GLOBAL
+    data_region = region.expanded(support_margin_deg(params))
+    spacing = params.sample_spacing_deg
+    if params.method == "interpolation":
+        return _fit_by_interpolation(source, region, params, spacing, progress, force_tiles, executor)
+    if spacing is None and hasattr(source, "lattice_step"):
+        # a model's own default (90/N degrees) can leave a low-degree model with a
+        # handful of nodes: keep at least a few per level-0 cell
+        spacing = min(source.lattice_step(None), math.degrees(params.h0) / 4.0)
+    sample = source.nodes(clip_to_extent(data_region, source), spacing_deg=spacing)
+    return fit_nodes(sample, region, params, progress=progress, force_tiles=force_tiles, executor=executor)
+
+
+def check_method(source, params: FitParameters):
+    """Raise :class:`FitError` when ``params.method`` cannot fit ``source``."""
+    if params.method == "interpolation" and (
+        getattr(source.provenance, "kind", None) != "harmonic" or not hasattr(source, "lattice_step")
+    ):
+        raise FitError(
+            "fit method 'interpolation' needs a source exact everywhere (a spherical-harmonic "
+            f"model); {source.provenance.source} is a {source.provenance.kind}: fit it by least squares"
+        )
+
+
+def _fit_by_interpolation(source, region, params, spacing, progress, force_tiles, executor):
+    """Level 0 by quasi-interpolation of an exact source, then least-squares overlays."""
+    check_method(source, params)
+    start = time.perf_counter()
+    h = params.h0
+    cells = active_cells(h, region)
+    if cells.size == 0:
+        raise FitError(f"no cells of spacing {h} meet the sphere over the region {region.as_tuple()}")
+    keys = touching_keys(cells, params.order)
+    spacing = lattice_spacing(source, h, spacing)
+    coefficients, band, lattice_points = interpolate_level(source, keys, h, params.order, spacing)
+    level0 = LevelSpline(0, h, params.order, keys, coefficients)
+    # the band's lattice holds every node of the region: it is the nodes' sample too
+    return fit_nodes(band, region, params, progress=progress, force_tiles=force_tiles,
+                     first_level=(level0, time.perf_counter() - start, lattice_points), executor=executor)
+
+
+def clip_to_extent(region: Region, source) -> Region:
+    extent = source.extent
+    if extent.is_global:
+        return region
+    south = max(region.south, extent.south)
+    north = min(region.north, extent.north)
+    if region.longitude_span >= 360.0:
+        return Region(south, extent.west, north, extent.east)
+    west = region.west
+    east = region.east
+    ext_w, ext_e = extent.west, extent.east
+    if extent.longitude_span < 360.0:
+        # shift the region onto the extent's longitude branch before clipping
+        shift = 360.0 * np.round(((west + east) / 2 - (ext_w + ext_e) / 2) / 360.0)
+        west, east = max(west - shift, ext_w), min(east - shift, ext_e)
+    return Region(south, west, north, east)

@@ -1,0 +1,87 @@
+"""The numerical parameters of a fit, checked once, with what each means."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+from ..bspline.keys import MAX_INDEX
+from ..errors import FitError
+
+#: How level 0 is computed: by least squares on the data rays (any source), or by
+#: quasi-interpolation of a source exact everywhere (:mod:`geoidspline.fitting.interpolation`).
+FIT_METHODS = ("least-squares", "interpolation")
+
+
+#: Finest level spacing allowed, in units of the data's node spacing.
+MIN_H_PER_DATA_SPACING = 0.5
+
+
+@dataclass(frozen=True)
+class FitParameters:
+    """Parameters of a fit. Lengths are on the unit sphere (1 = Earth radius).
+
+    ``h0`` is the level-0 grid spacing; level ℓ has ``h0 / 2**ℓ``. ``tolerance_m`` is the
+    largest |error| accepted at the data nodes; refinement stops there or at
+    ``max_level``. ``radial_offsets`` are the site radii ``1 + ρ h`` in units of the
+    level's spacing. ``rays_per_cell`` caps how many data directions a cell width holds
+    at coarse levels (more are thinned out: they would cost time, not accuracy).
+    ``regularization`` weighs the second-difference penalty relative to the mean
+    diagonal of the normal matrix. An overlay level takes the B-splines whose support
+    centre is within ``refine_radius`` cells (per axis) of a node above the tolerance;
+    ``None`` means ``order / 2``: every B-spline touching that node (thesis §5.2).
+    ``sample_spacing_deg`` is the lattice spacing (degrees) at which a spherical-harmonic
+    source is synthesised for the fit (``None``: 90/N degrees for degree N, at most a
+    quarter of h0); grids always give their own nodes.
+    ``method`` says how level 0 is computed: ``"least-squares"`` (thesis §5) or
+    ``"interpolation"``, the quasi-interpolant of :mod:`geoidspline.fitting.interpolation`, for
+    sources exact everywhere (harmonic models): no linear solve, every coefficient from
+    the source within a few cells. Overlays, when the tolerance asks for them, are
+    least squares either way.
+    Where the blocks are solved is not a parameter of the fit: see
+    :class:`geoidspline.fitting.executors.Executor` (it never goes into a store).
+    """
+
+    order: int = 4
+    h0: float = 0.1
+    tolerance_m: float = 0.5
+    max_level: int = 8
+    tile_size: float = 0.4
+    margin_cells: int = 10
+    block_cells: int = 40
+    radial_offsets: tuple = (-1.5, -0.9, -0.3, 0.0, 0.3, 0.9, 1.5)
+    rays_per_cell: float = 5.0
+    regularization: float = 1e-6
+    overlay_ridge: float = 0.3
+    refine_radius: float | None = 1.0
+    untiled_max_unknowns: int = 20_000
+    sample_spacing_deg: float | None = None
+    method: str = "least-squares"
+
+    def __post_init__(self):
+        if not 2 <= self.order <= 8:
+            raise FitError(f"spline order must be within 2..8 (4 = cubic, C²), got {self.order}")
+        if not 0.0 < self.h0 <= 0.5:
+            raise FitError(f"h0 must be within (0, 0.5] on the unit sphere, got {self.h0}")
+        if not self.tolerance_m > 0:
+            raise FitError(f"tolerance must be positive metres, got {self.tolerance_m}")
+        if not 0 <= self.max_level <= 12:
+            raise FitError(f"max level must be within 0..12, got {self.max_level}")
+        if self.h0 / 2 ** self.max_level * MAX_INDEX < 1.5:
+            raise FitError("h0 / 2**max_level is too small for the coefficient index range")
+        if not self.tile_size >= self.h0:
+            raise FitError(f"tile size ({self.tile_size}) must be at least h0 ({self.h0})")
+        if self.margin_cells < self.order:
+            raise FitError(f"margin_cells must be at least the spline order ({self.order})")
+        if self.sample_spacing_deg is not None and not 0 < self.sample_spacing_deg <= 5:
+            raise FitError(f"sample spacing must be within (0, 5] degrees, got {self.sample_spacing_deg}")
+
+        if self.method not in FIT_METHODS:
+            raise FitError(f"fit method must be one of {FIT_METHODS}, got {self.method!r}")
+
+    def spacing(self, level: int) -> float:
+        return self.h0 / 2.0 ** level
+
+    def as_dict(self) -> dict:
+        data = asdict(self)
+        data["radial_offsets"] = list(self.radial_offsets)
+        return data

@@ -1,0 +1,84 @@
+"""Data nodes and the sites of a level: rays through the nodes within the shell.
+
+Because the extension is constant along rays, each data direction ``u`` is sampled at
+radii ``1 + ρ h`` within the shell, all carrying the value N(u) (METHOD.md §1). Sites
+outside the level's active cells are dropped.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .._kernels.fitting import cells_meet_sphere
+from ..bspline.keys import covered_cell_keys, isin_sorted, pack_keys
+from ..sphere.coordinates import directions
+from ..sphere.region import Region
+
+
+@dataclass
+class DataNodes:
+    """Data nodes of a fit: directions, values, region mask and thinning strides."""
+
+    latitude: np.ndarray
+    longitude: np.ndarray
+    values: np.ndarray
+    directions: np.ndarray
+    in_region: np.ndarray
+    row: np.ndarray
+    col: np.ndarray
+    dlat_rad: float
+    dlon_rad: float
+
+    @classmethod
+    def from_sample(cls, sample, region: Region):
+        lat2, lon2 = np.meshgrid(sample.latitude, sample.longitude, indexing="ij")
+        row2, col2 = np.meshgrid(
+            np.arange(sample.latitude.size), np.arange(sample.longitude.size), indexing="ij"
+        )
+        values = np.asarray(sample.undulation, dtype=float).ravel()
+        keep = np.isfinite(values)
+        # a pole row holds one point: keep a single node there
+        pole = (np.abs(lat2.ravel()) >= 90.0) & (col2.ravel() > 0)
+        keep &= ~pole
+        lat = lat2.ravel()[keep]
+        lon = lon2.ravel()[keep]
+        dlat = np.radians(np.diff(sample.latitude).min()) if sample.latitude.size > 1 else np.pi
+        dlon = np.radians(np.diff(sample.longitude).min()) if sample.longitude.size > 1 else 2 * np.pi
+        return cls(
+            latitude=lat,
+            longitude=lon,
+            values=values[keep],
+            directions=directions(lat, lon),
+            in_region=region.contains(lat, lon),
+            row=row2.ravel()[keep],
+            col=col2.ravel()[keep],
+            dlat_rad=float(dlat),
+            dlon_rad=float(dlon),
+        )
+
+    def thinned(self, h, rays_per_cell):
+        """Mask of the nodes kept as rays at spacing h (about rays_per_cell per cell width)."""
+        target = h / rays_per_cell
+        lat_stride = max(1, int(target // self.dlat_rad))
+        cos_lat = np.maximum(np.cos(np.radians(self.latitude)), 1e-6)
+        lon_stride = np.maximum(1, np.floor(target / (self.dlon_rad * cos_lat))).astype(np.int64)
+        return (self.row % lat_stride == 0) & (self.col % lon_stride == 0)
+
+
+def sites_for_level(nodes: DataNodes, ray_mask, h, order, keys, radial_offsets, site_cells=None):
+    """Site positions and node indices for one level (rays through the kept nodes)."""
+    covered = covered_cell_keys(keys, order) if site_cells is None else site_cells
+    node_idx = np.flatnonzero(ray_mask)
+    pts_all, idx_all = [], []
+    for rho in radial_offsets:
+        pts = nodes.directions[node_idx] * (1.0 + rho * h)
+        cells = np.floor(pts / h).astype(np.int64)
+        inside = isin_sorted(pack_keys(cells), covered)
+        if rho != 0.0:
+            # sites off the sphere count only inside cells that meet the sphere (Ω)
+            inside[inside] = cells_meet_sphere(cells[inside], h, 1.0)
+        pts_all.append(pts[inside])
+        idx_all.append(node_idx[inside])
+    return np.concatenate(pts_all), np.concatenate(idx_all)

@@ -1,0 +1,194 @@
+"""Quantities derived from a store's spline: deflections, heights and error bounds.
+
+Latitudes and longitudes are geodetic degrees (WGS84), heights and undulations metres.
+Scalars give scalars, arrays broadcast, NaN gives NaN, a finite latitude beyond ±90°
+raises :class:`~geoidspline.errors.CoordinateError`. The functions take a store
+(:class:`geoidspline.store.TileStore`, whose methods call them) or, where only the spline
+is needed, any object with ``evaluate_points(points (M, 3), nderiv)``.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from ..errors import CoordinateError
+from ..geodesy.ellipsoids import gaussian_mean_radius
+from ..sphere.coordinates import check_coordinates, directions
+from ..sphere.region import Region
+
+#: Arcseconds in one radian (648000/π).
+ARCSEC_PER_RADIAN = 648000.0 / math.pi
+
+
+def _spline_of(store_or_spline):
+    """The ambient spline of a store, or the argument itself when it is a spline."""
+    spline = getattr(store_or_spline, "spline", None)
+    if spline is not None and hasattr(spline, "evaluate_points"):
+        return spline
+    if hasattr(store_or_spline, "evaluate_points"):
+        return store_or_spline
+    raise TypeError(
+        f"expected a TileStore or an ambient spline (with evaluate_points), got {type(store_or_spline).__name__}"
+    )
+
+
+def _shaped(values, shape):
+    """Reshape a flat result to the query's shape; a 0-d query gives a NumPy scalar."""
+    values = np.asarray(values, dtype=np.float64).reshape(shape)
+    return values[()] if shape == () else values
+
+
+class Deflection(NamedTuple):
+    """Deflection of the vertical from the geoid slope, and that slope.
+
+    ``xi_arcsec`` (ξ, north-south component) and ``eta_arcsec`` (η, east-west
+    component) in arcseconds; ``dn_dnorth``/``dn_deast`` the geoid gradient
+    ∂N/∂(distance north) and ∂N/∂(distance east) in metres per metre.
+    ξ = −dN/dnorth and η = −dN/deast (in radians).
+    """
+
+    xi_arcsec: object
+    eta_arcsec: object
+    dn_dnorth: object
+    dn_deast: object
+
+
+def deflection(store_or_spline, latitude, longitude) -> Deflection:
+    """Geoidal deflection of the vertical (ξ, η) and the geoid gradient at points.
+
+    Computed from the analytic gradient g = ∇S of the ambient spline at the sphere point
+    u = (cos φ cos λ, cos φ sin λ, sin φ) (no finite differences). Its tangent
+    components along ê_north = (−sin φ cos λ, −sin φ sin λ, cos φ) = ∂u/∂φ and
+    ê_east = (−sin λ, cos λ, 0) = (1/cos φ) ∂u/∂λ are the surface derivatives
+
+        ∂N/∂φ = g·ê_north,   (1/cos φ) ∂N/∂λ = g·ê_east   (metres per radian);
+
+    any radial component of g (the spline is only approximately constant along rays)
+    is ignored, as the geoid is the restriction of S to the sphere.
+
+    Distances use the WGS84 Gaussian mean radius of curvature R = √(M N) at φ
+    (:func:`gaussian_mean_radius`), the usual spherical approximation: metres per metre
+    are dN/dnorth = (∂N/∂φ)/R and dN/deast = (∂N/∂λ)/(R cos φ). (The strict ellipsoidal
+    distances M dφ and N cos φ dλ would change these by at most 0.34 %.)
+
+    Sign convention (Heiskanen & Moritz 1967, Physical Geodesy, ch. 2; Torge, Geodesy):
+
+        ξ = −(1/R) ∂N/∂φ,   η = −(1/(R cos φ)) ∂N/∂λ,
+
+    converted from radians to arcseconds. These are ξ = Φ − φ and η = (Λ − λ) cos φ
+    (astronomic minus geodetic), positive when the astronomic zenith (the plumb line)
+    lies north, respectively east, of the ellipsoidal one; a geoid rising to the north
+    gives ξ < 0, one rising to the east η < 0.
+
+    At the poles the tangent basis above stays finite: ê_north points along the meridian
+    of the *given* longitude (over the pole) and ê_east 90° east of it, so ξ and η there
+    are relative to the meridian of that longitude.
+
+    Returns a :class:`Deflection` ``(xi_arcsec, eta_arcsec, dn_dnorth, dn_deast)``;
+    scalars for scalar input, arrays of the broadcast shape otherwise; NaN in gives NaN.
+    """
+    spline = _spline_of(store_or_spline)
+    lat, lon = check_coordinates(latitude, longitude)
+    shape = lat.shape
+    lat_f = lat.ravel()
+    lon_f = lon.ravel()
+    phi = np.radians(lat_f)
+    lam = np.radians(lon_f)
+    sin_phi, cos_phi = np.sin(phi), np.cos(phi)
+    sin_lam, cos_lam = np.sin(lam), np.cos(lam)
+    if lat_f.size:
+        values = np.asarray(spline.evaluate_points(directions(lat_f, lon_f), nderiv=1), dtype=np.float64)
+        g = values.reshape(-1, 4)[:, 1:4]
+    else:
+        g = np.zeros((0, 3))
+    dn_dphi = g[:, 0] * (-sin_phi * cos_lam) + g[:, 1] * (-sin_phi * sin_lam) + g[:, 2] * cos_phi
+    dn_dlam_cos = g[:, 0] * (-sin_lam) + g[:, 1] * cos_lam
+    radius = gaussian_mean_radius(lat_f)
+    dn_dnorth = dn_dphi / radius
+    dn_deast = dn_dlam_cos / radius
+    return Deflection(
+        _shaped(-dn_dnorth * ARCSEC_PER_RADIAN, shape),
+        _shaped(-dn_deast * ARCSEC_PER_RADIAN, shape),
+        _shaped(dn_dnorth, shape),
+        _shaped(dn_deast, shape),
+    )
+
+
+_TILE_OFFSET = 1 << 20
+
+
+def _tile_codes(tiles):
+    """One int64 per integer tile triple (M, 3) (|index| < 2**20)."""
+    tiles = np.asarray(tiles, dtype=np.int64).reshape(-1, 3)
+    shifted = tiles + _TILE_OFFSET
+    return (shifted[:, 0] << 42) | (shifted[:, 1] << 21) | shifted[:, 2]
+
+
+@functools.lru_cache(maxsize=8)
+def _tile_table_cached(key):
+    tiles, errors = key
+    codes = _tile_codes(np.array(tiles, dtype=np.int64).reshape(-1, 3))
+    order = np.argsort(codes)
+    return codes[order], np.array(errors, dtype=np.float64)[order]
+
+
+def _tile_table(manifest):
+    tiles = []
+    errors = []
+    for entry in manifest["tiles"]:
+        tiles.extend(int(v) for v in entry["tile"])
+        value = entry.get("max_error_m")
+        errors.append(np.nan if value is None else float(value))
+    return _tile_table_cached((tuple(tiles), tuple(errors)))
+
+
+def tile_error_bound(store, latitude, longitude):
+    """The ``max_error_m`` of the tile each point falls in (metres).
+
+    A sphere point u belongs to the tile cube floor(u / tile_size) (the grouping the
+    store used for its check points). The value is the largest |store − truth| at the
+    check points of that tile when the store was written: an empirical bound, not a
+    guaranteed one. NaN for a point in no tile of the store, in a tile without check
+    points, outside the region the store was fitted for (the tile statistics say nothing
+    there), or for a NaN coordinate.
+    """
+    lat, lon = check_coordinates(latitude, longitude)
+    shape = lat.shape
+    lat_f, lon_f = lat.ravel(), lon.ravel()
+    result = np.full(lat_f.shape, np.nan)
+    ok = np.isfinite(lat_f) & np.isfinite(lon_f)
+    if ok.any():
+        size = float(store.manifest["spline"]["tile_size"])
+        codes, errors = _tile_table(store.manifest)
+        tiles = np.floor(directions(lat_f[ok], lon_f[ok]) / size).astype(np.int64)
+        query = _tile_codes(tiles)
+        pos = np.searchsorted(codes, query)
+        pos_c = np.minimum(pos, max(codes.size - 1, 0))
+        found = (pos < codes.size) & (codes[pos_c] == query) if codes.size else np.zeros(query.shape, bool)
+        values = np.where(found, errors[pos_c] if codes.size else np.nan, np.nan)
+        inside = Region(*store.manifest["region"]).contains(lat_f[ok], lon_f[ok])
+        result[ok] = np.where(inside, values, np.nan)
+    return _shaped(result, shape)
+
+
+#: The height kinds :func:`convert_height` takes, and what each is converted to.
+HEIGHT_KINDS = {"ellipsoidal": "orthometric", "orthometric": "ellipsoidal"}
+
+
+def convert_height(undulation, height, height_in):
+    """Convert a height with the geoid undulation N (all metres).
+
+    ``height_in="ellipsoidal"``: h above the ellipsoid → orthometric H = h − N;
+    ``height_in="orthometric"``: H above the geoid → ellipsoidal h = H + N.
+    Arrays broadcast; NaN propagates.
+    """
+    if height_in not in HEIGHT_KINDS:
+        raise CoordinateError(f"height_in must be 'ellipsoidal' or 'orthometric', got {height_in!r}")
+    n = np.asarray(undulation, dtype=np.float64)
+    h = np.asarray(height, dtype=np.float64)
+    out = h - n if height_in == "ellipsoidal" else h + n
+    return out[()] if out.ndim == 0 else out

@@ -1,0 +1,177 @@
+"""A store sampled on a latitude/longitude lattice, written as a grid PROJ, GDAL and xarray read."""
+
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+from .._files import atomic_path
+from ..errors import CoordinateError, GeoidSplineError, InputFileError
+from ..sphere.region import Region
+
+#: Export formats by file suffix.
+EXPORT_FORMATS = {".gtx": "PROJ GTX", ".nc": "CF netCDF-4", ".tif": "GeoTIFF", ".tiff": "GeoTIFF"}
+
+
+_AXIS_TOL = 1e-9
+
+
+_MAX_EXPORT_NODES = 200_000_000  # 0.8 GB of float32 in a GTX, 1.6 GB of doubles in memory
+
+
+def _lattice(start, stop, step):
+    """start, start + step, ... up to stop (inclusive within 1e-9°)."""
+    count = int(math.floor((stop - start) / step + _AXIS_TOL)) + 1
+    return start + step * np.arange(count)
+
+
+def export_lattice(store, spacing_deg, region=None):
+    """The export lattice: (latitude, longitude) axes in degrees and the region used.
+
+    Latitudes from the region's south edge northward and longitudes from its west edge
+    eastward in steps of ``spacing_deg``, up to the last node at or before the north/east
+    edge. For a region spanning all longitudes the column at west + 360° is left out
+    (the grid is periodic). The region defaults to the store's and must lie inside it.
+    """
+    spacing = float(spacing_deg)
+    if not (math.isfinite(spacing) and spacing > 0):
+        raise CoordinateError(f"spacing must be a positive number of degrees, got {spacing_deg}")
+    store_region = Region(*store.manifest["region"])
+    if region is None:
+        region = store_region
+    elif not isinstance(region, Region):
+        region = Region.from_bounds(*region)
+    if region.south < store_region.south - _AXIS_TOL or region.north > store_region.north + _AXIS_TOL:
+        raise CoordinateError(
+            f"export region {region.as_tuple()} is not inside the store's region "
+            f"{store_region.as_tuple()} (S W N E degrees): outside it the store has no meaningful values"
+        )
+    west = region.west
+    if store_region.longitude_span < 360.0:
+        # the requested region on the store's longitude branch, then inside its band
+        offset = (region.west - store_region.west) % 360.0
+        if offset > 360.0 - _AXIS_TOL:
+            offset -= 360.0
+        west = store_region.west + offset
+        if west + region.longitude_span > store_region.east + _AXIS_TOL:
+            raise CoordinateError(
+                f"export region {region.as_tuple()} is not inside the store's region "
+                f"{store_region.as_tuple()} (S W N E degrees): outside it the store has no meaningful values"
+            )
+    east = west + region.longitude_span
+    latitude = _lattice(region.south, region.north, spacing)
+    longitude = _lattice(west, east, spacing)
+    if region.longitude_span >= 360.0:
+        longitude = longitude[longitude < west + 360.0 - _AXIS_TOL]
+        if abs(spacing * longitude.size - 360.0) > 1e-9:
+            raise CoordinateError(
+                f"a grid all around the globe needs a spacing that divides 360 degrees, got {spacing:g}"
+            )
+    latitude = np.clip(latitude, -90.0, 90.0)
+    if latitude.size * longitude.size > _MAX_EXPORT_NODES:
+        raise CoordinateError(
+            f"spacing {spacing:g} degrees gives {latitude.size} x {longitude.size} nodes, more than "
+            f"{_MAX_EXPORT_NODES:,}: use a coarser spacing or a smaller region"
+        )
+    if latitude.size < 2 or longitude.size < 2:
+        raise CoordinateError(
+            f"spacing {spacing:g} degrees gives {latitude.size} x {longitude.size} nodes over "
+            f"{region.as_tuple()}: a grid needs at least 2 x 2"
+        )
+    return latitude, longitude, region
+
+
+def export_grid(store, path, spacing_deg, region=None):
+    """Evaluate ``store`` on a latitude/longitude lattice and write it to ``path``.
+
+    The lattice is :func:`export_lattice` (every ``spacing_deg`` degrees from the south
+    and west edges of ``region``, default the store's region). The format follows the
+    suffix:
+
+    - ``.gtx``: PROJ GTX (float32 metres, :func:`geoidspline.sources.gtx.write_gtx`), usable
+      with ``+proj=vgridshift`` (PROJ interpolates it bilinearly);
+    - ``.nc``: CF netCDF-4, ``geoid_height(latitude, longitude)`` in metres
+      (:func:`geoidspline.sources.netcdf.write_netcdf`);
+    - ``.tif``/``.tiff``: a float32 GeoTIFF in EPSG:4326 with pixel-is-point
+      georeferencing (one pixel per node, north row first), written with ``rasterio``,
+      which must be installed (it is not a dependency of geoidspline).
+
+    Returns the :class:`~geoidspline.sources.grid.GeoidGrid` that was written.
+    """
+    from ..sources.base import Provenance
+    from ..sources.grid import GeoidGrid
+    from ..sources.gtx import write_gtx
+    from ..sources.netcdf import write_netcdf
+
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in EXPORT_FORMATS:
+        raise InputFileError(
+            path, f"unknown export format '{path.suffix}': use .gtx (PROJ GTX), .nc (netCDF) or .tif (GeoTIFF)"
+        )
+    if suffix in (".tif", ".tiff"):
+        try:
+            import rasterio  # noqa: F401
+        except ImportError:
+            raise GeoidSplineError(
+                "writing GeoTIFF needs the rasterio package, which is not installed: "
+                "pip install rasterio (or export .gtx or .nc instead)"
+            ) from None
+    if not path.parent.is_dir():
+        raise InputFileError(path, "the output directory does not exist")
+    latitude, longitude, used = export_lattice(store, spacing_deg, region)
+    lat2, lon2 = np.meshgrid(latitude, longitude, indexing="ij")
+    values = store.undulation(lat2, lon2)
+    prov = store.manifest.get("provenance", {})
+    notes = (
+        f"sampled from geoidspline store {store.path} (version {store.manifest.get('store_version')}) "
+        f"every {float(spacing_deg):g} degrees over S W N E {used.as_tuple()}",
+    )
+    grid = GeoidGrid(
+        latitude, longitude, values,
+        Provenance(
+            source=f"geoidspline store {Path(store.path).name}",
+            sha256=prov.get("sha256"),
+            model=prov.get("model", "unknown"),
+            kind="grid",
+            ellipsoid=prov.get("ellipsoid", "WGS84"),
+            tide_system=prov.get("tide_system"),
+            zero_degree_term_m=prov.get("zero_degree_term_m"),
+            notes=notes,
+        ),
+    )
+    if suffix == ".gtx":
+        finite = values[np.isfinite(values)]
+        if finite.size and np.abs(finite).max() >= 1000.0:
+            log.warning("%s: values beyond ±1000 m, which PROJ treats as no data in GTX grids", path)
+        write_gtx(path, grid)
+    elif suffix == ".nc":
+        write_netcdf(path, grid)
+    else:
+        _write_geotiff(path, grid)
+    return grid
+
+
+def _write_geotiff(path: Path, grid):
+    import rasterio
+    from rasterio.transform import from_origin
+
+    lat, lon = grid.latitude, grid.longitude
+    dlat, dlon = grid.latitude_spacing, grid.longitude_spacing
+    data = np.asarray(grid.values[::-1], dtype=np.float32)  # north row first
+    # Pixel-is-point: node (row 0, col 0) at (west, north); the affine transform gives the
+    # outer corner of that pixel, half a cell beyond the node, as GDAL expects.
+    transform = from_origin(lon[0] - dlon / 2.0, lat[-1] + dlat / 2.0, dlon, dlat)
+    with atomic_path(path, suffix=".tmp.tif") as tmp, rasterio.open(
+        tmp, "w", driver="GTiff", width=data.shape[1], height=data.shape[0], count=1,
+        dtype="float32", crs="EPSG:4326", transform=transform, nodata=float("nan"),
+        compress="deflate",
+    ) as ds:
+        ds.write(data, 1)
+        ds.update_tags(AREA_OR_POINT="Point")
+        ds.update_tags(1, units="m", long_name="geoid undulation N above the WGS84 ellipsoid")
+        ds.set_band_description(1, "geoid_undulation")

@@ -1,0 +1,396 @@
+"""Geoid undulations N (metres) from a spherical-harmonic model, as NGA computes them.
+
+:class:`GeoidSynthesis` implements ../reference/METHOD.md §6 for a point on the
+ellipsoid (h = 0) at geodetic latitude φ and longitude λ (degrees):
+
+1. geocentric radius r and latitude ψ of the ellipsoid point;
+2. T = (GM/r) Σ_{n=2}^{N} (a/r)^n Σ_m (ΔC̄nm cos mλ + S̄nm sin mλ) P̄nm(sin ψ), with the
+   even zonals of the reference ellipsoid's normal field subtracted;
+3. ζ = T/γ(φ), Somigliana normal gravity on the ellipsoid;
+4. N = ζ + C(φ, λ) + N0, C the ζ-to-N correction series (no (a/r)^n factor), N0 the
+   zero-degree term.
+
+Presets (the constants each uses are in :class:`Conventions`):
+
+- ``"nga-f477"``: NGA's F477.F for EGM96 (source read: the NIMA routines ``hundu``,
+  ``radgra``, ``dhcsin``). The sum is scaled by the **WGS84** GM = 3.986004418e14 and
+  a = 6378137 m whatever the model's constants; C̄n0 += Jn/√(2n+1) with NGA's literal
+  WGS84 J2..J10; γ from geqt = 9.7803253359, k = 0.00193185265246,
+  e² = 0.00669437999013; CORRCOEF/100 summed over n = 0..N; N0 = −0.53 m.
+- ``"nga-hsynth"``: NGA's hsynth_WGS84 for EGM2008: the model's own GM and a scale the
+  sum; the WGS84 zonals are rescaled to them, ΔC̄n0 = C̄n0 + (GM84/GM)(a84/a)^n Jn/√(2n+1);
+  same γ and point geometry as F477; N0 = −0.41 m. (Not checked against NGA output: the
+  EGM2008 files for that are not available here.)
+- ``"generic"``: like hsynth but every constant derived from ``ellipsoid``
+  (:mod:`geoidspline.geodesy`), even zonals to degree min(N, 20), N0 = 0 unless given.
+
+Degrees 0 and 1 of the model never enter T (their effect is what N0 stands for). A
+``max_degree`` below the model's truncates the model, the normal zonals and the
+correction alike.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..._kernels import legendre
+from ...errors import CoordinateError
+from ...geodesy.ellipsoids import WGS84, Ellipsoid
+from ...sphere.region import GLOBAL, Region
+from ..base import NodeSample, Provenance
+from .models import CorrectionModel, HarmonicModel
+from .presets import DEFAULT_PRESET, PRESETS
+
+__all__ = ["GeoidSynthesis", "Conventions", "PRESETS", "NGA_WGS84_J"]
+
+
+# NGA's WGS84 (G873) even zonals, F477.F subroutine dhcsin ("computed using subroutine
+# GRS written by N.K. Pavlis"); they equal Ellipsoid.J(n) of WGS84 to 12 digits.
+NGA_WGS84_J = {
+    2: 0.108262982131e-2,
+    4: -0.237091120053e-05,
+    6: 0.608346498882e-8,
+    8: -0.142681087920e-10,
+    10: 0.121439275882e-13,
+}
+
+
+@dataclass(frozen=True)
+class Conventions:
+    """The constants one preset uses (SI units).
+
+    ``scale_gm``/``scale_a`` scale the potential sum; ``zonal_terms`` maps n to the
+    amount added to C̄n0 (= −C̄n0 of the normal field in that scaling); ``gamma_e``,
+    ``gamma_k``, ``gamma_e2`` give Somigliana's γ; ``point_a``/``point_e2`` place the
+    ellipsoid point; ``n0_m`` is the default zero-degree term (m).
+    """
+
+    preset: str
+    scale_gm: float
+    scale_a: float
+    zonal_terms: tuple[tuple[int, float], ...]
+    gamma_e: float
+    gamma_k: float
+    gamma_e2: float
+    point_a: float
+    point_e2: float
+    n0_m: float
+
+
+# F477.F radgra: a = 6378137, e2 = .00669437999013, geqt = 9.7803253359,
+# k = .00193185265246; hundu: gm = .3986004418d15, ae = 6378137, N0 = -0.53 m.
+_NGA_GAMMA = dict(gamma_e=9.7803253359, gamma_k=0.00193185265246, gamma_e2=0.00669437999013)
+_NGA_POINT = dict(point_a=6378137.0, point_e2=0.00669437999013)
+_NGA_GM, _NGA_A = 3.986004418e14, 6378137.0
+
+
+def _conventions(preset: str, model: HarmonicModel, ellipsoid: Ellipsoid, nmax: int) -> Conventions:
+    if preset == "nga-f477":
+        terms = tuple((n, j / math.sqrt(2 * n + 1)) for n, j in NGA_WGS84_J.items() if n <= nmax)
+        return Conventions(preset, _NGA_GM, _NGA_A, terms, **_NGA_GAMMA, **_NGA_POINT, n0_m=-0.53)
+    if preset == "nga-hsynth":
+        terms = tuple(
+            (n, (_NGA_GM / model.gm) * (_NGA_A / model.radius) ** n * j / math.sqrt(2 * n + 1))
+            for n, j in NGA_WGS84_J.items()
+            if n <= nmax
+        )
+        return Conventions(preset, model.gm, model.radius, terms, **_NGA_GAMMA, **_NGA_POINT, n0_m=-0.41)
+    terms = tuple(
+        (n, (ellipsoid.gm / model.gm) * (ellipsoid.a / model.radius) ** n * -ellipsoid.zonal_cbar(n))
+        for n in range(2, min(nmax, 20) + 1, 2)
+    )
+    return Conventions(
+        preset,
+        model.gm,
+        model.radius,
+        terms,
+        gamma_e=ellipsoid.gamma_e,
+        gamma_k=ellipsoid.k,
+        gamma_e2=ellipsoid.e2,
+        point_a=ellipsoid.a,
+        point_e2=ellipsoid.e2,
+        n0_m=0.0,
+    )
+
+
+@functools.lru_cache(maxsize=2)
+def _tables(nmax: int):
+    """Recursion tables shared by syntheses of the same degree (read-only)."""
+    AT, BT = legendre.recursion_tables(nmax)
+    AT.flags.writeable = False
+    BT.flags.writeable = False
+    return AT, BT
+
+
+def _as_points(latitude, longitude):
+    """Validated float arrays (broadcast) and whether both inputs were scalars."""
+    try:
+        lat = np.asarray(latitude, dtype=np.float64)
+        lon = np.asarray(longitude, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise CoordinateError(f"latitude/longitude must be numbers: {exc}") from None
+    scalar = lat.ndim == 0 and lon.ndim == 0
+    try:
+        lat, lon = np.broadcast_arrays(lat, lon)
+    except ValueError:
+        raise CoordinateError(
+            f"latitude and longitude shapes {lat.shape} and {lon.shape} do not broadcast"
+        ) from None
+    with np.errstate(invalid="ignore"):
+        bad = np.abs(lat) > 90.0
+    if bad.any():
+        raise CoordinateError(f"latitude must be within [-90, 90] degrees, got {lat[bad].flat[0]!r}")
+    if np.isinf(lon).any():
+        raise CoordinateError("longitude must be finite (NaN marks a missing point)")
+    return lat, lon, scalar
+
+
+class GeoidSynthesis:
+    """Exact spherical-harmonic geoid undulations N (metres) on WGS84-like ellipsoids.
+
+    Parameters
+    ----------
+    model : HarmonicModel
+        Fully normalised potential coefficients (e.g. :func:`read_nga` of EGM96).
+    correction : CorrectionModel, optional
+        ζ-to-N correction (NGA CORRCOEF for EGM96). Without it the result is ζ + N0.
+    ellipsoid : Ellipsoid
+        Reference ellipsoid; the NGA presets require WGS84 (they use NGA's literals).
+    preset : {"nga-f477", "nga-hsynth", "generic"}
+    zero_degree_term_m : float, optional
+        N0 in metres; default per preset (−0.53, −0.41, 0).
+    max_degree : int, optional
+        Truncation degree N (default: the model's).
+
+    Implements the :class:`geoidspline.sources.base.GeoidSource` protocol.
+    """
+
+    def __init__(
+        self,
+        model: HarmonicModel,
+        correction: CorrectionModel | None = None,
+        ellipsoid: Ellipsoid = WGS84,
+        preset: str = DEFAULT_PRESET,
+        zero_degree_term_m: float | None = None,
+        max_degree: int | None = None,
+    ):
+        if not isinstance(model, HarmonicModel):
+            raise TypeError(f"model must be a HarmonicModel, got {type(model).__name__}")
+        if correction is not None and not isinstance(correction, CorrectionModel):
+            raise TypeError(f"correction must be a CorrectionModel or None, got {type(correction).__name__}")
+        if preset not in PRESETS:
+            raise ValueError(f"preset must be one of {PRESETS}, got {preset!r}")
+        if preset.startswith("nga-") and (ellipsoid.a, ellipsoid.f, ellipsoid.gm) != (WGS84.a, WGS84.f, WGS84.gm):
+            raise ValueError(f"preset {preset!r} is defined for WGS84 only, got {ellipsoid.name}")
+        nmax = model.max_degree if max_degree is None else int(max_degree)
+        if not 2 <= nmax <= model.max_degree:
+            raise ValueError(f"max_degree must be in 2..{model.max_degree}, got {max_degree}")
+        if zero_degree_term_m is not None and not math.isfinite(zero_degree_term_m):
+            raise ValueError(f"zero_degree_term_m must be finite, got {zero_degree_term_m}")
+
+        self.model = model.truncated(nmax)
+        self.max_degree = nmax
+        self.ellipsoid = ellipsoid
+        self.preset = preset
+        self.conventions = _conventions(preset, model, ellipsoid, nmax)
+        self.zero_degree_term_m = float(self.conventions.n0_m if zero_degree_term_m is None else zero_degree_term_m)
+        self.correction = None if correction is None else correction.truncated(min(nmax, correction.max_degree))
+
+        # Order-major coefficient sets (k, m, n): set 0 the model with n < 2 removed and
+        # the normal zonals subtracted; set 1 the correction (all degrees, no (a/r)^n).
+        nsets = 1 if self.correction is None else 2
+        size = nmax + 1
+        CT = np.zeros((nsets, size, size))
+        ST = np.zeros((nsets, size, size))
+        C = np.array(self.model.C)
+        for n, term in self.conventions.zonal_terms:
+            C[n, 0] = C[n, 0] + term
+        C[:2, :] = 0.0
+        CT[0] = C.T
+        ST[0] = self.model.S.T
+        ST[0, :, :2] = 0.0
+        if self.correction is not None:
+            nc = self.correction.max_degree + 1
+            CT[1, :nc, :nc] = self.correction.C.T
+            ST[1, :nc, :nc] = self.correction.S.T
+        self._CT = CT
+        self._ST = ST
+        self._radial = np.array([True, False][:nsets])
+        self._AT, self._BT = _tables(nmax)
+
+        notes = [
+            f"preset {preset}: sum scaled by GM={self.conventions.scale_gm!r} m^3/s^2, a={self.conventions.scale_a!r} m",
+            f"synthesis to degree {nmax}; normal-field zonals subtracted for n in "
+            f"{[n for n, _ in self.conventions.zonal_terms]}",
+            f"zero-degree term N0 = {self.zero_degree_term_m} m",
+        ]
+        if self.correction is None:
+            notes.append("no zeta-to-N correction: values are height anomalies plus N0")
+        else:
+            notes.append(
+                f"zeta-to-N correction {self.correction.name} to degree {self.correction.max_degree} "
+                f"(sha256 {self.correction.sha256})"
+            )
+        notes.extend(model.notes)
+        self.provenance = Provenance(
+            source=str(model.source_path or model.name),
+            sha256=model.sha256,
+            model=model.name,
+            kind="harmonic",
+            ellipsoid=ellipsoid.name,
+            tide_system=model.tide_system,
+            zero_degree_term_m=self.zero_degree_term_m,
+            notes=tuple(notes),
+        )
+
+    # ------------------------------------------------------------------ protocol
+    @property
+    def extent(self) -> Region:
+        """The whole sphere: a model has values everywhere."""
+        return GLOBAL
+
+    def __repr__(self):
+        return (
+            f"GeoidSynthesis({self.model.name}, degree={self.max_degree}, preset={self.preset!r}, "
+            f"correction={None if self.correction is None else self.correction.name!r})"
+        )
+
+    # ------------------------------------------------------------------ geometry
+    def _geometry(self, lat_deg):
+        """sin ψ, cos ψ, r (m) and γ (m/s²) of the ellipsoid point at geodetic latitude."""
+        cv = self.conventions
+        phi = np.radians(lat_deg)
+        s = np.sin(phi)
+        c = np.cos(phi)
+        s2 = s * s
+        w = np.sqrt(1.0 - cv.point_e2 * s2)
+        nu = cv.point_a / w  # prime-vertical radius of curvature
+        p = nu * c
+        z = nu * (1.0 - cv.point_e2) * s
+        r = np.hypot(p, z)
+        gamma = cv.gamma_e * (1.0 + cv.gamma_k * s2) / np.sqrt(1.0 - cv.gamma_e2 * s2)
+        return z / r, p / r, r, gamma
+
+    def _scales(self, r, gamma, quantity):
+        """Per-point weights of the coefficient sets for 'N', 'zeta' or 'T'."""
+        cv = self.conventions
+        scale = np.zeros((r.shape[0], self._CT.shape[0]))
+        if quantity == "T":
+            scale[:, 0] = cv.scale_gm / r
+        else:
+            scale[:, 0] = cv.scale_gm / (r * gamma)
+        if quantity == "N" and scale.shape[1] > 1:
+            scale[:, 1] = self.correction.unit_m
+        return scale
+
+    def _points(self, latitude, longitude, quantity):
+        lat, lon, scalar = _as_points(latitude, longitude)
+        shape = lat.shape
+        lat = np.ascontiguousarray(lat, dtype=np.float64).ravel()
+        lon = np.ascontiguousarray(lon, dtype=np.float64).ravel()
+        t, u, r, gamma = self._geometry(lat)
+        q = self.conventions.scale_a / r
+        lam = np.radians(np.mod(lon, 360.0))
+        out = np.empty(lat.shape[0])
+        legendre.point_sums(
+            self.max_degree, t, u, q, lam, self._scales(r, gamma, quantity), self._radial,
+            self._CT, self._ST, self._AT, self._BT, out,
+        )
+        if quantity == "N":
+            out += self.zero_degree_term_m
+        out = out.reshape(shape)
+        return float(out) if scalar else out
+
+    # ------------------------------------------------------------------ public values
+    def undulation(self, latitude, longitude):
+        """Geoid undulation N (metres) at geodetic latitude/longitude (degrees, WGS84).
+
+        Vectorised with NumPy broadcasting; scalars give a float; NaN in gives NaN out;
+        |latitude| > 90 raises :class:`~geoidspline.errors.CoordinateError`.
+        """
+        return self._points(latitude, longitude, "N")
+
+    def height_anomaly(self, latitude, longitude):
+        """ζ = T/γ (metres) at the ellipsoid point: N without correction and N0."""
+        return self._points(latitude, longitude, "zeta")
+
+    def disturbing_potential(self, latitude, longitude):
+        """T (m²/s²) at the ellipsoid point (h = 0), degrees 2..N, normal zonals removed."""
+        return self._points(latitude, longitude, "T")
+
+    # ------------------------------------------------------------------ lattices
+    def lattice_step(self, spacing_deg: float | None = None) -> float:
+        """The lattice spacing (degrees) used for ``spacing_deg``: 180/k for the smallest
+        integer k with 180/k ≤ spacing_deg, so it divides 180 and 360. Default: 90/N
+        (15' for degree 360)."""
+        if spacing_deg is None:
+            spacing_deg = 90.0 / self.max_degree
+        spacing_deg = float(spacing_deg)
+        if not (math.isfinite(spacing_deg) and spacing_deg > 0):
+            raise ValueError(f"spacing_deg must be a positive number, got {spacing_deg}")
+        k = max(1, math.ceil(180.0 / spacing_deg - 1e-9))
+        return 180.0 / k
+
+    def nodes(self, region: Region, spacing_deg: float | None = None) -> NodeSample:
+        """N (metres) on the lattice of :meth:`lattice_step` nodes covering ``region``.
+
+        Latitudes −90 + i·Δ and longitudes j·Δ, from the last node at or before each
+        lower edge to the first node at or after each upper edge (clipped at the poles);
+        longitudes stay monotonic across the antimeridian (may exceed 180).
+
+        Computed row by row: one set of Legendre sums per latitude, then the longitude
+        sum by a real FFT over the full circle (or a direct product for few columns).
+        """
+        if not isinstance(region, Region):
+            raise TypeError(f"region must be a Region, got {type(region).__name__}")
+        step = self.lattice_step(spacing_deg)
+        k = round(180.0 / step)
+        eps = 1e-9
+        i0 = max(0, math.floor((region.south + 90.0) / step + eps))
+        i1 = min(k, math.ceil((region.north + 90.0) / step - eps))
+        j0 = math.floor(region.west / step + eps)
+        j1 = math.ceil(region.east / step - eps)
+        rows = np.arange(i0, i1 + 1)
+        cols = np.arange(j0, j1 + 1)
+        latitude = rows * 180.0 / k - 90.0
+        longitude = cols * 180.0 / k
+        values = self._lattice(latitude, cols, 2 * k)
+        return NodeSample(latitude=latitude, longitude=longitude, undulation=values)
+
+    def _lattice(self, latitude, cols, L):
+        """N at latitudes × longitudes cols·360/L (degrees)."""
+        nmax = self.max_degree
+        t, u, r, gamma = self._geometry(latitude)
+        q = self.conventions.scale_a / r
+        scale = self._scales(r, gamma, "N")
+        ncol = cols.size
+        use_fft = (nmax + 1) * ncol > 2 * L * max(1.0, math.log2(L))
+        out = np.empty((latitude.size, ncol))
+        if use_fft:
+            chunk = max(1, min(latitude.size, 4_000_000 // L))
+            index = np.mod(cols, L)
+        else:
+            chunk = max(1, min(latitude.size, 4_000_000 // max(ncol, nmax + 1)))
+            lam = np.radians(np.mod(cols * (360.0 / L), 360.0))
+            mm = np.arange(nmax + 1)[:, None]
+            cos_ml = np.cos(mm * lam[None, :])
+            sin_ml = np.sin(mm * lam[None, :])
+        for start in range(0, latitude.size, chunk):
+            sl = slice(start, min(latitude.size, start + chunk))
+            nrow = sl.stop - sl.start
+            A = np.empty((nrow, nmax + 1))
+            B = np.empty((nrow, nmax + 1))
+            legendre.row_sums(
+                nmax, np.ascontiguousarray(t[sl]), np.ascontiguousarray(u[sl]), np.ascontiguousarray(q[sl]),
+                np.ascontiguousarray(scale[sl]), self._radial, self._CT, self._ST, self._AT, self._BT, A, B,
+            )
+            if use_fft:
+                out[sl] = legendre.fold_to_circle(A, B, L)[:, index]
+            else:
+                out[sl] = A @ cos_ml + B @ sin_ml
+        out += self.zero_degree_term_m
+        return out

@@ -1,0 +1,216 @@
+"""CF netCDF grids: read (axes and the geoid variable found by CF attributes) and write."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from .._files import atomic_path
+from ..errors import InputFileError
+from ..geodesy.ellipsoids import TIDE_SYSTEMS
+from .files import finish_grid, provenance_of, regular_axis
+from .grid import GeoidGrid
+
+log = logging.getLogger(__name__)
+
+
+NETCDF_MAGIC = (b"CDF\x01", b"CDF\x02", b"CDF\x05", b"\x89HDF\r\n\x1a\n")
+
+
+NETCDF_SUFFIXES = {".nc", ".nc4", ".cdf", ".netcdf"}
+
+
+
+
+# -- CF netCDF -----------------------------------------------------------------------
+_LAT_UNITS = {"degrees_north", "degree_north", "degrees_n", "degree_n", "degreesn", "degreen"}
+
+
+_LON_UNITS = {"degrees_east", "degree_east", "degrees_e", "degree_e", "degreese", "degreee"}
+
+
+_PLAIN_DEGREES = {"degrees", "degree", "deg"}
+
+
+_DATA_NAMES = ("geoid", "undulation", "n", "geoid_height", "z", "geoid_undulation", "geoidheight", "geoid_undulations")
+
+
+_UNIT_FACTORS = {
+    "m": 1.0, "metre": 1.0, "metres": 1.0, "meter": 1.0, "meters": 1.0,
+    "cm": 0.01, "centimetre": 0.01, "centimetres": 0.01, "centimeter": 0.01, "centimeters": 0.01,
+    "mm": 0.001, "millimetre": 0.001, "millimetres": 0.001, "millimeter": 0.001, "millimeters": 0.001,
+}
+
+
+def _axis_kind(name: str, var):
+    """'lat', 'lon' or None for a 1-D netCDF variable, from its name and CF attributes."""
+    attrs = var.attrs
+    standard = str(attrs.get("standard_name", "")).strip().lower()
+    units = str(attrs.get("units", "")).strip().lower()
+    axis = str(attrs.get("axis", "")).strip().upper()
+    lname = name.lower()
+    degrees = units in _PLAIN_DEGREES
+    if standard == "latitude" or units in _LAT_UNITS or lname in ("lat", "latitude") or (axis == "Y" and degrees):
+        return "lat"
+    if standard == "longitude" or units in _LON_UNITS or lname in ("lon", "long", "longitude") or (axis == "X" and degrees):
+        return "lon"
+    return None
+
+
+def _netcdf_axes(path, ds):
+    """(lat name, lat dim, lon name, lon dim) of the dataset, or raise."""
+    found = {"lat": [], "lon": []}
+    for name, var in ds.variables.items():
+        if var.ndim == 1:
+            kind = _axis_kind(str(name), var)
+            if kind:
+                found[kind].append((str(name), var.dims[0]))
+    picked = []
+    for kind, label, good_units in (("lat", "latitude", _LAT_UNITS), ("lon", "longitude", _LON_UNITS)):
+        cands = found[kind]
+        if len(cands) > 1:
+            # Prefer dimension coordinates (variable named like its dimension).
+            cands = [c for c in cands if c[0] == c[1]] or cands
+        if not cands:
+            raise InputFileError(
+                path, f"no {label} coordinate found (looked for names lat/lon/latitude/longitude, "
+                "standard_name, units degrees_north/degrees_east, axis Y/X)"
+            )
+        if len({c[1] for c in cands}) > 1:
+            raise InputFileError(path, f"several {label} coordinates: {', '.join(c[0] for c in cands)}")
+        name, dim = cands[0]
+        units = str(ds[name].attrs.get("units", "")).strip()
+        if units and units.lower() not in good_units | _PLAIN_DEGREES:
+            raise InputFileError(path, f"{label} coordinate '{name}' has units '{units}', need degrees")
+        picked += [name, dim]
+    if picked[1] == picked[3]:
+        raise InputFileError(path, f"latitude '{picked[0]}' and longitude '{picked[2]}' share dimension '{picked[1]}'")
+    return tuple(picked)
+
+
+def _netcdf_variable(path, ds, lat_dim, lon_dim, coord_names):
+    """Name of the single undulation variable on (lat_dim, lon_dim), or raise."""
+    wanted = {lat_dim, lon_dim}
+    cands = []
+    for name, var in ds.data_vars.items():
+        dims = {d for d, n in zip(var.dims, var.shape) if n != 1 or d in wanted}
+        if dims == wanted and str(name) not in coord_names:
+            cands.append(str(name))
+    if not cands:
+        raise InputFileError(path, f"no 2-D data variable on dimensions ({lat_dim}, {lon_dim})")
+    if len(cands) == 1:
+        return cands[0]
+    named = [c for c in cands if c.lower() in _DATA_NAMES]
+    if len(named) == 1:
+        return named[0]
+    raise InputFileError(
+        path,
+        f"cannot tell which variable holds the undulations: candidates {', '.join(sorted(cands))} "
+        f"(name one of them {'/'.join(_DATA_NAMES[:5])}, or keep only one)",
+    )
+
+
+def _sorted_longitudes(path, lon, values):
+    """Longitudes ascending (columns reordered), unwrapping a 0..360/-180..180 seam if needed."""
+    order = np.argsort(lon, kind="stable")
+    lon, values = lon[order], values[:, order]
+    step = np.diff(lon)
+    if lon.size > 2 and step.max() > 1.5 * np.median(step):
+        # A regional grid across the seam stored as e.g. -180..-170, 170..180: start after the gap.
+        cut = int(np.argmax(step)) + 1
+        lon = np.concatenate([lon[cut:], lon[:cut] + 360.0])
+        values = np.concatenate([values[:, cut:], values[:, :cut]], axis=1)
+    return lon, values
+
+
+def read_netcdf(path: Path, sha256: str, complete: bool) -> GeoidGrid:
+    import xarray as xr
+
+    try:
+        ds = xr.open_dataset(path, engine="netcdf4", decode_times=False, mask_and_scale=True)
+    except Exception as exc:  # the netCDF library's own message says what is wrong
+        raise InputFileError(path, f"cannot be read as netCDF: {exc}") from None
+    with ds:
+        lat_name, lat_dim, lon_name, lon_dim = _netcdf_axes(path, ds)
+        var_name = _netcdf_variable(path, ds, lat_dim, lon_dim, {lat_name, lon_name})
+        var = ds[var_name]
+        units = str(var.attrs.get("units", "")).strip()
+        if not units:
+            log.warning("%s: variable '%s' has no units attribute; assuming metres", path, var_name)
+            factor = 1.0
+        elif units.lower() in _UNIT_FACTORS:
+            factor = _UNIT_FACTORS[units.lower()]
+        else:
+            raise InputFileError(
+                path, f"variable '{var_name}' has units '{units}'; known units are m, cm, mm (and spelled-out forms)"
+            )
+        extra = [d for d in var.dims if d not in (lat_dim, lon_dim)]
+        data = var.isel({d: 0 for d in extra}) if extra else var  # size-1 dims (time, band)
+        values = np.asarray(data.transpose(lat_dim, lon_dim).values, dtype=np.float64) * factor
+        lat = np.asarray(ds[lat_name].values, dtype=np.float64)
+        lon = np.asarray(ds[lon_name].values, dtype=np.float64)
+        attrs = dict(ds.attrs)
+    if lat.size != values.shape[0] or lon.size != values.shape[1]:
+        raise InputFileError(path, f"coordinates ({lat.size}, {lon.size}) do not match '{var_name}' {values.shape}")
+    if np.isinf(values).any():
+        raise InputFileError(path, f"'{var_name}' has {int(np.isinf(values).sum())} infinite values")
+    order = np.argsort(lat, kind="stable")  # either orientation -> ascending
+    lat, values = lat[order], values[order]
+    lon, values = _sorted_longitudes(path, lon, values)
+    lat = regular_axis(path, lat, f"latitude '{lat_name}'", 180.0)
+    lon = regular_axis(path, lon, f"longitude '{lon_name}'", 360.0)
+    tide = str(attrs.get("tide_system", "")).strip().lower() or None
+    try:
+        zero = float(attrs["zero_degree_term_m"]) if "zero_degree_term_m" in attrs else None
+    except (TypeError, ValueError):
+        zero = None
+    notes = [f"netCDF variable '{var_name}' in {units or 'm (assumed)'}"]
+    prov = provenance_of(
+        path, sha256,
+        model=str(attrs["model"]) if "model" in attrs else None,
+        ellipsoid=str(attrs["ellipsoid"]) if "ellipsoid" in attrs else None,
+        tide_system=tide if tide in TIDE_SYSTEMS else None,
+        zero_degree_term_m=zero,
+        notes=tuple(notes),
+    )
+    return finish_grid(path, lat, lon, values, prov, complete=complete)
+
+
+def write_netcdf(path, grid: GeoidGrid) -> Path:
+    """Write ``grid`` as CF netCDF-4: ``geoid_height(latitude, longitude)`` in metres."""
+    import xarray as xr
+
+    path = Path(path)
+    prov = grid.provenance
+    ds = xr.Dataset(
+        {
+            "geoid_height": (
+                ("latitude", "longitude"),
+                np.asarray(grid.values, dtype=np.float64),
+                {
+                    "units": "m",
+                    "long_name": "geoid undulation N above the reference ellipsoid",
+                    "standard_name": "geoid_height_above_reference_ellipsoid",
+                },
+            )
+        },
+        coords={
+            "latitude": ("latitude", np.asarray(grid.latitude), {
+                "units": "degrees_north", "standard_name": "latitude", "long_name": "latitude", "axis": "Y"}),
+            "longitude": ("longitude", np.asarray(grid.longitude), {
+                "units": "degrees_east", "standard_name": "longitude", "long_name": "longitude", "axis": "X"}),
+        },
+    )
+    ds.attrs["Conventions"] = "CF-1.8"
+    ds.attrs["source"] = prov.source
+    for key in ("model", "ellipsoid", "tide_system", "zero_degree_term_m", "sha256"):
+        value = getattr(prov, key)
+        if value is not None:
+            ds.attrs["source_sha256" if key == "sha256" else key] = value
+    encoding = {"latitude": {"_FillValue": None}, "longitude": {"_FillValue": None},
+                "geoid_height": {"_FillValue": np.nan}}
+    with atomic_path(path) as tmp:
+        ds.to_netcdf(tmp, engine="netcdf4", format="NETCDF4", encoding=encoding)
+    return path

@@ -1,0 +1,6 @@
+"""The reference manifold, the unit sphere: regions, coordinates and directions (thesis §3.1)."""
+
+from .coordinates import check_coordinates, directions, latlon_of
+from .region import GLOBAL, Region
+
+__all__ = ["Region", "GLOBAL", "check_coordinates", "directions", "latlon_of"]

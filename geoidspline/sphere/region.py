@@ -1,0 +1,91 @@
+"""Geographic regions: a latitude band times a longitude interval, in degrees."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import CoordinateError
+
+__all__ = ["Region", "GLOBAL"]
+
+
+@dataclass(frozen=True)
+class Region:
+    """A region ``south <= latitude <= north`` and ``west <= longitude <= east`` (degrees).
+
+    Longitudes are taken modulo 360: ``west`` is normalised to [-180, 180) and ``east``
+    to (west, west + 360], so a region may cross the antimeridian (west=170, east=-170
+    is the 20° wide band across it). ``Region.from_bounds(-90, -180, 90, 180)`` is the
+    whole sphere.
+    """
+
+    south: float
+    west: float
+    north: float
+    east: float
+
+    def __post_init__(self):
+        values = (self.south, self.west, self.north, self.east)
+        if not all(np.isfinite(v) for v in values):
+            raise CoordinateError(f"region bounds must be finite numbers, got {values}")
+        if not -90.0 <= self.south < self.north <= 90.0:
+            raise CoordinateError(
+                "region needs -90 <= south < north <= 90 (degrees), got "
+                f"south={self.south}, north={self.north}"
+            )
+        west = (float(self.west) + 180.0) % 360.0 - 180.0
+        east = float(self.east)
+        span = (east - self.west) if (east - self.west) >= 360.0 else (east - self.west) % 360.0
+        if span == 0.0:
+            raise CoordinateError(f"region has zero longitude width: west={self.west}, east={self.east}")
+        object.__setattr__(self, "west", west)
+        object.__setattr__(self, "east", west + min(span, 360.0))
+        object.__setattr__(self, "south", float(self.south))
+        object.__setattr__(self, "north", float(self.north))
+
+    @classmethod
+    def from_bounds(cls, south, west, north, east) -> "Region":
+        return cls(float(south), float(west), float(north), float(east))
+
+    @property
+    def is_global(self) -> bool:
+        return self.south <= -90.0 and self.north >= 90.0 and self.east - self.west >= 360.0
+
+    @property
+    def longitude_span(self) -> float:
+        return self.east - self.west
+
+    def contains(self, latitude, longitude):
+        """Boolean mask (or bool) of the points inside the region, edges included."""
+        latitude = np.asarray(latitude, dtype=float)
+        longitude = np.asarray(longitude, dtype=float)
+        offset = (longitude - self.west) % 360.0
+        inside = (latitude >= self.south) & (latitude <= self.north)
+        if self.longitude_span < 360.0:
+            inside &= offset <= self.longitude_span
+        return inside
+
+    def expanded(self, margin_deg: float) -> "Region":
+        """The region grown by ``margin_deg`` on every side (clipped at the poles).
+
+        The longitude margin is widened by 1/cos(latitude) so that it is at least
+        ``margin_deg`` of arc everywhere in the band; it becomes global when it would
+        wrap around.
+        """
+        south = max(-90.0, self.south - margin_deg)
+        north = min(90.0, self.north + margin_deg)
+        widest = max(abs(south), abs(north))
+        if widest >= 89.0 or self.longitude_span >= 360.0:
+            return Region(south, -180.0, north, 180.0)
+        lon_margin = margin_deg / np.cos(np.radians(widest))
+        if self.longitude_span + 2 * lon_margin >= 360.0:
+            return Region(south, -180.0, north, 180.0)
+        return Region(south, self.west - lon_margin, north, self.east + lon_margin)
+
+    def as_tuple(self):
+        return (self.south, self.west, self.north, self.east)
+
+
+GLOBAL = Region(-90.0, -180.0, 90.0, 180.0)

@@ -1,0 +1,366 @@
+"""Reading a store: opening checks, lazy tile reads with their digests, the query API.
+
+Opening reads the manifest and checks that every tile file exists with the size the
+manifest gives; a tile's sha256 is checked when the tile is read, which is when a query
+first needs it (or at opening with ``lazy=False``). A store whose files disagree with
+the manifest is refused, naming the tile: it never returns numbers from such a tile.
+A :class:`TileStore`'s queries are thread-safe (see :class:`StoreSpline`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from .._files import sha256_file
+from ..bspline.level import LevelSpline
+from ..errors import StoreCorruptError, StoreError
+from ..hierarchy.ambient import FOLDED_FROM_POINTS, AmbientSpline
+from ..sphere.coordinates import check_coordinates, directions
+from ..sphere.region import Region
+from .format import MANIFEST, load_manifest, read_tile_file
+
+#: Fraction of a store's tiles from which a small batch that needs them loads them all
+#: (one full read instead of many partial rebuilds).
+FULL_LOAD_FRACTION = 0.5
+
+
+class StoreSpline:
+    """The ambient spline of a store, read tile by tile as queries need it.
+
+    Batches of fewer than :data:`~geoidspline.hierarchy.ambient.FOLDED_FROM_POINTS` points
+    (:meth:`evaluate_points`, :meth:`undulation`) read only the tiles that can hold a
+    B-spline non-zero at one of the points and evaluate them with numpy. A coefficient
+    lives in the tile holding its support centre ``(k + order/2) h`` and its B-spline is
+    non-zero only within ``order h / 2`` of that centre on each axis; so the tiles
+    needed at a point x are those meeting the cube ``x ± reach`` (per axis),
+    ``reach = order · h_max / 2`` with ``h_max`` the coarsest level's spacing (h0),
+    widened by 1e-9 for rounding: exact and conservative. A cubic store with h0 = 0.1 and
+    0.4-wide tiles needs at most 8 tiles per point (of 219 for a global store).
+    A point's value depends only on those B-splines, so it is bitwise the same as with
+    every tile read. When the tiles needed reach :data:`FULL_LOAD_FRACTION` of the
+    store, all are read.
+
+    Larger batches, and :attr:`levels`, :attr:`index` or :attr:`full`, read every tile
+    (once) and evaluate with the compiled folded index
+    (:class:`~geoidspline.query.index.BrickIndex`).
+
+    Each tile's size and sha256 are checked (when ``verify``) as it is read; a damaged
+    tile raises :class:`~geoidspline.errors.StoreCorruptError` naming it, for the query
+    that needed it and for every later one.
+
+    Memory: a tile read holds its file's bytes for a moment (30 kB to 0.5 MB for the
+    stores measured) and then 16 bytes per coefficient while the store is partly read; the complete spline 16 bytes per
+    coefficient (sorted int64 keys and float64 values per level: 3.0 MB for the
+    186,518-coefficient global 0.5 m store); the folded index, built on the first batch
+    of :data:`~geoidspline.hierarchy.ambient.FOLDED_FROM_POINTS` points or more, about 190-210
+    bytes per coefficient on top for a six-level store (35 MB for that store), about 20
+    for one or two dense levels (92 MB for a 4.7 M-coefficient EGM96 store), and
+    0.3-0.7 s per 200,000 coefficients to build, with a transient peak of 2-3 GB for
+    5 M coefficients. Nothing is evicted: memory grows to the complete spline at most,
+    as with GeographicLib's ``Geoid::CacheAll``; a counterpart of its ``CacheArea``
+    (keep one area only) is not offered, since a tile is read in a few ms and every
+    tile of the global 0.5 m store in 0.3 s.
+
+    Thread safety: tiles are read and the partial spline rebuilt under a lock; the
+    splines handed to evaluation are immutable snapshots, so concurrent queries from
+    any number of threads are safe and see the same values. A reader keeps using the
+    manifest it opened: after a regional update (``geoid-fit --update``) its tiles are
+    still on disk (kept for exactly this), but after a second update they are gone and
+    a tile not yet read raises :class:`~geoidspline.errors.StoreError` asking to open
+    the store again.
+    """
+
+    def __init__(self, root: Path, manifest: dict, verify: bool = True):
+        self.path = root
+        self.manifest = manifest
+        self.verify = verify
+        meta = manifest["spline"]
+        self.order = int(meta["order"])
+        self.h0 = float(meta["h0"])
+        self.tile_size = float(meta["tile_size"])
+        coarsest = max([self.h0] + [float(lv["h"]) for lv in meta.get("levels", ())])
+        self.reach = self.order * coarsest / 2.0
+        self._entries = {tuple(int(v) for v in e["tile"]): e for e in manifest["tiles"]}
+        self._lock = threading.RLock()
+        self._tiles: dict = {}  # tile -> (levels, indices, values) as read
+        self._partial = AmbientSpline([])  # the spline of the tiles read so far
+        self._full: AmbientSpline | None = None
+
+    # -- reading --------------------------------------------------------------------
+
+    @property
+    def tiles_read(self) -> int:
+        """How many of the store's tiles have been read so far."""
+        return len(self._entries) if self._full is not None else len(self._tiles)
+
+    def _read(self, tile):
+        entry = self._entries[tile]
+        path = self.path / entry["file"]
+        try:
+            with open(path, "rb") as fh:
+                data = fh.read()
+        except FileNotFoundError:
+            raise self._missing(path, entry) from None
+        if len(data) != entry["bytes"]:
+            raise StoreCorruptError(
+                f"{path}: tile {entry['tile']} is {len(data)} bytes, the manifest says {entry['bytes']} "
+                f"(truncated or altered)")
+        if self.verify and hashlib.sha256(data).hexdigest() != entry["sha256"]:
+            raise StoreCorruptError(f"{path}: tile {entry['tile']} does not match its sha256 in the manifest")
+        indices, levels, values = read_tile_file(path, entry, data)
+        return levels, indices, values
+
+    def _missing(self, path, entry):
+        try:
+            now = load_manifest(self.path)["store_version"]
+        except StoreError:
+            now = None
+        if now is not None and now != self.manifest["store_version"]:
+            return StoreError(
+                f"{path}: tile {entry['tile']} of store version {self.manifest['store_version']} is gone: the "
+                f"store has been rewritten since it was opened (now version {now}); open it again")
+        return StoreCorruptError(f"{path}: tile {entry['tile']} is missing")
+
+    def _build(self, tiles):
+        by_level: dict[int, list] = {}
+        for tile in tiles:
+            levels, indices, values = self._tiles[tile]
+            for level in np.unique(levels):
+                sel = levels == level
+                by_level.setdefault(int(level), []).append((indices[sel], values[sel]))
+        out = []
+        for level in sorted(by_level):
+            idx = np.concatenate([p[0] for p in by_level[level]])
+            val = np.concatenate([p[1] for p in by_level[level]])
+            out.append(LevelSpline.from_indices(level, self.h0 / 2.0**level, self.order, idx, val))
+        return AmbientSpline(out)
+
+    @property
+    def full(self) -> AmbientSpline:
+        """The complete spline (every tile read, once)."""
+        if self._full is None:
+            with self._lock:
+                if self._full is None:
+                    for tile in self._entries:  # manifest order
+                        if tile not in self._tiles:
+                            self._tiles[tile] = self._read(tile)
+                    self._full = self._build(list(self._entries))
+                    self._tiles = {}
+                    self._partial = None
+        return self._full
+
+    def tiles_at(self, points) -> list:
+        """The store's tiles that can hold a B-spline non-zero at any of points (M, 3)."""
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        points = points[np.isfinite(points).all(axis=1)]
+        if points.size == 0:
+            return []
+        size = self.tile_size
+        lo = np.floor((points - self.reach) / size - 1e-9).astype(np.int64)
+        hi = np.floor((points + self.reach) / size + 1e-9).astype(np.int64)
+        span = int((hi - lo).max()) + 1
+        steps = np.arange(span)
+        offsets = np.stack(np.meshgrid(steps, steps, steps, indexing="ij"), axis=-1).reshape(-1, 3)
+        cand = lo[:, None, :] + offsets[None, :, :]
+        cand = cand[np.all(cand <= hi[:, None, :], axis=2)]
+        return [t for t in map(tuple, np.unique(cand, axis=0).tolist()) if t in self._entries]
+
+    def _covering(self, points) -> AmbientSpline:
+        """A spline holding every tile needed at points: the complete one, or a partial one."""
+        if self._full is not None:
+            return self._full
+        needed = self.tiles_at(points)
+        with self._lock:
+            if self._full is not None:
+                return self._full
+            missing = [t for t in needed if t not in self._tiles]
+            if not missing:
+                return self._partial
+            if len(self._tiles) + len(missing) >= FULL_LOAD_FRACTION * len(self._entries):
+                return self.full
+            for tile in missing:
+                self._tiles[tile] = self._read(tile)
+            # a new snapshot: evaluations already running keep theirs
+            self._partial = self._build(sorted(self._tiles))
+            return self._partial
+
+    # -- the spline's interface ----------------------------------------------------
+
+    @property
+    def levels(self):
+        return self.full.levels
+
+    @property
+    def index(self):
+        return self.full.index
+
+    @property
+    def coefficient_count(self) -> int:
+        return int(self.manifest["spline"]["coefficients"])
+
+    def evaluate_points(self, points, nderiv=0):
+        """Values (M,) or value+derivatives (M, 4|10) at ambient points (M, 3); see
+        :meth:`geoidspline.hierarchy.ambient.AmbientSpline.evaluate_points`."""
+        points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+        if points.shape[0] >= FOLDED_FROM_POINTS:
+            return self.full.evaluate_points(points, nderiv)
+        return self._covering(points).evaluate_points(points, nderiv)
+
+    def undulation(self, latitude, longitude):
+        """N in metres at latitude/longitude in degrees; see
+        :meth:`geoidspline.hierarchy.ambient.AmbientSpline.undulation`."""
+        if np.size(latitude) >= FOLDED_FROM_POINTS or np.size(longitude) >= FOLDED_FROM_POINTS:
+            return self.full.undulation(latitude, longitude)  # checks the coordinates in its kernel
+        latitude, longitude = check_coordinates(latitude, longitude)
+        if latitude.size >= FOLDED_FROM_POINTS:  # broadcasting made it a large batch
+            return self.full.undulation(latitude, longitude)
+        shape = latitude.shape
+        points = directions(latitude.ravel(), longitude.ravel())
+        values = self._covering(points).evaluate_points(points).reshape(shape)
+        return values[()] if shape == () else values
+
+
+class TileStore:
+    """A tile store opened read-only.
+
+    Opening reads the manifest and checks that every tile file is there with its
+    manifest size (a few ms for 219 tiles); tiles are read, sha256-checked and merged
+    into the store's spline (:attr:`spline`, a :class:`StoreSpline`) as queries need
+    them: a one-point query reads at most 8 tiles of a global store, a batch of
+    :data:`~geoidspline.hierarchy.ambient.FOLDED_FROM_POINTS` points or more reads all of them.
+    ``lazy=False`` reads and checks every tile at opening. Memory and thread safety:
+    see :class:`StoreSpline`; queries are thread-safe.
+    """
+
+    def __init__(self, root: Path, manifest: dict, spline: AmbientSpline | None = None, verify: bool = True):
+        self.path = root
+        self.manifest = manifest
+        self.spline = StoreSpline(root, manifest, verify=verify)
+        if spline is not None:
+            self.spline._full = spline
+
+    @classmethod
+    def open(cls, path, verify=True, lazy=True):
+        """Open the store at ``path``: the manifest now, the tiles when needed (all now
+        with ``lazy=False``). ``verify=False`` skips the sha256 checks (sizes are
+        always checked)."""
+        root = Path(path)
+        manifest = load_manifest(root)
+        for entry in manifest["tiles"]:
+            tile_path = root / entry["file"]
+            try:
+                size = tile_path.stat().st_size
+            except FileNotFoundError:
+                raise StoreCorruptError(f"{tile_path}: tile {entry['tile']} is missing") from None
+            if size != entry["bytes"]:
+                raise StoreCorruptError(
+                    f"{tile_path}: tile {entry['tile']} is {size} bytes, the manifest says {entry['bytes']} (truncated or altered)"
+                )
+        store = cls(root, manifest, verify=verify)
+        if not lazy:
+            store.spline.full  # noqa: B018 (reads and checks every tile now)
+        return store
+
+    def undulation(self, latitude, longitude):
+        """Geoid undulation N in metres at latitude/longitude (degrees).
+
+        Scalars give a scalar, arrays broadcast; NaN gives NaN; a latitude outside
+        [-90, 90] raises :class:`~geoidspline.errors.CoordinateError`. Outside the
+        store's region the value is not meaningful (see :meth:`covers`).
+        """
+        return self.spline.undulation(latitude, longitude)
+
+    def deflection(self, latitude, longitude):
+        """Deflection of the vertical (ξ, η, arcseconds) and the geoid slope (metres per
+        metre) from the spline's analytic gradient; see
+        :func:`geoidspline.query.derived.deflection`."""
+        from ..query.derived import deflection
+
+        return deflection(self, latitude, longitude)
+
+    def orthometric_height(self, latitude, longitude, ellipsoidal_height):
+        """Orthometric height H = h − N (metres) from the ellipsoidal height h (metres)."""
+        from ..query.derived import convert_height
+
+        return convert_height(self.undulation(latitude, longitude), ellipsoidal_height, "ellipsoidal")
+
+    def ellipsoidal_height(self, latitude, longitude, orthometric_height):
+        """Ellipsoidal height h = H + N (metres) from the orthometric height H (metres)."""
+        from ..query.derived import convert_height
+
+        return convert_height(self.undulation(latitude, longitude), orthometric_height, "orthometric")
+
+    def error_bound(self, latitude, longitude):
+        """The measured error bound (metres) of the tile each point falls in; see
+        :func:`geoidspline.query.derived.tile_error_bound`."""
+        from ..query.derived import tile_error_bound
+
+        return tile_error_bound(self, latitude, longitude)
+
+    def __repr__(self):
+        m = self.manifest
+        prov = m.get("provenance", {})
+        s, w, n, e = m["region"]
+        return (f"<TileStore {str(self.path)!r} version {m['store_version']}: {m['spline']['coefficients']:,} "
+                f"coefficients of order {m['spline']['order']} in {len(m['tiles'])} tiles; "
+                f"{prov.get('model', 'unknown')} from {prov.get('source', '?')}; region S {s:g} W {w:g} N {n:g} E {e:g}>")
+
+    def covers(self, latitude, longitude):
+        """Whether points lie inside the region the store was fitted for."""
+        latitude, longitude = check_coordinates(latitude, longitude)
+        return Region(*self.manifest["region"]).contains(latitude, longitude)
+
+    def info(self) -> dict:
+        """The manifest summary that ``geoid-info --json`` prints."""
+        m = self.manifest
+        acc = m["accuracy"]
+        size = (self.path / MANIFEST).stat().st_size + sum(e["bytes"] for e in m["tiles"])
+        return {
+            "store": str(self.path),
+            "format_version": m["format_version"],
+            "store_version": m["store_version"],
+            "provenance": m["provenance"],
+            "region": m["region"],
+            "order": m["spline"]["order"],
+            "h0": m["spline"]["h0"],
+            "tolerance_m": m["fit"]["tolerance_m"],
+            "converged": m["fit"]["converged"],
+            "coefficients": m["spline"]["coefficients"],
+            "levels": m["spline"]["levels"],
+            "tiles": len(m["tiles"]),
+            "max_error_m": acc["max_error_m"],
+            "rms_error_m": acc["rms_error_m"],
+            "p99_error_m": acc["p99_error_m"],
+            "check_points": acc["check_points"],
+            "check_truth": acc["check_truth"],
+            "node_max_error_m": acc["node_max_error_m"],
+            "node_rms_error_m": acc["node_rms_error_m"],
+            "nodes": acc["nodes"],
+            "bytes": size,
+            "fit_seconds": m["fit"]["seconds"],
+        }
+
+
+def verify_store(path) -> list[str]:
+    """Every problem of a store's files, one message each naming the tile file:
+    missing, truncated (size differs from the manifest) or altered (sha256 differs).
+    An empty list means every tile matches its manifest entry."""
+    root = Path(path)
+    manifest = load_manifest(root)
+    problems = []
+    for entry in manifest["tiles"]:
+        tile_path = root / entry["file"]
+        if not tile_path.exists():
+            problems.append(f"{tile_path}: tile {entry['tile']} is missing")
+            continue
+        size = tile_path.stat().st_size
+        if size != entry["bytes"]:
+            problems.append(f"{tile_path}: tile {entry['tile']} is {size} bytes, the manifest says {entry['bytes']}"
+                            f" ({'truncated' if size < entry['bytes'] else 'altered'})")
+        elif sha256_file(tile_path) != entry["sha256"]:
+            problems.append(f"{tile_path}: tile {entry['tile']} is altered (sha256 differs from the manifest)")
+    return problems

@@ -1,0 +1,208 @@
+"""Regional updates: new data inside a region, the store's own values outside it.
+
+An update fits one more set of overlays, Δ, to the residual
+
+    r(u) = w(u) · (N_new(u) − S_old(u)),
+
+w = 1 inside the region, falling to 0 with a cosine taper over ``blend_width_km``
+outside it (0 where the new source has no data). Δ only takes B-splines centred
+within the blend zone, so the result S_old + Δ is one spline on R³ (C² everywhere, no
+step at the region's edge) and only the tiles owning those B-splines are rewritten:
+every other tile file stays byte-identical. The new tiles and manifest are committed
+the same atomic way as a fresh store (:mod:`geoidspline.store.writer`); the previous
+version's tile files are kept for readers that opened it, until the next write.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ..bspline.keys import unpack_keys
+from ..bspline.level import LevelSpline
+from ..errors import CoordinateError, StoreError
+from ..fitting.driver import clip_to_extent, fit_nodes
+from ..fitting.executors import Executor
+from ..fitting.parameters import FitParameters
+from ..geodesy.ellipsoids import KM_PER_DEGREE
+from ..hierarchy.ambient import AmbientSpline
+from ..hierarchy.overlays import OverlayRefinement
+from ..sources.base import NodeSample
+from ..sphere.coordinates import directions, latlon_of
+from ..sphere.region import Region
+from .format import TILE_DIR, error_stats, utc_now
+from .reader import TileStore
+from .writer import StoreLock, commit, crash_point, group_by_tile, tile_groups, tile_stats, write_tile_entry
+
+__all__ = ["update_store", "blend_weight"]
+
+
+def blend_weight(region: Region, blend_deg: float, latitude, longitude):
+    """1 inside ``region``, a cosine taper to 0 over ``blend_deg`` degrees of arc outside."""
+    latitude = np.asarray(latitude, float)
+    longitude = np.asarray(longitude, float)
+    dlat = np.maximum.reduce([region.south - latitude, latitude - region.north, np.zeros_like(latitude)])
+    if region.longitude_span >= 360.0:
+        dlon = np.zeros_like(longitude)
+    else:
+        offset = (longitude - region.west) % 360.0
+        beyond = offset - region.longitude_span
+        dlon = np.where(beyond <= 0.0, 0.0, np.minimum(beyond, 360.0 - offset))
+    distance = np.hypot(dlat, dlon * np.cos(np.radians(latitude)))
+    if blend_deg <= 0.0:
+        return (distance <= 0.0).astype(float)
+    return np.where(distance >= blend_deg, 0.0, 0.5 * (1.0 + np.cos(np.pi * np.minimum(distance / blend_deg, 1.0))))
+
+
+class _ResidualRefinement(OverlayRefinement):
+    """Overlays from level 0 on, restricted to B-splines centred in the blend zone."""
+
+    def __init__(self, refine_radius, zone: Region):
+        super().__init__(refine_radius)
+        self.zone = zone
+
+    def level_keys(self, level, h, order, region, violating_directions):
+        keys, marked, _ = super().level_keys(max(level, 1), h, order, region, violating_directions)
+        if keys.size:
+            lat, lon = latlon_of((unpack_keys(keys) + order / 2.0) * h)
+            keys = keys[self.zone.expanded(math.degrees(h)).contains(lat, lon)]
+        return keys, marked, None
+
+
+def _check_compatible(store: TileStore, source, region: Region):
+    old = store.manifest["provenance"]
+    new = source.provenance
+    if new.ellipsoid and old.get("ellipsoid") and new.ellipsoid != old["ellipsoid"]:
+        raise StoreError(
+            f"{store.path}: the store is on {old['ellipsoid']}, the source {new.source} on {new.ellipsoid}; "
+            "refit the source on the store's ellipsoid first"
+        )
+    if new.tide_system and old.get("tide_system") and new.tide_system != old["tide_system"]:
+        raise StoreError(
+            f"{store.path}: the store is {old['tide_system']}, the source {new.source} is {new.tide_system}; "
+            "convert the source to the store's tide system first"
+        )
+    extent = source.extent
+    corners_lat = [region.south, region.north]
+    inside = extent.contains(np.array(corners_lat * 2), np.array([region.west, region.west, region.east, region.east]))
+    if not (extent.is_global or (np.all(inside) and region.longitude_span <= extent.longitude_span)):
+        raise CoordinateError(
+            f"update region {region.as_tuple()} is not inside the extent of {new.source} {extent.as_tuple()}"
+        )
+    store_region = Region(*store.manifest["region"])
+    if not store_region.is_global:
+        centre_lat = 0.5 * (region.south + region.north)
+        centre_lon = region.west + 0.5 * region.longitude_span
+        if not store_region.contains(centre_lat, centre_lon):
+            raise CoordinateError(f"update region {region.as_tuple()} lies outside the store's region "
+                                  f"{store_region.as_tuple()}")
+
+
+def update_store(path, source, region: Region, blend_width_km: float = 100.0, executor: Executor | None = None,
+                 progress=None) -> dict:
+    """Replace the store's geoid inside ``region`` by ``source``; return the update report.
+
+    Refused before anything is written when the store is read-only or locked by another
+    writer, when the source's ellipsoid or tide system differs from the store's, or when
+    the region lies outside the source's extent or the store's region.
+    """
+    root = Path(path)
+    store = TileStore.open(root)
+    if not (os.access(root, os.W_OK) and os.access(root / TILE_DIR, os.W_OK)):
+        raise StoreError(f"{root}: store is read-only")
+    if not blend_width_km >= 0.0:
+        raise StoreError(f"blend width must be a non-negative number of km, got {blend_width_km}")
+    _check_compatible(store, source, region)
+    manifest = store.manifest
+    known = {f.name for f in dataclasses.fields(FitParameters)}
+    stored = {k: v for k, v in manifest["fit"]["parameters"].items() if k in known}
+    stored["radial_offsets"] = tuple(stored["radial_offsets"])
+    params = FitParameters(**stored)
+    blend_deg = blend_width_km / KM_PER_DEGREE
+    zone = region.expanded(blend_deg) if blend_deg > 0 else region
+
+    with StoreLock(root):
+        # data wherever a B-spline centred in the zone is non-zero
+        reach = math.degrees((params.order / 2.0 + 1.0) * params.h0)
+        sample = source.nodes(clip_to_extent(zone.expanded(reach), source), spacing_deg=params.sample_spacing_deg)
+        lat2, lon2 = np.meshgrid(sample.latitude, sample.longitude, indexing="ij")
+        old = store.spline.undulation(lat2, lon2)
+        weight = blend_weight(region, blend_deg, lat2, lon2)
+        residual = np.where(np.isfinite(sample.undulation), weight * (sample.undulation - old), np.nan)
+        delta = fit_nodes(NodeSample(sample.latitude, sample.longitude, residual), zone, params,
+                          refinement=_ResidualRefinement(params.refine_radius, zone), progress=progress, executor=executor,
+                          base_is_overlay=True)
+        merged = _merge(store.spline, delta.spline)
+        inside = region.contains(lat2, lon2) & np.isfinite(sample.undulation)
+        errors = sample.undulation[inside] - merged.undulation(lat2[inside], lon2[inside])
+
+        version = manifest["store_version"] + 1
+        spline_meta = {"order": params.order, "h0": params.h0, "tile_size": params.tile_size}
+        changed = set(tile_groups(delta.spline, params.tile_size))
+        groups = tile_groups(merged, params.tile_size)
+        node_tile = group_by_tile(directions(lat2[inside], lon2[inside]), params.tile_size)
+        entries = {tuple(e["tile"]): e for e in manifest["tiles"]}
+        crash_point("before-tiles")
+        for key in sorted(changed):
+            tile = tuple(int(v) for v in unpack_keys(np.array([key]))[0])
+            stats = tile_stats(errors[node_tile == key], [])
+            if tile in entries and stats["nodes"] == 0:
+                # outside the region: the old measurements still describe it
+                kept = {k: entries[tile][k] for k in ("max_error_m", "rms_error_m", "check_points",
+                                                      "node_max_error_m", "node_rms_error_m", "nodes")}
+                stats = kept
+            entries[tile] = write_tile_entry(root, key, groups[key], version, spline_meta, stats)
+            crash_point("during-tiles")
+        crash_point("after-tiles")
+        region_stats = error_stats(errors)
+        record = {
+            "action": "update",
+            "time": utc_now(),
+            "store_version": version,
+            "previous_version": manifest["store_version"],
+            "source": source.provenance.source,
+            "sha256": source.provenance.sha256,
+            "model": source.provenance.model,
+            "region": list(region.as_tuple()),
+            "blend_width_km": blend_width_km,
+            "tiles_rewritten": len(changed),
+            "coefficients_added": int(merged.coefficient_count - store.spline.coefficient_count),
+            "levels": [vars(r) for r in delta.levels],
+            "nodes_in_region": region_stats["count"],
+            "max_error_m": region_stats["max_error_m"],
+            "rms_error_m": region_stats["rms_error_m"],
+            "tolerance_m": params.tolerance_m,
+            "converged": bool(delta.converged),
+        }
+        new_manifest = dict(manifest)
+        new_manifest.update({
+            "store_version": version,
+            "updated": record["time"],
+            "spline": dict(manifest["spline"], levels=[
+                {"level": lv.level, "h": lv.h, "coefficients": len(lv)} for lv in merged.levels
+            ], coefficients=merged.coefficient_count),
+            "tiles": [entries[k] for k in sorted(entries)],
+            "history": manifest.get("history", []) + [record],
+        })
+        commit(root, new_manifest, keep_files=[e["file"] for e in manifest["tiles"]])
+    return record
+
+
+def _merge(old: AmbientSpline, delta: AmbientSpline) -> AmbientSpline:
+    """old + delta as one set of levels (the union of keys, coefficients added)."""
+    by_level = {lv.level: lv for lv in old.levels}
+    for lv in delta.levels:
+        if lv.level in by_level:
+            base = by_level[lv.level]
+            keys = np.union1d(base.keys, lv.keys)
+            values = np.zeros(keys.size)
+            values[np.searchsorted(keys, base.keys)] += base.coefficients
+            values[np.searchsorted(keys, lv.keys)] += lv.coefficients
+            by_level[lv.level] = LevelSpline(lv.level, lv.h, lv.order, keys, values)
+        else:
+            by_level[lv.level] = lv
+    return AmbientSpline([by_level[k] for k in sorted(by_level)])
