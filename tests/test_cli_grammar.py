@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import pytest
+from test_cli import QUICK_FIT, assert_user_error, invoke, run_module
 
 import geoidspline
 from geoidspline.cli.export import main as export_main
@@ -12,7 +13,6 @@ from geoidspline.cli.fit import main as fit_main
 from geoidspline.cli.info import main as info_main
 from geoidspline.cli.query import main as query_main
 from geoidspline.cli.update import main as update_main
-from test_cli import QUICK_FIT, assert_user_error, invoke, run_module
 
 COMMANDS = {"fit": fit_main, "update": update_main, "query": query_main, "info": info_main, "export": export_main}
 

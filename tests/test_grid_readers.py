@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import xarray as xr
+from reference_data import need, reference_file
 
 from geoidspline.errors import CoordinateError, InputFileError
 from geoidspline.sources.base import GeoidSource, Provenance
@@ -18,9 +19,8 @@ from geoidspline.sources.grid import GeoidGrid
 from geoidspline.sources.resolve import resolve_source
 from geoidspline.sphere.region import Region
 
-SHARED = Path("../shared/data")
-DAC = SHARED / "egm96" / "WW15MGH.DAC"
-PGM = SHARED / "geographiclib" / "egm84-30.pgm"
+DAC = reference_file("egm96", "WW15MGH.DAC")
+PGM = reference_file("geographiclib", "egm84-30.pgm")
 GTX = Path("/usr/share/proj/egm96_15.gtx")
 
 
@@ -31,11 +31,11 @@ def _need(path: Path, how: str) -> Path:
 
 
 def need_dac():
-    return _need(DAC, "reference data folder ../shared/data is absent (run from the repo root)")
+    return need(DAC)
 
 
 def need_pgm():
-    return _need(PGM, "reference data folder ../shared/data is absent (run from the repo root)")
+    return need(PGM)
 
 
 def need_gtx():

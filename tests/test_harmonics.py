@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pyproj
 import pytest
+from reference_data import REFERENCE_DATA
 
 from geoidspline._kernels import legendre
 from geoidspline.errors import CoordinateError, InputFileError
@@ -36,9 +37,7 @@ from geoidspline.sources.harmonics import (
 from geoidspline.sources.harmonics.synthesis import NGA_WGS84_J
 from geoidspline.sphere.region import GLOBAL, Region
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-if not DATA.is_dir():  # the work tree may sit elsewhere; the shared folder is fixed
-    DATA = Path("/work/shared/data")
+DATA = REFERENCE_DATA
 EGM96 = DATA / "egm96" / "egm96_to360.ascii.gz"
 CORRCOEF = DATA / "egm96" / "CORRCOEF.gz"
 DAC = DATA / "egm96" / "WW15MGH.DAC"

@@ -11,13 +11,13 @@ from __future__ import annotations
 import json
 import math
 import sys
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pyproj
 import pytest
 from click.testing import CliRunner
+from reference_data import REFERENCE_DATA
 
 import geoidspline
 from geoidspline.__main__ import main as geoidspline_main
@@ -34,7 +34,7 @@ from geoidspline.sources.harmonics import GeoidSynthesis, read_model
 from geoidspline.sphere.coordinates import directions
 from geoidspline.sphere.region import Region
 
-DATA = Path("/work/shared/data/egm96")
+DATA = REFERENCE_DATA / "egm96"
 EGM96 = DATA / "egm96_to360.ascii.gz"
 CORRCOEF = DATA / "CORRCOEF.gz"
 DAC = DATA / "WW15MGH.DAC"
