@@ -4,9 +4,9 @@
 #   docker build -t geoidspline .
 # Fit PROJ's EGM96 15' grid (shipped in the image by Debian's proj-data) over the Andes,
 # writing the store into the current directory, then query it:
-#   docker run --rm -v "$PWD:/data" geoidspline geoid-fit egm96-15 --region -60 -90 15 -30 --tolerance 0.5 --out /data/store
+#   docker run --rm -v "$PWD:/data" geoidspline geoid-fit egm96-15 --region -60 -90 15 -30 --tolerance 0.5 --store /data/store
 #   docker run --rm -v "$PWD:/data" geoidspline geoid-query --store /data/store -33.45 -70.66
-#   docker run --rm -v "$PWD:/data" geoidspline geoid-info /data/store
+#   docker run --rm -v "$PWD:/data" geoidspline geoid-info --store /data/store
 # The container runs as the non-root user "geoid" (uid 1000); if your uid differs and the
 # mounted directory is not writable for uid 1000, add --user "$(id -u):$(id -g)".
 #

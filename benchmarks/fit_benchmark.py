@@ -3,12 +3,12 @@
 
     python benchmarks/fit_benchmark.py SCENARIO [SCENARIO...] [--workers N] [--out-dir DIR] [--json OUT]
 
-Each scenario runs ``geoid-fit SOURCE ... --out DIR/SCENARIO --overwrite --json -q``
+Each scenario runs ``geoid-fit SOURCE ... --store DIR/SCENARIO --overwrite --json -q``
 as a subprocess under ``/usr/bin/time -v`` (peak RSS of the largest single process,
 i.e. the main process or one worker; without GNU time, ``getrusage(RUSAGE_CHILDREN)``,
 which is the same figure), and, if psutil is importable, also samples the summed RSS
 of the whole process tree every 0.5 s (the figure that matters with --workers > 1).
-Then ``geoid-info STORE --json`` reads the written store, and the figures recorded are
+Then ``geoid-info --store STORE --json`` reads the written store, and the figures recorded are
 the store's own: coefficients per level, store bytes, max/RMS |error| at the source
 grid's nodes, max/RMS at the check points (cell centres, against the grid's bicubic
 interpolation), plus the wall time of the subprocess (interpreter start included).
@@ -41,7 +41,7 @@ REPO = HERE.parent
 RESULTS = HERE / "results" / "fits.jsonl"
 DEFAULT_OUT = HERE / "out"
 
-#: name -> (geoid-fit arguments before --out, targets, description)
+#: name -> (geoid-fit arguments before --store, targets, description)
 SCENARIOS = {
     "andes": (
         ["egm96-15", "--region", "-60", "-90", "15", "-30", "--tolerance", "0.5"],
@@ -148,7 +148,7 @@ class TreeRSS:
 
 def run_fit(args: list[str], out: Path) -> dict:
     """Run geoid-fit under /usr/bin/time -v; return its JSON summary, wall s and peak RSS."""
-    fit_cmd = [command("geoid-fit"), *args, "--out", str(out), "--overwrite", "--json", "-q"]
+    fit_cmd = [command("geoid-fit"), *args, "--store", str(out), "--overwrite", "--json", "-q"]
     gnu_time = Path("/usr/bin/time")
     use_time = gnu_time.exists()
     cmd = [str(gnu_time), "-v", *fit_cmd] if use_time else fit_cmd
@@ -190,7 +190,7 @@ def run_fit(args: list[str], out: Path) -> dict:
 
 
 def store_info(store: Path) -> dict:
-    proc = subprocess.run([command("geoid-info"), str(store), "--json"], capture_output=True, text=True,
+    proc = subprocess.run([command("geoid-info"), "--store", str(store), "--json"], capture_output=True, text=True,
                           stdin=subprocess.DEVNULL)
     if proc.returncode != 0:
         raise RuntimeError(f"geoid-info {store} --json exited {proc.returncode}: {proc.stderr.strip()}")

@@ -21,10 +21,15 @@ __all__ = ["open_store", "fit", "update", "Region", "GLOBAL", "__version__", "Ge
 
 
 def open_store(path, *, lazy: bool = True, verify: bool = True):
-    """Open a tile store read-only (:func:`geoidspline.api.open_store`)."""
-    from .api import open_store as _open
+    """Open a tile store read-only (:func:`geoidspline.api.open_store`).
 
-    return _open(path, lazy=lazy, verify=verify)
+    ``lazy`` (default) reads a tile when a query first needs it; ``lazy=False`` reads and
+    checks every tile now. ``verify`` checks each tile's sha256 as it is read (sizes are
+    always checked). Imports neither numba nor scipy: a one-point query stays fast.
+    """
+    from .store.reader import TileStore
+
+    return TileStore.open(path, verify=verify, lazy=lazy)
 
 
 def fit(source, store, **options):

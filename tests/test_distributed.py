@@ -56,12 +56,12 @@ def assert_same_coefficients(a, b):
         # bitwise: a block is the same computation wherever it runs (a serial numba
         # kernel builds the normal equations, qdldl factorises them: no threads, no BLAS)
         assert np.array_equal(la.coefficients, lb.coefficients)
-    assert [r.tiles_solved for r in a.levels] == [r.tiles_solved for r in b.levels]
+    assert [r.blocks_solved for r in a.levels] == [r.blocks_solved for r in b.levels]
 
 
 def test_the_serial_fit_has_many_blocks(serial):
     assert len(serial.levels) >= 2
-    assert all(r.tiles_solved > 4 for r in serial.levels)  # measured: 3 levels of 8, 7 and 18 blocks
+    assert all(r.blocks_solved > 4 for r in serial.levels)  # measured: 3 levels of 8, 7 and 18 blocks
 
 
 def test_process_pool_gives_the_serial_coefficients(sample, serial):
@@ -75,7 +75,7 @@ def test_dask_local_cluster_gives_the_serial_coefficients(sample, serial):
     on_dask = fit_nodes(sample, REGION, FitParameters(**PARAMS), executor=Executor(workers=2, scheduler="local"),
                         progress=calls.append)
     assert_same_coefficients(serial, on_dask)
-    assert sum(calls) == sum(r.tiles_solved for r in serial.levels)
+    assert sum(calls) == sum(r.blocks_solved for r in serial.levels)
 
 
 def test_dask_results_come_back_in_the_order_of_the_problems(recorded):

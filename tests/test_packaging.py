@@ -118,7 +118,7 @@ def test_readme_setup_command_fits_and_queries_with_negative_coordinates():
     query = next(argv for argv in setup if Path(argv[0]).name == "geoid-query")
     region = fit[fit.index("--region") + 1:fit.index("--region") + 5]
     assert [float(v) for v in region] == [-60, -90, 15, -30]
-    store = fit[fit.index("--out") + 1]
+    store = fit[fit.index("--store") + 1]
     assert query[query.index("--store") + 1] == store
     assert [float(v) for v in query[-2:]] == [-33.45, -70.66]
 

@@ -20,6 +20,7 @@ from click.testing import CliRunner
 from reference_data import REFERENCE_DATA
 
 import geoidspline
+from geoidspline import geodesy
 from geoidspline.__main__ import main as geoidspline_main
 from geoidspline.api import build_store
 from geoidspline.cli.export import main as export_main
@@ -28,9 +29,9 @@ from geoidspline.cli.query import main as query_main
 from geoidspline.errors import CoordinateError, GeoidSplineError
 from geoidspline.fitting.parameters import FitParameters
 from geoidspline.geodesy.ellipsoids import WGS84
-from geoidspline.query import derived as queries
+from geoidspline.query import crs, derived, export, validation
 from geoidspline.sources.formats import read_grid
-from geoidspline.sources.harmonics import GeoidSynthesis, read_model
+from geoidspline.sources.harmonics import GeoidSynthesis, presets, read_model
 from geoidspline.sphere.coordinates import directions
 from geoidspline.sphere.region import Region
 
@@ -94,12 +95,12 @@ def surface_second_derivatives(spline, lat, lon):
 
 def test_gaussian_mean_radius_is_sqrt_of_m_times_n():
     a, e2 = WGS84.a, WGS84.e2
-    assert queries.gaussian_mean_radius(0.0) == pytest.approx(WGS84.b, rel=1e-15)  # a√(1−e²) = b
-    assert queries.gaussian_mean_radius(90.0) == pytest.approx(a * a / WGS84.b, rel=1e-15)
+    assert geodesy.gaussian_mean_radius(0.0) == pytest.approx(WGS84.b, rel=1e-15)  # a√(1−e²) = b
+    assert geodesy.gaussian_mean_radius(90.0) == pytest.approx(a * a / WGS84.b, rel=1e-15)
     lat = np.array([-60.0, -12.5, 33.0, 71.0])
     w = np.sqrt(1 - e2 * np.sin(np.radians(lat)) ** 2)
     M, N = a * (1 - e2) / w**3, a / w
-    np.testing.assert_allclose(queries.gaussian_mean_radius(lat), np.sqrt(M * N), rtol=1e-15)
+    np.testing.assert_allclose(geodesy.gaussian_mean_radius(lat), np.sqrt(M * N), rtol=1e-15)
 
 
 def test_deflection_matches_finite_differences_of_the_store(store):
@@ -108,8 +109,8 @@ def test_deflection_matches_finite_differences_of_the_store(store):
     spline's analytic second derivatives at ±ε (the third derivative is what varies
     them), and the tolerance is twice that bound plus 1e-8 m/rad of rounding."""
     lat, lon = interior_points(300, seed=5)
-    d = queries.deflection(store, lat, lon)
-    R = queries.gaussian_mean_radius(lat)
+    d = derived.deflection(store, lat, lon)
+    R = geodesy.gaussian_mean_radius(lat)
     eps = 1e-4
     step = math.degrees(eps)
     dlon = step / np.cos(np.radians(lat))  # ε of arc along the parallel
@@ -137,8 +138,8 @@ def test_deflection_follows_the_fitted_field(store, analytic):
     """The store fits N = 20 sin 2φ cos λ + 10 cos²φ sin 2λ + 5 to 2 mm at 2° nodes; its
     slope follows the field's to a few cm per radian (gradients reach ~32 m/rad)."""
     lat, lon = interior_points(400, seed=6)
-    d = queries.deflection(store, lat, lon)
-    R = queries.gaussian_mean_radius(lat)
+    d = derived.deflection(store, lat, lon)
+    R = geodesy.gaussian_mean_radius(lat)
     phi, lam = np.radians(lat), np.radians(lon)
     dn_dphi = 40 * np.cos(2 * phi) * np.cos(lam) - 10 * np.sin(2 * phi) * np.sin(2 * lam)
     dn_dlam = -20 * np.sin(2 * phi) * np.sin(lam) + 20 * np.cos(phi) ** 2 * np.cos(2 * lam)
@@ -174,17 +175,17 @@ def test_deflection_sign_convention_on_analytic_fields(a, radial_constant):
     A radial gradient component (the linear field) does not change anything."""
     lat = np.array([-75.0, -30.0, 0.0, 15.0, 60.0, 89.0])
     lon = np.array([-170.0, -45.0, 0.0, 30.0, 100.0, 179.0])
-    R = queries.gaussian_mean_radius(lat)
+    R = geodesy.gaussian_mean_radius(lat)
     arcsec = 180 / math.pi * 3600
     phi, lam = np.radians(lat), np.radians(lon)
 
-    d = queries.deflection(RadialField([0, 0, a], radial_constant), lat, lon)
+    d = derived.deflection(RadialField([0, 0, a], radial_constant), lat, lon)
     np.testing.assert_allclose(d.dn_dnorth, a * np.cos(phi) / R, rtol=1e-12)
     np.testing.assert_allclose(d.xi_arcsec, -a * np.cos(phi) / R * arcsec, rtol=1e-12)
     assert np.all(np.sign(d.xi_arcsec) == np.sign(-a * np.cos(phi)))
     np.testing.assert_allclose(d.eta_arcsec, 0.0, atol=1e-12)
 
-    d = queries.deflection(RadialField([0, a, 0], radial_constant), lat, lon)
+    d = derived.deflection(RadialField([0, a, 0], radial_constant), lat, lon)
     np.testing.assert_allclose(d.dn_deast, a * np.cos(lam) / R, rtol=1e-12, atol=1e-20)
     np.testing.assert_allclose(d.eta_arcsec, -a * np.cos(lam) / R * arcsec, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(d.dn_dnorth, -a * np.sin(phi) * np.sin(lam) / R, rtol=1e-12, atol=1e-20)
@@ -195,28 +196,28 @@ def test_deflection_at_the_poles_is_relative_to_the_given_meridian():
     the meridian λ = 0 'north' runs to −x, along λ = 90° east is −x."""
     a = 5.0
     field = RadialField([a, 0, 0])
-    R = queries.gaussian_mean_radius(90.0)
-    d = queries.deflection(field, [90.0, 90.0, 90.0], [0.0, 90.0, 180.0])
+    R = geodesy.gaussian_mean_radius(90.0)
+    d = derived.deflection(field, [90.0, 90.0, 90.0], [0.0, 90.0, 180.0])
     np.testing.assert_allclose(d.dn_dnorth * R, [-a, 0.0, a], atol=1e-12)
     np.testing.assert_allclose(d.dn_deast * R, [0.0, -a, 0.0], atol=1e-12)
     assert np.all(np.isfinite(d.xi_arcsec)) and np.all(np.isfinite(d.eta_arcsec))
 
 
 def test_deflection_scalars_nan_shapes_and_errors(store):
-    d = queries.deflection(store, 20.0, 30.0)
+    d = derived.deflection(store, 20.0, 30.0)
     assert all(isinstance(v, np.floating) and np.ndim(v) == 0 for v in d)
-    assert d == tuple(queries.deflection(store.spline, 20.0, 30.0))  # a spline works as well
-    arr = queries.deflection(store, [20.0, np.nan, 21.0], [30.0, 31.0, np.nan])
+    assert d == tuple(derived.deflection(store.spline, 20.0, 30.0))  # a spline works as well
+    arr = derived.deflection(store, [20.0, np.nan, 21.0], [30.0, 31.0, np.nan])
     assert all(v.shape == (3,) for v in arr)
     assert np.isfinite(arr.xi_arcsec[0]) and np.isnan(arr.xi_arcsec[1:]).all() and np.isnan(arr.dn_deast[1:]).all()
     assert arr.xi_arcsec[0] == d.xi_arcsec
-    grid = queries.deflection(store, np.array([[15.0], [25.0]]), np.array([25.0, 30.0, 35.0]))
+    grid = derived.deflection(store, np.array([[15.0], [25.0]]), np.array([25.0, 30.0, 35.0]))
     assert grid.eta_arcsec.shape == (2, 3)
-    assert queries.deflection(store, [], []).xi_arcsec.shape == (0,)
+    assert derived.deflection(store, [], []).xi_arcsec.shape == (0,)
     with pytest.raises(CoordinateError, match="latitude"):
-        queries.deflection(store, 95.0, 30.0)
+        derived.deflection(store, 95.0, 30.0)
     with pytest.raises(TypeError):
-        queries.deflection(object(), 20.0, 30.0)
+        derived.deflection(object(), 20.0, 30.0)
 
 
 def test_query_deflection_columns(small_store, store, tmp_path):
@@ -228,7 +229,7 @@ def test_query_deflection_columns(small_store, store, tmp_path):
     assert result.exit_code == 0, result.output
     lines = result.stdout.splitlines()
     assert lines[0] == "lat,lon,id,undulation_m,xi_arcsec,eta_arcsec,dNdn_m_per_m,dNde_m_per_m"
-    d = queries.deflection(store, lat, lon)
+    d = derived.deflection(store, lat, lon)
     n = store.undulation(lat, lon)
     for i, line in enumerate(lines[1:]):
         assert line == (f"{lat[i]},{lon[i]},p{i},{n[i]:.6f},{d.xi_arcsec[i]:.6f},{d.eta_arcsec[i]:.6f},"
@@ -255,16 +256,16 @@ def manifest_tile_error(store, lat, lon):
 
 def test_tile_error_bound_is_the_manifest_value(store):
     lat, lon = interior_points(200, seed=9, region=(10.0, 20.0, 30.0, 40.0))
-    bound = queries.tile_error_bound(store, lat, lon)
+    bound = derived.tile_error_bound(store, lat, lon)
     expected = manifest_tile_error(store, lat, lon)
     np.testing.assert_array_equal(bound, expected)
     assert np.isfinite(bound).sum() > 150  # most of the region's tiles have check points
     assert len({float(v) for v in bound[np.isfinite(bound)]}) > 1  # more than one tile met
     assert np.nanmax(bound) <= store.manifest["accuracy"]["max_error_m"]
     # outside the fitted region and for NaN: no bound
-    out = queries.tile_error_bound(store, [45.0, -20.0, np.nan], [30.0, 30.0, 30.0])
+    out = derived.tile_error_bound(store, [45.0, -20.0, np.nan], [30.0, 30.0, 30.0])
     assert np.isnan(out).all()
-    assert np.ndim(queries.tile_error_bound(store, 20.0, 30.0)) == 0
+    assert np.ndim(derived.tile_error_bound(store, 20.0, 30.0)) == 0
 
 
 def test_query_with_error_column(small_store, store, tmp_path):
@@ -299,7 +300,7 @@ def geocentric(lat, lon, h):
 def test_to_geodetic_from_geocentric(point):
     lat, lon, h = point
     x, y, z = geocentric(lat, lon, h)
-    la, lo, hh = queries.to_geodetic(x, y, z, crs="EPSG:4978")
+    la, lo, hh = crs.to_geodetic(x, y, z, crs="EPSG:4978")
     assert abs(la - lat) < 1e-9 and abs(lo - lon) < 1e-9
     assert abs(hh - h) < 1e-6
     assert np.ndim(la) == 0
@@ -307,55 +308,55 @@ def test_to_geodetic_from_geocentric(point):
 
 def test_to_geodetic_from_utm():
     # the central meridian of zone 33N (15° E) at the equator is E 500000, N 0
-    la, lo, h = queries.to_geodetic(500000.0, 0.0, crs="EPSG:32633")
+    la, lo, h = crs.to_geodetic(500000.0, 0.0, crs="EPSG:32633")
     assert abs(la) < 1e-9 and abs(lo - 15.0) < 1e-9 and np.isnan(h)
     # and any point: back through PROJ's forward projection
     lat = np.array([10.5, 45.25, 71.0])
     lon = np.array([13.0, 16.9, 12.1])
     fwd = pyproj.Transformer.from_crs("EPSG:4326", "EPSG:32633", always_xy=True)
     e, n = fwd.transform(lon, lat)
-    la, lo, _ = queries.to_geodetic(e, n, crs="EPSG:32633")
+    la, lo, _ = crs.to_geodetic(e, n, crs="EPSG:32633")
     np.testing.assert_allclose(la, lat, atol=1e-9)
     np.testing.assert_allclose(lo, lon, atol=1e-9)
 
 
 def test_to_geodetic_geographic_axis_order_and_heights():
-    la, lo, h = queries.to_geodetic(30.0, 20.0)  # EPSG:4326, always_xy: x = longitude
+    la, lo, h = crs.to_geodetic(30.0, 20.0)  # EPSG:4326, always_xy: x = longitude
     assert (la, lo) == (20.0, 30.0) and np.isnan(h)
-    la, lo, h = queries.to_geodetic([30.0, 200.0], [20.0, -10.0], [15.0, 7.0], crs="EPSG:4979")
+    la, lo, h = crs.to_geodetic([30.0, 200.0], [20.0, -10.0], [15.0, 7.0], crs="EPSG:4979")
     np.testing.assert_allclose(la, [20.0, -10.0])
     np.testing.assert_allclose(lo, [30.0, -160.0])  # wrapped to [-180, 180]
     np.testing.assert_allclose(h, [15.0, 7.0])
-    la, lo, h = queries.to_geodetic(30.0, 95.0)  # not a latitude
+    la, lo, h = crs.to_geodetic(30.0, 95.0)  # not a latitude
     assert np.isnan(la) and np.isnan(lo)
-    assert queries.crs_info("EPSG:4978") == ("geocentric", 3)
-    assert queries.crs_info("EPSG:32633") == ("projected", 2)
-    assert queries.crs_info("EPSG:4326") == ("geographic", 2)
+    assert crs.crs_info("EPSG:4978") == ("geocentric", 3)
+    assert crs.crs_info("EPSG:32633") == ("projected", 2)
+    assert crs.crs_info("EPSG:4326") == ("geographic", 2)
 
 
-@pytest.mark.parametrize("crs, words", [("EPSG:999999", "unknown CRS"), ("not a crs", "unknown CRS"),
-                                        ("EPSG:5773", "not supported"), ("EPSG:4326+5773", "not supported")])
-def test_to_geodetic_rejects_unknown_or_unsupported_crs(crs, words):
+@pytest.mark.parametrize("given, words", [("EPSG:999999", "unknown CRS"), ("not a crs", "unknown CRS"),
+                                          ("EPSG:5773", "not supported"), ("EPSG:4326+5773", "not supported")])
+def test_to_geodetic_rejects_unknown_or_unsupported_crs(given, words):
     with pytest.raises(CoordinateError, match=words):
-        queries.to_geodetic(1.0, 2.0, crs=crs)
+        crs.to_geodetic(1.0, 2.0, crs=given)
 
 
 def test_to_geodetic_geocentric_needs_z():
     with pytest.raises(CoordinateError, match="geocentric"):
-        queries.to_geodetic(6378137.0, 0.0, crs="EPSG:4978")
+        crs.to_geodetic(6378137.0, 0.0, crs="EPSG:4978")
 
 
 def test_convert_height_both_ways():
     n = np.array([23.5, -10.25, np.nan])
     h = np.array([100.0, 50.0, 1.0])
-    H = queries.convert_height(n, h, "ellipsoidal")
+    H = derived.convert_height(n, h, "ellipsoidal")
     np.testing.assert_array_equal(H[:2], [76.5, 60.25])
     assert np.isnan(H[2])
-    np.testing.assert_array_equal(queries.convert_height(n, H, "orthometric")[:2], h[:2])
-    assert queries.convert_height(20.0, 120.0, "orthometric") == 140.0
-    assert isinstance(queries.convert_height(20.0, 120.0, "ellipsoidal"), float)
+    np.testing.assert_array_equal(derived.convert_height(n, H, "orthometric")[:2], h[:2])
+    assert derived.convert_height(20.0, 120.0, "orthometric") == 140.0
+    assert isinstance(derived.convert_height(20.0, 120.0, "ellipsoidal"), float)
     with pytest.raises(CoordinateError, match="ellipsoidal"):
-        queries.convert_height(1.0, 2.0, "normal")
+        derived.convert_height(1.0, 2.0, "normal")
 
 
 def test_query_height_conversion_both_ways(small_store, store, tmp_path):
@@ -435,7 +436,7 @@ def test_query_jsonl_has_stable_keys(small_store, store, tmp_path):
     assert good["line"] == 2 and good["fields"] == ["20", "30", "100"] and good["error"] is None
     assert (good["latitude_deg"], good["longitude_deg"]) == (20.0, 30.0)
     n = store.undulation(20.0, 30.0)
-    d = queries.deflection(store, 20.0, 30.0)
+    d = derived.deflection(store, 20.0, 30.0)
     assert good["undulation_m"] == round(float(n), 4)
     assert good["orthometric_height_m"] == float(f"{100 - n:.4f}")
     assert good["xi_arcsec"] == float(f"{d.xi_arcsec:.4f}") and good["dNde_m_per_m"] == float(f"{d.dn_deast:.4e}")
@@ -488,7 +489,7 @@ def test_export_gtx_is_read_by_proj_vgridshift(store, tmp_path):
     the spline's analytic second derivatives, +25 %) plus float32 rounding."""
     spacing = 0.5
     path = tmp_path / "qexport_a.gtx"
-    grid = queries.export_grid(store, path, spacing)
+    grid = export.export_grid(store, path, spacing)
     assert grid.shape == (41, 41)
     assert (grid.latitude[0], grid.latitude[-1], grid.longitude[0], grid.longitude[-1]) == (10.0, 30.0, 20.0, 40.0)
     back = read_grid(path)
@@ -526,7 +527,7 @@ def test_export_gtx_is_read_by_proj_vgridshift(store, tmp_path):
 def test_export_netcdf_reads_back_through_xarray(store, tmp_path):
     xr = pytest.importorskip("xarray")
     path = tmp_path / "grid.nc"
-    queries.export_grid(store, path, 0.25, Region.from_bounds(12, 22, 18, 27))
+    export.export_grid(store, path, 0.25, Region.from_bounds(12, 22, 18, 27))
     with xr.open_dataset(path) as ds:
         lat = ds["latitude"].values
         lon = ds["longitude"].values
@@ -541,28 +542,28 @@ def test_export_netcdf_reads_back_through_xarray(store, tmp_path):
 
 
 def test_export_lattice_rules(store):
-    lat, lon, _ = queries.export_lattice(store, 0.3)  # 10..30 by 0.3: last node 29.8
+    lat, lon, _ = export.export_lattice(store, 0.3)  # 10..30 by 0.3: last node 29.8
     assert lat[0] == 10.0 and abs(lat[-1] - 29.8) < 1e-9 and lat.size == 67
     fake = SimpleNamespace(manifest={"region": [-90.0, -180.0, 90.0, 180.0]})
-    lat, lon, _ = queries.export_lattice(fake, 2.5)
+    lat, lon, _ = export.export_lattice(fake, 2.5)
     assert (lat[0], lat[-1], lat.size) == (-90.0, 90.0, 73)
     assert (lon[0], lon[-1], lon.size) == (-180.0, 177.5, 144)  # periodic: no repeated column
     with pytest.raises(CoordinateError, match="divides 360"):
-        queries.export_lattice(fake, 0.7)
+        export.export_lattice(fake, 0.7)
     with pytest.raises(CoordinateError, match="not inside"):
-        queries.export_lattice(store, 0.5, Region.from_bounds(5, 20, 15, 30))
+        export.export_lattice(store, 0.5, Region.from_bounds(5, 20, 15, 30))
     with pytest.raises(CoordinateError, match="not inside"):
-        queries.export_lattice(store, 0.5, Region.from_bounds(12, 35, 15, 45))
+        export.export_lattice(store, 0.5, Region.from_bounds(12, 35, 15, 45))
     with pytest.raises(CoordinateError, match="positive"):
-        queries.export_lattice(store, 0.0)
+        export.export_lattice(store, 0.0)
     with pytest.raises(CoordinateError, match="2 x 2"):
-        queries.export_lattice(store, 30.0)
+        export.export_lattice(store, 30.0)
 
 
 def test_export_geotiff_without_rasterio_is_a_clear_error(store, tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "rasterio", None)  # import rasterio -> ImportError
     with pytest.raises(GeoidSplineError, match="rasterio"):
-        queries.export_grid(store, tmp_path / "g.tif", 0.5)
+        export.export_grid(store, tmp_path / "g.tif", 0.5)
     assert not (tmp_path / "g.tif").exists()
     result = invoke(export_main, [store.path, "--out", tmp_path / "g.tif", "--spacing", "0.5"])
     assert_user_error(result)
@@ -572,7 +573,7 @@ def test_export_geotiff_without_rasterio_is_a_clear_error(store, tmp_path, monke
 def test_export_geotiff_with_rasterio(store, tmp_path):
     rasterio = pytest.importorskip("rasterio", reason="rasterio not installed (GeoTIFF export is optional)")
     path = tmp_path / "g.tif"
-    grid = queries.export_grid(store, path, 0.5)
+    grid = export.export_grid(store, path, 0.5)
     with rasterio.open(path) as ds:
         data = ds.read(1)
         x, y = ds.xy(0, 0)  # centre of the north-west pixel: the node there
@@ -668,10 +669,10 @@ def test_query_model_mode_matches_geoid_synthesis(model_file, tmp_path):
 
 def test_default_preset_rules(model_file):
     model = read_model(model_file)
-    assert queries.default_preset(model) == "nga-f477"  # geoidspline.sources.harmonics' default
-    assert queries.default_preset(SimpleNamespace(name="EGM2008")) == "nga-hsynth"
-    assert queries.default_preset(SimpleNamespace(name="EGM96"), correction=object()) == "nga-f477"
-    assert queries.default_preset(SimpleNamespace(name="EGM2008"), correction=object()) == "nga-f477"
+    assert presets.default_preset(model) == "nga-f477"  # geoidspline.sources.harmonics' default
+    assert presets.default_preset(SimpleNamespace(name="EGM2008")) == "nga-hsynth"
+    assert presets.default_preset(SimpleNamespace(name="EGM96"), correction=object()) == "nga-f477"
+    assert presets.default_preset(SimpleNamespace(name="EGM2008"), correction=object()) == "nga-f477"
 
 
 def test_query_model_errors(tmp_path):
@@ -720,12 +721,12 @@ def test_info_check_against_a_synthetic_model(model_store, model_file):
     assert result.exit_code == 0, result.output
     data = json.loads(result.stdout)
     check = data["check_against"]
-    assert check["points"] == points and check["seed"] == queries.CHECK_SEED
+    assert check["points"] == points and check["seed"] == validation.CHECK_SEED
     assert check["preset"] == "generic"  # taken from the store, which was fitted from this file
     assert check["same_source"] is True and check["region"] == list(MODEL_REGION)
 
     s, w, n, e = MODEL_REGION
-    rng = np.random.default_rng(queries.CHECK_SEED)
+    rng = np.random.default_rng(validation.CHECK_SEED)
     lat = np.degrees(np.arcsin(rng.uniform(math.sin(math.radians(s)), math.sin(math.radians(n)), points)))
     lon = w + rng.uniform(0.0, e - w, points)
     store = geoidspline.open_store(model_store)

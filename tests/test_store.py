@@ -250,7 +250,7 @@ def _crash_after(monkeypatch, tiles_written):
     """Make write_store fail (as a crash would) after writing ``tiles_written`` tile files."""
     import geoidspline.store.writer as store_module
 
-    real = store_module._write_tile_file
+    real = store_module.write_tile_file
     calls = []
 
     def failing(*args, **kwargs):

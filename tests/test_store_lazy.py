@@ -19,7 +19,7 @@ import pytest
 import geoidspline
 from geoidspline.api import build_store
 from geoidspline.bspline import keys as _keys
-from geoidspline.bspline.level import tile_of_indices
+from geoidspline.bspline.level import cube_of_support_centres
 from geoidspline.errors import CoordinateError, StoreError
 from geoidspline.fitting.parameters import FitParameters
 from geoidspline.hierarchy.ambient import FOLDED_FROM_POINTS
@@ -55,7 +55,7 @@ def test_tiles_at_holds_every_bspline_non_zero_at_the_point(small_store):
             r = np.arange(n)
             k = np.array(np.meshgrid(r, r, r, indexing="ij")).reshape(3, -1).T + cell - n + 1
             present = np.isin(_keys.pack_keys(k), lv.keys)
-            for t in tile_of_indices(k[present], lv.h, n, size):
+            for t in cube_of_support_centres(k[present], lv.h, n, size):
                 assert tuple(int(v) for v in t) in tiles
                 checked += 1
         # and no tile beyond the reach of the coarsest level

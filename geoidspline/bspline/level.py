@@ -9,10 +9,13 @@ import numpy as np
 from . import keys as _keys
 
 
-def tile_of_indices(indices, h, order, tile_size):
-    """Tile (integer triple) of each coefficient: the cube holding its support centre."""
+def cube_of_support_centres(indices, h, order, cube_size):
+    """The cube (integer triple) of side ``cube_size`` holding each B-spline's support
+    centre ``(k + order/2) h``: how storage tiles and least-squares blocks group
+    coefficients (a storage *tile* and a solve *block* are both such cubes, of
+    different sizes)."""
     centre = (np.asarray(indices, dtype=float) + order / 2.0) * h
-    return np.floor(centre / tile_size).astype(np.int64)
+    return np.floor(centre / cube_size).astype(np.int64)
 
 
 @dataclass(frozen=True, eq=False)

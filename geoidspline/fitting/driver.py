@@ -47,7 +47,7 @@ class LevelReport:
     coefficients: int
     marked_cells: int
     sites: int
-    tiles_solved: int
+    blocks_solved: int
     max_error_m: float
     rms_error_m: float
     nodes_above_tolerance: int
@@ -149,7 +149,7 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
         violating = region_dirs[above]
         report = LevelReport(
             level=level, h=h, coefficients=len(lv), marked_cells=int(marked), sites=int(site_count),
-            tiles_solved=solved, max_error_m=float(np.abs(errors).max()),
+            blocks_solved=solved, max_error_m=float(np.abs(errors).max()),
             rms_error_m=float(np.sqrt(np.mean(errors**2))), nodes_above_tolerance=int(above.sum()),
             seconds=time.perf_counter() - t0,
         )

@@ -19,15 +19,15 @@ import scipy.sparse as sp
 
 from .._kernels.fitting import normal_equations
 from ..bspline.keys import AXIS_STEPS, cube_offsets, isin_sorted, pack_keys, unpack_keys
-from ..bspline.level import tile_of_indices
+from ..bspline.level import cube_of_support_centres
 from .parameters import FitParameters
 
 
 @dataclass
 class LocalProblem:
-    """One tile's least-squares problem at one level: everything a worker needs."""
+    """One block's least-squares problem at one level: everything a worker needs."""
 
-    tile: tuple
+    block: tuple  # the block's cube index, or ("whole",) for a level solved at once
     h: float
     order: int
     regularization: float
@@ -89,7 +89,7 @@ def local_problems(level, h, params: FitParameters, keys, points, values, force_
     ridge = params.overlay_ridge if overlay else 1e-10
     if keys.size <= params.untiled_max_unknowns and not force_tiles:
         yield LocalProblem(
-            tile=("whole",), h=h, order=order, regularization=params.regularization, ridge=ridge,
+            block=("whole",), h=h, order=order, regularization=params.regularization, ridge=ridge,
             keys=keys, own=np.ones(keys.size, bool), points=points, values=values,
         )
         return
@@ -97,7 +97,7 @@ def local_problems(level, h, params: FitParameters, keys, points, values, force_
     # solve blocks hold block_cells cells of this level a side, so every level's local
     # problems have about the same size; storage tiles are independent of them
     size = params.block_cells * h
-    tiles = tile_of_indices(idx, h, order, size)
+    tiles = cube_of_support_centres(idx, h, order, size)
     tile_keys = pack_keys(tiles)
     unique_tiles, tile_inverse = np.unique(tile_keys, return_inverse=True)
     margin = params.margin_cells * h
@@ -133,7 +133,7 @@ def local_problems(level, h, params: FitParameters, keys, points, values, force_
         local = np.sort(candidates)
         own = tile_inverse[local] == t
         yield LocalProblem(
-            tile=tuple(int(v) for v in tile), h=h, order=order,
+            block=tuple(int(v) for v in tile), h=h, order=order,
             regularization=params.regularization, ridge=ridge, keys=keys[local], own=own,
             points=points[chosen], values=values[chosen],
         )

@@ -19,7 +19,7 @@ import numpy as np
 from .._files import fsync_dir, sha256_file
 from .._version import __version__
 from ..bspline import keys as _keys
-from ..bspline.level import tile_of_indices
+from ..bspline.level import cube_of_support_centres
 from ..errors import StoreCorruptError, StoreError
 from ..sphere.coordinates import directions
 from .format import (
@@ -112,7 +112,7 @@ def tile_groups(spline: AmbientSpline, tile_size: float) -> dict:
         all_idx.append(idx)
         all_lvl.append(np.full(len(lv), lv.level))
         all_val.append(lv.coefficients)
-        all_tile.append(_keys.pack_keys(tile_of_indices(idx, lv.h, lv.order, tile_size)))
+        all_tile.append(_keys.pack_keys(cube_of_support_centres(idx, lv.h, lv.order, tile_size)))
     if not all_idx:
         return {}
     idx = np.concatenate(all_idx)
