@@ -9,7 +9,6 @@ from pathlib import Path
 import numpy as np
 
 log = logging.getLogger(__name__)
-from .._files import atomic_path
 from ..errors import CoordinateError, GeoidSplineError, InputFileError
 from ..sphere.region import Region
 
@@ -96,9 +95,10 @@ def export_grid(store, path, spacing_deg, region=None):
       with ``+proj=vgridshift`` (PROJ interpolates it bilinearly);
     - ``.nc``: CF netCDF-4, ``geoid_height(latitude, longitude)`` in metres
       (:func:`geoidspline.sources.netcdf.write_netcdf`);
-    - ``.tif``/``.tiff``: a float32 GeoTIFF in EPSG:4326 with pixel-is-point
-      georeferencing (one pixel per node, north row first), written with ``rasterio``,
-      which must be installed (it is not a dependency of geoidspline).
+    - ``.tif``/``.tiff``: PROJ's GeoTIFF grid profile (float32, EPSG:4979, pixel is
+      point, one pixel per node, north row first; :func:`geoidspline.sources.geotiff.write_geotiff`),
+      usable with ``+proj=vgridshift``; written with ``rasterio``, which must be
+      installed (the optional extra ``geotiff``).
 
     Returns the :class:`~geoidspline.sources.grid.GeoidGrid` that was written.
     """
@@ -157,21 +157,7 @@ def export_grid(store, path, spacing_deg, region=None):
 
 
 def _write_geotiff(path: Path, grid):
-    import rasterio
-    from rasterio.transform import from_origin
+    """PROJ's GeoTIFF grid profile (:func:`geoidspline.sources.geotiff.write_geotiff`)."""
+    from ..sources.geotiff import write_geotiff
 
-    lat, lon = grid.latitude, grid.longitude
-    dlat, dlon = grid.latitude_spacing, grid.longitude_spacing
-    data = np.asarray(grid.values[::-1], dtype=np.float32)  # north row first
-    # Pixel-is-point: node (row 0, col 0) at (west, north); the affine transform gives the
-    # outer corner of that pixel, half a cell beyond the node, as GDAL expects.
-    transform = from_origin(lon[0] - dlon / 2.0, lat[-1] + dlat / 2.0, dlon, dlat)
-    with atomic_path(path, suffix=".tmp.tif") as tmp, rasterio.open(
-        tmp, "w", driver="GTiff", width=data.shape[1], height=data.shape[0], count=1,
-        dtype="float32", crs="EPSG:4326", transform=transform, nodata=float("nan"),
-        compress="deflate",
-    ) as ds:
-        ds.write(data, 1)
-        ds.update_tags(AREA_OR_POINT="Point")
-        ds.update_tags(1, units="m", long_name="geoid undulation N above the WGS84 ellipsoid")
-        ds.set_band_description(1, "geoid_undulation")
+    write_geotiff(path, grid)
