@@ -41,6 +41,7 @@ import numpy as np
 
 from .._files import atomic_path
 from .._version import __version__  # noqa: F401 (recorded in manifests)
+from ..bspline.level import cube_of_support_centres
 from ..errors import StoreCorruptError, StoreError
 
 FORMAT_NAME = "geoidspline-tile-store"
@@ -322,8 +323,10 @@ def read_tile_file(path, entry, data, manifest):
     if not np.all(np.isfinite(values)) or np.any(np.abs(values) > MAX_COEFFICIENT_M):
         raise refuse(f"holds coefficients that are not finite or beyond ±{MAX_COEFFICIENT_M:g} m")
     # every coefficient's support centre lies in this tile's cube (the writer's grouping)
-    h = h0 / 2.0 ** levels.astype(np.float64)
-    centre_tile = np.floor((indices + order / 2.0) * h[:, None] / tile_size).astype(np.int64)
+    centre_tile = np.empty_like(indices)
+    for level in present:
+        sel = levels == level
+        centre_tile[sel] = cube_of_support_centres(indices[sel], h0 / 2.0**level, order, tile_size)
     wrong = np.any(centre_tile != np.asarray(tile), axis=1)
     if wrong.any():
         raise refuse(f"holds {int(wrong.sum())} coefficients whose support centre lies outside the tile's cube "
