@@ -133,15 +133,20 @@ class _Attempt:
         raise StoreError(f"{self.current}: cannot write the store {self.root}: {fault_cause(exc)}; {kept}") from None
 
 
-def _netcdf_fault(directory: Path, exc: RuntimeError) -> BaseException:
-    """netCDF reports a failed write as 'NetCDF: HDF error' without errno: find the cause
-    from the file system while the partial file still exists."""
+def _netcdf_fault(directory: Path, exc: Exception) -> BaseException:
+    """netCDF/HDF5 report a failed write as 'NetCDF: HDF error', or as 'Permission
+    denied' on a full disk: find the cause from the file system while the partial file
+    still exists."""
+    if isinstance(exc, OSError) and exc.errno not in (errno.EACCES, errno.EPERM, None):
+        return exc  # a cause the library did name
     try:
         st = os.statvfs(directory)
     except OSError:
         return exc
     if st.f_flag & os.ST_RDONLY:
         return OSError(errno.EROFS, f"Read-only file system ({exc})")
+    if isinstance(exc, OSError) and not os.access(directory, os.W_OK):
+        return exc  # really no permission
     if st.f_bavail * st.f_frsize < (1 << 20) or (st.f_files and st.f_favail == 0):
         return OSError(errno.ENOSPC, f"No space left on device ({exc}; {st.f_bavail * st.f_frsize} bytes free)")
     return exc
@@ -150,7 +155,7 @@ def _netcdf_fault(directory: Path, exc: RuntimeError) -> BaseException:
 def _write_tile(path: Path, tile, levels, indices, values, attrs):
     try:
         write_tile_file(path, tile, levels, indices, values, attrs)
-    except RuntimeError as exc:
+    except (RuntimeError, OSError) as exc:
         raise _netcdf_fault(path.parent, exc) from None
 
 
