@@ -17,9 +17,9 @@ from geoidspline.errors import GeoidSplineError, StoreCorruptError, StoreError
 from geoidspline.fitting.check_points import check_points
 from geoidspline.fitting.parameters import FitParameters
 from geoidspline.sphere.coordinates import directions
-from geoidspline.store.format import FORMAT_NAME, FORMAT_VERSION
+from geoidspline.store.format import FORMAT_NAME, FORMAT_VERSION, manifest_text
 from geoidspline.store.reader import TileStore
-from geoidspline.store.writer import write_store
+from geoidspline.store.writer import StoreLock, write_store
 
 
 def _snapshot(root: Path) -> dict:
@@ -29,6 +29,11 @@ def _snapshot(root: Path) -> dict:
 
 def _manifest(root: Path) -> dict:
     return json.loads((root / "manifest.json").read_text())
+
+
+def _rewrite_manifest(root: Path, manifest: dict):
+    """Write an edited manifest with a matching integrity digest (a deliberate edit)."""
+    (root / "manifest.json").write_bytes(manifest_text(manifest))
 
 
 def _random_points(region, n, seed):
@@ -55,8 +60,14 @@ def test_round_trip_values_are_bitwise_equal(small_store):
     got = store.undulation(lat, lon)
     want = small_store.result.spline.undulation(lat, lon)
     assert got.dtype == np.float64
-    assert np.array_equal(got, want)
+    inside = small_store.region.contains(lat, lon)
+    assert inside[:3000].all() and not inside[3000:].all()
+    # the fitted values where the store has data, NaN elsewhere (never a number there)
+    assert np.array_equal(got[inside], want[inside])
+    assert np.all(np.isnan(got[~inside]))
     assert np.all(np.isfinite(got[:3000]))
+    # the spline itself is stored everywhere, bit for bit
+    assert np.array_equal(store.spline.full.undulation(lat, lon), want)
 
 
 def test_round_trip_keeps_every_coefficient(small_store):
@@ -77,7 +88,7 @@ def test_round_trip_keeps_every_coefficient(small_store):
 def test_manifest_header_provenance_and_spline(small_store):
     m = _manifest(small_store.path)
     assert m["format"] == FORMAT_NAME == "geoidspline-tile-store"
-    assert m["format_version"] == FORMAT_VERSION == 1
+    assert m["format_version"] == FORMAT_VERSION == 2
     assert m["store_version"] == 1
 
     prov = m["provenance"]
@@ -203,7 +214,7 @@ def test_info_summary_and_bytes_on_disk(small_store):
     m = _manifest(root)
     assert info["max_error_m"] == m["accuracy"]["max_error_m"]
     assert info["rms_error_m"] == m["accuracy"]["rms_error_m"]
-    assert info["format_version"] == 1 and info["order"] == 4 and info["h0"] == 0.2
+    assert info["format_version"] == 2 and info["order"] == 4 and info["h0"] == 0.2
 
 
 def test_no_temporary_files_are_left(small_store):
@@ -237,13 +248,18 @@ def test_overwrite_replaces_store_and_removes_old_tiles(small_store, store_copy)
     store = geoidspline.open_store(store_copy)
     lat, lon = _random_points(small_store.region, 500, seed=3)
     assert np.array_equal(store.undulation(lat, lon), result.spline.undulation(lat, lon))
-    assert info["bytes"] == (store_copy / "manifest.json").stat().st_size + sum(
+    assert info["bytes"] == sum((store_copy / name).stat().st_size for name in (
+        "manifest.json", ".geoidspline-store", ".lock")) + sum(
         (store_copy / e["file"]).stat().st_size for e in new["tiles"])
     build_store(small_store.grid, store_copy, small_store.region, params, overwrite=True)
     newer = _manifest(store_copy)
     assert not [f for f in old_files if f.exists()]
     on_disk = sorted(p.name for p in (store_copy / "tiles").iterdir())
     assert on_disk == sorted({Path(e["file"]).name for e in new["tiles"] + newer["tiles"]})
+
+
+class SimulatedCrash(Exception):
+    """Not an I/O fault: the writer leaves its files as a crash would."""
 
 
 def _crash_after(monkeypatch, tiles_written):
@@ -255,7 +271,7 @@ def _crash_after(monkeypatch, tiles_written):
 
     def failing(*args, **kwargs):
         if len(calls) == tiles_written:
-            raise RuntimeError("simulated crash")
+            raise SimulatedCrash("simulated crash")
         calls.append(args[0])
         return real(*args, **kwargs)
 
@@ -267,7 +283,7 @@ def test_crash_during_overwrite_keeps_the_old_store(small_store, store_copy, mon
     before = _snapshot(store_copy)
     written = _crash_after(monkeypatch, 5)
     params = FitParameters(h0=0.2, max_level=0, tolerance_m=1.0)
-    with pytest.raises(RuntimeError, match="simulated crash"):
+    with pytest.raises(SimulatedCrash, match="simulated crash"):
         build_store(small_store.grid, store_copy, small_store.region, params, overwrite=True)
     monkeypatch.undo()
     assert len(written) == 5 and all(p.exists() for p in written)  # new files, unnamed by the manifest
@@ -281,19 +297,27 @@ def test_crash_during_overwrite_keeps_the_old_store(small_store, store_copy, mon
     build_store(small_store.grid, store_copy, small_store.region, params, overwrite=True)
     on_disk = sorted(p.name for p in (store_copy / "tiles").iterdir())
     assert on_disk == sorted({Path(e["file"]).name for e in _manifest(store_copy)["tiles"]} | previous)
-    assert not (store_copy / ".lock").exists()
+    with StoreLock(store_copy):  # the lock file stays; nobody holds it
+        pass
 
 
 def test_crash_during_first_write_leaves_no_store(small_store, tmp_path, monkeypatch):
     target = tmp_path / "new"
     _crash_after(monkeypatch, 3)
-    with pytest.raises(RuntimeError, match="simulated crash"):
+    with pytest.raises(SimulatedCrash, match="simulated crash"):
         write_store(target, small_store.result, small_store.grid.provenance)
     monkeypatch.undo()
     assert len(list((target / "tiles").iterdir())) == 3
     assert not (target / "manifest.json").exists()
     with pytest.raises(StoreError, match="not a geoidspline store"):
         geoidspline.open_store(target)
+    # its leftovers are recognised: refused without overwrite, cleared with it
+    with pytest.raises(StoreError, match="leftovers.*overwrite"):
+        write_store(target, small_store.result, small_store.grid.provenance)
+    write_store(target, small_store.result, small_store.grid.provenance, overwrite=True)
+    assert geoidspline.open_store(target).manifest["store_version"] == 1
+    assert sorted(p.name for p in (target / "tiles").iterdir()) == sorted(
+        Path(e["file"]).name for e in _manifest(target)["tiles"])
 
 
 def test_directory_without_manifest_is_not_a_store(small_store, tmp_path):
@@ -308,13 +332,18 @@ def test_directory_without_manifest_is_not_a_store(small_store, tmp_path):
     assert str(half) in str(err.value)
 
 
-def test_half_written_directory_can_be_written_and_is_cleaned(small_store, tmp_path):
+def test_half_written_directory_needs_overwrite_and_is_cleaned(small_store, tmp_path):
     half = tmp_path / "half"
     (half / "tiles").mkdir(parents=True)
-    stray = half / "tiles" / "t+0000+0000+0000.v1.nc.tmp"
+    stray = half / "tiles" / ".t+0000+0000+0000.v1.nc.abc123.tmp"
     stray.write_bytes(b"partial tile")
-    write_store(half, small_store.result, small_store.grid.provenance)
-    assert not stray.exists()
+    old_tile = half / "tiles" / "t+0002+0002-0002.v1.nc"
+    old_tile.write_bytes(b"an old tile")
+    with pytest.raises(StoreError, match="leftovers"):
+        write_store(half, small_store.result, small_store.grid.provenance)
+    assert stray.exists() and old_tile.exists()
+    write_store(half, small_store.result, small_store.grid.provenance, overwrite=True)
+    assert not stray.exists() and not old_tile.exists()
     store = geoidspline.open_store(half)
     lat, lon = _random_points(small_store.region, 200, seed=4)
     assert np.array_equal(store.undulation(lat, lon), small_store.result.spline.undulation(lat, lon))
@@ -405,6 +434,13 @@ def test_coefficient_count_disagreeing_with_manifest_is_refused(small_store, sto
     entry = max(m["tiles"], key=lambda e: e["coefficients"])
     entry["coefficients"] += 1
     (store_copy / "manifest.json").write_text(json.dumps(m))
+    # an edit that leaves the counts inconsistent is refused by the schema
+    with pytest.raises(StoreCorruptError, match="'tiles' hold .* coefficients"):
+        geoidspline.open_store(store_copy)
+    # a consistent deliberate edit (counts and digest) is refused by the tile itself
+    m["spline"]["coefficients"] += 1
+    m["spline"]["levels"][entry["levels"][0]]["coefficients"] += 1
+    _rewrite_manifest(store_copy, m)
     with pytest.raises(StoreCorruptError, match="coefficients") as err:
         TileStore.open(store_copy, lazy=False)
     assert Path(entry["file"]).name in str(err.value)

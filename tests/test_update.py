@@ -61,13 +61,34 @@ def store(base_store, tmp_path):
     return path
 
 
-def new_grid():
-    return grid(lambda la, lo: base_field(la, lo) + bump(la, lo), "new")
+def new_grid(step=1.0):
+    return grid(lambda la, lo: base_field(la, lo) + bump(la, lo), "new", step=step)
 
 
 def snapshot(path):
+    """Every file's sha256 but the lock file's (its pid is for messages only)."""
     return {p.relative_to(path).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(Path(path).rglob("*")) if p.is_file()}
+            for p in sorted(Path(path).rglob("*")) if p.is_file() and p.name != ".lock"}
+
+
+#: A small regional store for the tests that kill writers in subprocesses: few tiles
+#: (tile size 1), a 2° grid, so each killed update costs a second, not half a minute.
+SMALL_REGION = Region(-10, 0, 30, 40)
+SMALL_PARAMS = FitParameters(h0=0.2, max_level=2, tolerance_m=0.05, tile_size=1.0)
+
+
+@pytest.fixture(scope="module")
+def small_base(tmp_path_factory):
+    path = tmp_path_factory.mktemp("update_small") / "base"
+    build_store(grid(base_field, "base", step=2.0), path, SMALL_REGION, SMALL_PARAMS)
+    return path
+
+
+@pytest.fixture
+def small(small_base, tmp_path):
+    import shutil
+
+    return Path(shutil.copytree(small_base, tmp_path / "small"))
 
 
 @pytest.fixture(scope="module")
@@ -178,11 +199,12 @@ def test_region_outside_the_source_is_refused(store):
 
 
 def test_read_only_and_locked_stores_are_refused(store, monkeypatch):
-    before = snapshot(store)
-    (store / ".lock").write_text(str(os.getppid()))  # a live process holds the lock
-    with pytest.raises(StoreError, match="another writer"):
-        update_store(store, new_grid(), REGION)
-    (store / ".lock").unlink()
+    from geoidspline.store.writer import StoreLock
+
+    with StoreLock(store):  # another open file description holds the lock
+        before = snapshot(store)
+        with pytest.raises(StoreError, match=rf"another writer \(pid {os.getpid()}\)"):
+            update_store(store, new_grid(), REGION)
     assert snapshot(store) == before
     import geoidspline.store.update as update_module
 
@@ -197,43 +219,53 @@ UPDATE_SCRIPT = textwrap.dedent("""
     sys.path.insert(0, {tests!r})
     from test_update import new_grid, REGION, BLEND_KM
     from geoidspline.store.update import update_store
-    update_store({store!r}, new_grid(), REGION, blend_width_km=BLEND_KM)
+    update_store({store!r}, new_grid(step=2.0), REGION, blend_width_km=BLEND_KM)
 """)
 
 
 @pytest.mark.parametrize("point", ["before-tiles", "during-tiles", "after-tiles", "before-manifest",
                                    "manifest-written", "after-manifest"])
-def test_an_update_killed_anywhere_leaves_the_old_or_the_new_store(store, point):
-    old = geoidspline.open_store(store)
+def test_an_update_killed_anywhere_leaves_the_old_or_the_new_store(small, point):
+    old = geoidspline.open_store(small)
     old_version = old.manifest["store_version"]
-    script = UPDATE_SCRIPT.format(tests=str(Path(__file__).parent), store=str(store))
+    script = UPDATE_SCRIPT.format(tests=str(Path(__file__).parent), store=str(small))
     env = dict(os.environ, GEOIDSPLINE_CRASH_AT=point)
     run = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=300)
     assert run.returncode == 77, run.stderr  # died at the crash point, no clean-up
-    assert verify_store(store) == []
-    reopened = geoidspline.open_store(store)
+    assert verify_store(small) == []
+    reopened = geoidspline.open_store(small)
     version = reopened.manifest["store_version"]
     assert version == (old_version + 1 if point == "after-manifest" else old_version)
     if version == old_version:
-        lat, lon = np.array([10.0, -40.0]), np.array([20.0, 100.0])
+        lat, lon = np.array([10.0, -5.0]), np.array([20.0, 35.0])
         assert np.array_equal(reopened.undulation(lat, lon), old.undulation(lat, lon))
-    # the dead writer's lock does not block the next update
-    record = update_store(store, new_grid(), REGION, blend_width_km=BLEND_KM)
-    assert record["store_version"] == version + 1 and verify_store(store) == []
-    assert not (store / ".lock").exists()
+    # the dead writer's lock does not block the next update (the kernel released it)
+    record = update_store(small, new_grid(step=2.0), REGION, blend_width_km=BLEND_KM)
+    assert record["store_version"] == version + 1 and verify_store(small) == []
+    assert (small / ".lock").exists()  # the lock file is never removed
 
 
-def test_sigkill_during_an_update(store):
+@pytest.mark.parametrize("point", ["after-lock", "during-tiles", "manifest-written"])
+def test_sigkill_during_an_update(small, point):
+    """A real SIGKILL at a commit point (the writer stops itself there first): the store
+    is the old version, opens and verifies, and the kernel has released the lock."""
     import signal
-    import time
 
-    script = UPDATE_SCRIPT.format(tests=str(Path(__file__).parent), store=str(store))
-    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    time.sleep(3.0)
+    old = geoidspline.open_store(small).manifest
+    script = UPDATE_SCRIPT.format(tests=str(Path(__file__).parent), store=str(small))
+    env = dict(os.environ, GEOIDSPLINE_STOP_AT=point)
+    proc = subprocess.Popen([sys.executable, "-c", script], env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE)
+    _, status = os.waitpid(proc.pid, os.WUNTRACED)
+    assert os.WIFSTOPPED(status), proc.stderr.read()
+    with pytest.raises(StoreError, match=rf"another writer \(pid {proc.pid}\)"):
+        update_store(small, new_grid(step=2.0), REGION, blend_width_km=BLEND_KM)
     proc.send_signal(signal.SIGKILL)
-    proc.wait(timeout=60)
-    assert verify_store(store) == []
-    assert geoidspline.open_store(store).manifest["store_version"] in (1, 2)
+    assert proc.wait(timeout=60) == -signal.SIGKILL
+    assert verify_store(small) == []
+    assert geoidspline.open_store(small).manifest == old
+    record = update_store(small, new_grid(step=2.0), REGION, blend_width_km=BLEND_KM)
+    assert record["store_version"] == old["store_version"] + 1 and verify_store(small) == []
 
 
 def test_cli_update_and_verify(store, tmp_path):

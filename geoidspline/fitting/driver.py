@@ -30,6 +30,7 @@ from ..bspline.level import LevelSpline
 from ..errors import FitError
 from ..hierarchy.ambient import AmbientSpline
 from ..hierarchy.overlays import OverlayRefinement
+from ..sphere.coverage import Coverage
 from ..sphere.region import GLOBAL, Region
 from .executors import Executor
 from .interpolation import interpolate_level, lattice_spacing
@@ -70,6 +71,8 @@ class FitResult:
     node_errors: np.ndarray | None = None
     # refinement stopped because the next level would be finer than the data resolve
     data_limited: bool = False
+    # where the source had data (region and no-data holes): the store answers only there
+    coverage: Coverage | None = None
 
 
 def solve_level(problems, executor: Executor, progress=None):
@@ -99,6 +102,10 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
     executor = executor or Executor()
     start = time.perf_counter() - (first_level[1] if first_level is not None else 0.0)
     nodes = DataNodes.from_sample(sample, region)
+    try:
+        coverage = Coverage.from_sample(sample, region)
+    except ValueError as exc:
+        raise FitError(str(exc)) from None
     if not np.any(nodes.in_region):
         raise FitError(f"no data nodes inside the region {region.as_tuple()}")
     region_dirs = nodes.directions[nodes.in_region]
@@ -168,7 +175,7 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
         node_count=int(errors.size), node_max_error_m=float(np.abs(errors).max()),
         node_rms_error_m=float(np.sqrt(np.mean(errors**2))), converged=converged,
         seconds=time.perf_counter() - start, node_directions=region_dirs, node_errors=errors,
-        data_limited=data_limited,
+        data_limited=data_limited, coverage=coverage,
     )
 
 

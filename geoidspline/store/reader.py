@@ -10,18 +10,18 @@ A :class:`TileStore`'s queries are thread-safe (see :class:`StoreSpline`).
 from __future__ import annotations
 
 import hashlib
+import os
 import threading
 from pathlib import Path
 
 import numpy as np
 
-from .._files import sha256_file
 from ..bspline.level import LevelSpline
 from ..errors import StoreCorruptError, StoreError
 from ..hierarchy.ambient import FOLDED_FROM_POINTS, AmbientSpline
 from ..sphere.coordinates import check_coordinates, directions
-from ..sphere.region import Region
-from .format import MANIFEST, load_manifest, read_tile_file
+from .coverage import coverage_of
+from .format import LOCK, MANIFEST, MARKER, TileDirectory, load_manifest, read_tile_file
 
 #: Fraction of a store's tiles from which a small batch that needs them loads them all
 #: (one full read instead of many partial rebuilds).
@@ -78,6 +78,8 @@ class StoreSpline:
         self.path = root
         self.manifest = manifest
         self.verify = verify
+        #: where the store has data (:class:`~geoidspline.sphere.coverage.Coverage`)
+        self.coverage = coverage_of(root / MANIFEST, manifest)
         meta = manifest["spline"]
         self.order = int(meta["order"])
         self.h0 = float(meta["h0"])
@@ -97,22 +99,31 @@ class StoreSpline:
         """How many of the store's tiles have been read so far."""
         return len(self._entries) if self._full is not None else len(self._tiles)
 
-    def _read(self, tile):
+    def _read(self, tile, tiles: TileDirectory):
         entry = self._entries[tile]
         path = self.path / entry["file"]
         try:
-            with open(path, "rb") as fh:
-                data = fh.read()
+            data = tiles.read(entry)
         except FileNotFoundError:
             raise self._missing(path, entry) from None
-        if len(data) != entry["bytes"]:
-            raise StoreCorruptError(
-                f"{path}: tile {entry['tile']} is {len(data)} bytes, the manifest says {entry['bytes']} "
-                f"(truncated or altered)")
         if self.verify and hashlib.sha256(data).hexdigest() != entry["sha256"]:
             raise StoreCorruptError(f"{path}: tile {entry['tile']} does not match its sha256 in the manifest")
-        indices, levels, values = read_tile_file(path, entry, data)
+        indices, levels, values = read_tile_file(path, entry, data, self.manifest)
         return levels, indices, values
+
+    def _read_tiles(self, tiles):
+        """Read ``tiles`` (not read yet) into self._tiles; the tile directory is opened once."""
+        if not tiles:
+            return
+        try:
+            directory = TileDirectory(self.path)
+        except StoreCorruptError as exc:
+            if "missing" in str(exc):
+                raise self._missing(self.path / "tiles", self._entries[tiles[0]]) from None
+            raise
+        with directory:
+            for tile in tiles:
+                self._tiles[tile] = self._read(tile, directory)
 
     def _missing(self, path, entry):
         try:
@@ -125,7 +136,7 @@ class StoreSpline:
                 f"store has been rewritten since it was opened (now version {now}); open it again")
         return StoreCorruptError(f"{path}: tile {entry['tile']} is missing")
 
-    def _build(self, tiles):
+    def _build(self, tiles, complete=False):
         by_level: dict[int, list] = {}
         for tile in tiles:
             levels, indices, values = self._tiles[tile]
@@ -136,7 +147,16 @@ class StoreSpline:
         for level in sorted(by_level):
             idx = np.concatenate([p[0] for p in by_level[level]])
             val = np.concatenate([p[1] for p in by_level[level]])
-            out.append(LevelSpline.from_indices(level, self.h0 / 2.0**level, self.order, idx, val))
+            try:
+                out.append(LevelSpline.from_indices(level, self.h0 / 2.0**level, self.order, idx, val))
+            except ValueError as exc:  # the same coefficient in two tiles, say
+                raise StoreCorruptError(f"{self.path}: the tiles of level {level} disagree ({exc})") from None
+        if complete:
+            counts = {lv.level: len(lv) for lv in out}
+            wanted = {int(lv["level"]): int(lv["coefficients"]) for lv in self.manifest["spline"]["levels"]}
+            if {k: v for k, v in counts.items() if v} != {k: v for k, v in wanted.items() if v}:
+                raise StoreCorruptError(f"{self.path / MANIFEST}: the tiles hold {counts} coefficients per level, "
+                                        f"the manifest says {wanted}")
         return AmbientSpline(out)
 
     @property
@@ -145,10 +165,8 @@ class StoreSpline:
         if self._full is None:
             with self._lock:
                 if self._full is None:
-                    for tile in self._entries:  # manifest order
-                        if tile not in self._tiles:
-                            self._tiles[tile] = self._read(tile)
-                    self._full = self._build(list(self._entries))
+                    self._read_tiles([t for t in self._entries if t not in self._tiles])  # manifest order
+                    self._full = self._build(list(self._entries), complete=True)
                     self._tiles = {}
                     self._partial = None
         return self._full
@@ -182,8 +200,7 @@ class StoreSpline:
                 return self._partial
             if len(self._tiles) + len(missing) >= FULL_LOAD_FRACTION * len(self._entries):
                 return self.full
-            for tile in missing:
-                self._tiles[tile] = self._read(tile)
+            self._read_tiles(missing)
             # a new snapshot: evaluations already running keep theirs
             self._partial = self._build(sorted(self._tiles))
             return self._partial
@@ -211,17 +228,27 @@ class StoreSpline:
         return self._covering(points).evaluate_points(points, nderiv)
 
     def undulation(self, latitude, longitude):
-        """N in metres at latitude/longitude in degrees; see
+        """N in metres at latitude/longitude in degrees, NaN outside the store's coverage
+        (:attr:`coverage`); see
         :meth:`geoidspline.hierarchy.ambient.AmbientSpline.undulation`."""
-        if np.size(latitude) >= FOLDED_FROM_POINTS or np.size(longitude) >= FOLDED_FROM_POINTS:
-            return self.full.undulation(latitude, longitude)  # checks the coordinates in its kernel
         latitude, longitude = check_coordinates(latitude, longitude)
-        if latitude.size >= FOLDED_FROM_POINTS:  # broadcasting made it a large batch
+        shape = latitude.shape
+        covered = np.asarray(self.coverage.covers(latitude, longitude))
+        values = np.full(shape, np.nan)
+        if covered.all():
+            values = self._spline_undulation(latitude, longitude)
+        elif covered.any():
+            values[covered] = self._spline_undulation(latitude[covered], longitude[covered])
+        values = np.asarray(values, dtype=np.float64)
+        return values[()] if shape == () else values
+
+    def _spline_undulation(self, latitude, longitude):
+        """The spline's values (covered or not) at checked coordinates."""
+        if latitude.size >= FOLDED_FROM_POINTS:
             return self.full.undulation(latitude, longitude)
         shape = latitude.shape
         points = directions(latitude.ravel(), longitude.ravel())
-        values = self._covering(points).evaluate_points(points).reshape(shape)
-        return values[()] if shape == () else values
+        return self._covering(points).evaluate_points(points).reshape(shape)
 
 
 class TileStore:
@@ -246,31 +273,32 @@ class TileStore:
     @classmethod
     def open(cls, path, verify=True, lazy=True):
         """Open the store at ``path``: the manifest now, the tiles when needed (all now
-        with ``lazy=False``). ``verify=False`` skips the sha256 checks (sizes are
-        always checked)."""
+        with ``lazy=False``). ``verify=False`` skips the sha256 checks (sizes, names and
+        the tiles' own records are always checked)."""
         root = Path(path)
         manifest = load_manifest(root)
-        for entry in manifest["tiles"]:
-            tile_path = root / entry["file"]
-            try:
-                size = tile_path.stat().st_size
-            except FileNotFoundError:
-                raise StoreCorruptError(f"{tile_path}: tile {entry['tile']} is missing") from None
-            if size != entry["bytes"]:
-                raise StoreCorruptError(
-                    f"{tile_path}: tile {entry['tile']} is {size} bytes, the manifest says {entry['bytes']} (truncated or altered)"
-                )
+        with TileDirectory(root) as tiles:
+            for entry in manifest["tiles"]:
+                problem = tiles.stat_problem(entry)
+                if problem:
+                    raise StoreCorruptError(problem)
         store = cls(root, manifest, verify=verify)
         if not lazy:
             store.spline.full  # noqa: B018 (reads and checks every tile now)
         return store
+
+    @property
+    def coverage(self):
+        """Where the store has data: :class:`~geoidspline.sphere.coverage.Coverage`."""
+        return self.spline.coverage
 
     def undulation(self, latitude, longitude):
         """Geoid undulation N in metres at latitude/longitude (degrees).
 
         Scalars give a scalar, arrays broadcast; NaN gives NaN; a latitude outside
         [-90, 90] raises :class:`~geoidspline.errors.CoordinateError`. Outside the
-        store's region the value is not meaningful (see :meth:`covers`).
+        store's coverage (its region and where its source had data, see :meth:`covers`)
+        the value is NaN: never a number the data do not support.
         """
         return self.spline.undulation(latitude, longitude)
 
@@ -278,9 +306,13 @@ class TileStore:
         """Deflection of the vertical (ξ, η, arcseconds) and the geoid slope (metres per
         metre) from the spline's analytic gradient; see
         :func:`geoidspline.query.derived.deflection`."""
-        from ..query.derived import deflection
+        from ..query.derived import Deflection, deflection
 
-        return deflection(self, latitude, longitude)
+        result = deflection(self, latitude, longitude)
+        covered = np.asarray(self.covers(latitude, longitude))
+        if covered.all():
+            return result
+        return Deflection(*(np.where(covered, np.asarray(v, dtype=np.float64), np.nan)[()] for v in result))
 
     def orthometric_height(self, latitude, longitude, ellipsoidal_height):
         """Orthometric height H = h − N (metres) from the ellipsoidal height h (metres)."""
@@ -299,7 +331,9 @@ class TileStore:
         :func:`geoidspline.query.derived.tile_error_bound`."""
         from ..query.derived import tile_error_bound
 
-        return tile_error_bound(self, latitude, longitude)
+        bound = tile_error_bound(self, latitude, longitude)
+        covered = self.covers(latitude, longitude)
+        return np.where(covered, bound, np.nan)[()]
 
     def __repr__(self):
         m = self.manifest
@@ -309,16 +343,35 @@ class TileStore:
                 f"coefficients of order {m['spline']['order']} in {len(m['tiles'])} tiles; "
                 f"{prov.get('model', 'unknown')} from {prov.get('source', '?')}; region S {s:g} W {w:g} N {n:g} E {e:g}>")
 
-    def covers(self, latitude, longitude):
-        """Whether points lie inside the region the store was fitted for."""
+    def covers(self, latitude, longitude, reason: bool = False):
+        """Whether the store has data at points (latitude/longitude in degrees): inside
+        its region and, for a grid source, where every node of the source cell holding
+        the point had data. A bool for scalars, else a boolean array; NaN coordinates
+        are not covered. With ``reason``, :meth:`coverage_reason` instead."""
+        if reason:
+            return self.coverage_reason(latitude, longitude)
         latitude, longitude = check_coordinates(latitude, longitude)
-        return Region(*self.manifest["region"]).contains(latitude, longitude)
+        covered = self.coverage.covers(latitude, longitude)
+        return bool(covered) if np.ndim(covered) == 0 else covered
+
+    def coverage_reason(self, latitude, longitude):
+        """Per point ``"inside"``, ``"outside the region"`` or ``"no data in the source
+        here"`` (the point is in the region, but the source had no data in the cell
+        holding it); a str for scalars, else an array of str. A NaN coordinate is
+        ``"outside the region"``."""
+        latitude, longitude = check_coordinates(latitude, longitude)
+        return self.coverage.reasons(latitude, longitude)
 
     def info(self) -> dict:
         """The manifest summary that ``geoid-info --json`` prints."""
         m = self.manifest
         acc = m["accuracy"]
-        size = (self.path / MANIFEST).stat().st_size + sum(e["bytes"] for e in m["tiles"])
+        size = sum(e["bytes"] for e in m["tiles"])
+        for name in (MANIFEST, MARKER, LOCK):  # the store's own small files
+            try:
+                size += os.stat(self.path / name, follow_symlinks=False).st_size
+            except OSError:
+                pass
         return {
             "store": str(self.path),
             "format_version": m["format_version"],
@@ -342,25 +395,49 @@ class TileStore:
             "nodes": acc["nodes"],
             "bytes": size,
             "fit_seconds": m["fit"]["seconds"],
+            "coverage": [
+                {"region": list(part.region.as_tuple()), "source": part.source,
+                 "nodata_nodes": int(part.lattice.nodata.sum()) if part.lattice is not None else 0}
+                for part in self.coverage.parts
+            ],
         }
 
 
 def verify_store(path) -> list[str]:
     """Every problem of a store's files, one message each naming the tile file:
-    missing, truncated (size differs from the manifest) or altered (sha256 differs).
-    An empty list means every tile matches its manifest entry."""
+    missing, not a regular file, truncated or altered (size or sha256 differs from
+    the manifest), or in the wrong place (its own record of tile, store and spline,
+    or the support centres of its coefficients, disagree with its manifest entry);
+    then whether the tiles together hold the coefficients the manifest counts.
+    An empty list means every tile matches its manifest entry. A manifest that
+    cannot be read or breaks the schema raises :class:`StoreError`.
+    """
     root = Path(path)
     manifest = load_manifest(root)
+    store = TileStore(root, manifest, verify=True)  # decodes the coverage record
+    spline = store.spline
     problems = []
-    for entry in manifest["tiles"]:
-        tile_path = root / entry["file"]
-        if not tile_path.exists():
-            problems.append(f"{tile_path}: tile {entry['tile']} is missing")
-            continue
-        size = tile_path.stat().st_size
-        if size != entry["bytes"]:
-            problems.append(f"{tile_path}: tile {entry['tile']} is {size} bytes, the manifest says {entry['bytes']}"
-                            f" ({'truncated' if size < entry['bytes'] else 'altered'})")
-        elif sha256_file(tile_path) != entry["sha256"]:
-            problems.append(f"{tile_path}: tile {entry['tile']} is altered (sha256 differs from the manifest)")
+    with TileDirectory(root) as tiles:
+        for entry in manifest["tiles"]:
+            tile = tuple(int(v) for v in entry["tile"])
+            problem = tiles.stat_problem(entry)
+            if problem is None:
+                try:
+                    data = tiles.read(entry)
+                    if hashlib.sha256(data).hexdigest() != entry["sha256"]:
+                        problem = f"{root / entry['file']}: tile {entry['tile']} is altered (sha256 differs from the manifest)"
+                    else:
+                        indices, levels, values = read_tile_file(root / entry["file"], entry, data, manifest)
+                        spline._tiles[tile] = (levels, indices, values)
+                except FileNotFoundError:
+                    problem = f"{root / entry['file']}: tile {entry['tile']} is missing"
+                except StoreError as exc:
+                    problem = str(exc)
+            if problem:
+                problems.append(problem)
+    if not problems:
+        try:
+            spline._build(list(spline._entries), complete=True)
+        except StoreError as exc:
+            problems.append(str(exc))
     return problems

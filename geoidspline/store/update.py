@@ -24,7 +24,7 @@ import numpy as np
 
 from ..bspline.keys import unpack_keys
 from ..bspline.level import LevelSpline
-from ..errors import CoordinateError, StoreError
+from ..errors import CoordinateError, FitError, StoreCorruptError, StoreError
 from ..fitting.driver import clip_to_extent, fit_nodes
 from ..fitting.executors import Executor
 from ..fitting.parameters import FitParameters
@@ -33,10 +33,22 @@ from ..hierarchy.ambient import AmbientSpline
 from ..hierarchy.overlays import OverlayRefinement
 from ..sources.base import NodeSample
 from ..sphere.coordinates import directions, latlon_of
+from ..sphere.coverage import Coverage
 from ..sphere.region import Region
-from .format import TILE_DIR, error_stats, utc_now
+from .coverage import coverage_record
+from .format import FORMAT_VERSION, MANIFEST, TILE_DIR, error_stats, load_manifest, utc_now
 from .reader import TileStore
-from .writer import StoreLock, commit, crash_point, group_by_tile, tile_groups, tile_stats, write_tile_entry
+from .writer import (
+    StoreLock,
+    _Attempt,
+    _manifest_state,
+    commit,
+    crash_point,
+    group_by_tile,
+    tile_groups,
+    tile_stats,
+    write_tile_entry,
+)
 
 __all__ = ["update_store", "blend_weight"]
 
@@ -102,94 +114,144 @@ def _check_compatible(store: TileStore, source, region: Region):
                                   f"{store_region.as_tuple()}")
 
 
+def _stored_parameters(store: TileStore) -> FitParameters:
+    """The store's own fit parameters (an update refits with them)."""
+    known = {f.name for f in dataclasses.fields(FitParameters)}
+    stored = {k: v for k, v in store.manifest["fit"]["parameters"].items() if k in known}
+    try:
+        if "radial_offsets" in stored:
+            stored["radial_offsets"] = tuple(stored["radial_offsets"])
+        return FitParameters(**stored)
+    except (TypeError, ValueError, FitError) as exc:
+        raise StoreCorruptError(f"{store.path / MANIFEST}: manifest key 'fit.parameters' does not hold the "
+                                f"store's fit parameters ({exc})") from None
+
+
+def _check_writable(root: Path):
+    if not (os.access(root, os.W_OK) and os.access(root / TILE_DIR, os.W_OK)):
+        try:
+            read_only_fs = bool(os.statvfs(root).f_flag & os.ST_RDONLY)
+        except OSError:
+            read_only_fs = False
+        cause = "read-only file system" if read_only_fs else "no permission to write it"
+        raise StoreError(f"{root}: store is read-only ({cause}); nothing was changed")
+
+
 def update_store(path, source, region: Region, blend_width_km: float = 100.0, executor: Executor | None = None,
                  progress=None) -> dict:
     """Replace the store's geoid inside ``region`` by ``source``; return the update report.
 
     Refused before anything is written when the store is read-only or locked by another
     writer, when the source's ellipsoid or tide system differs from the store's, or when
-    the region lies outside the source's extent or the store's region.
+    the region lies outside the source's extent or the store's region. The manifest is
+    read once the writer lock is held, so concurrent updates apply one after the other
+    (a second one started meanwhile is refused, never lost).
+
+    Coverage: the store answers where it did before and, inside ``region``, wherever
+    ``source`` has data; where the source has no data (a national grid's sea, say) the
+    store keeps its own values (the residual fitted there is 0) and its coverage.
     """
     root = Path(path)
-    store = TileStore.open(root)
-    if not (os.access(root, os.W_OK) and os.access(root / TILE_DIR, os.W_OK)):
-        raise StoreError(f"{root}: store is read-only")
     if not blend_width_km >= 0.0:
         raise StoreError(f"blend width must be a non-negative number of km, got {blend_width_km}")
-    _check_compatible(store, source, region)
+    load_manifest(root)  # a store, before a lock file is created in it
+    _check_writable(root)
+    with StoreLock(root):
+        crash_point("after-lock")
+        store = TileStore.open(root)  # the manifest as it is now that the lock is held
+        state = _manifest_state(root)
+        _check_compatible(store, source, region)
+        manifest = store.manifest
+        with _Attempt(root, manifest["store_version"]) as attempt:
+            record, new_manifest = _update(root, store, source, region, blend_width_km, executor, progress, attempt)
+            commit(root, new_manifest, keep_files=[e["file"] for e in manifest["tiles"]], expect_state=state,
+                   attempt=attempt)
+    return record
+
+
+def _update(root, store, source, region, blend_width_km, executor, progress, attempt):
+    """Fit the update and write its tile files; (history record, new manifest)."""
     manifest = store.manifest
-    known = {f.name for f in dataclasses.fields(FitParameters)}
-    stored = {k: v for k, v in manifest["fit"]["parameters"].items() if k in known}
-    stored["radial_offsets"] = tuple(stored["radial_offsets"])
-    params = FitParameters(**stored)
+    params = _stored_parameters(store)
     blend_deg = blend_width_km / KM_PER_DEGREE
     zone = region.expanded(blend_deg) if blend_deg > 0 else region
 
-    with StoreLock(root):
-        # data wherever a B-spline centred in the zone is non-zero
-        reach = math.degrees((params.order / 2.0 + 1.0) * params.h0)
-        sample = source.nodes(clip_to_extent(zone.expanded(reach), source), spacing_deg=params.sample_spacing_deg)
-        lat2, lon2 = np.meshgrid(sample.latitude, sample.longitude, indexing="ij")
-        old = store.spline.undulation(lat2, lon2)
-        weight = blend_weight(region, blend_deg, lat2, lon2)
-        residual = np.where(np.isfinite(sample.undulation), weight * (sample.undulation - old), np.nan)
-        delta = fit_nodes(NodeSample(sample.latitude, sample.longitude, residual), zone, params,
-                          refinement=_ResidualRefinement(params.refine_radius, zone), progress=progress, executor=executor,
-                          base_is_overlay=True)
-        merged = _merge(store.spline, delta.spline)
-        inside = region.contains(lat2, lon2) & np.isfinite(sample.undulation)
-        errors = sample.undulation[inside] - merged.undulation(lat2[inside], lon2[inside])
+    # data wherever a B-spline centred in the zone is non-zero
+    reach = math.degrees((params.order / 2.0 + 1.0) * params.h0)
+    sample = source.nodes(clip_to_extent(zone.expanded(reach), source), spacing_deg=params.sample_spacing_deg)
+    lat2, lon2 = np.meshgrid(sample.latitude, sample.longitude, indexing="ij")
+    old = store.spline.full.undulation(lat2, lon2)  # the spline, covered or not
+    weight = blend_weight(region, blend_deg, lat2, lon2)
+    has_new = np.isfinite(sample.undulation)
+    # no new data where the store has its own: keep the store's values there (residual 0)
+    keep_old = ~has_new & np.asarray(store.coverage.covers(lat2, lon2))
+    residual = np.where(has_new, weight * (sample.undulation - old), np.where(keep_old, 0.0, np.nan))
+    try:
+        new_coverage = Coverage.from_sample(sample, region, source.provenance.source)
+    except ValueError as exc:
+        raise FitError(str(exc)) from None
+    delta = fit_nodes(NodeSample(sample.latitude, sample.longitude, residual), zone, params,
+                      refinement=_ResidualRefinement(params.refine_radius, zone), progress=progress, executor=executor,
+                      base_is_overlay=True)
+    merged = _merge(store.spline, delta.spline)
+    inside = region.contains(lat2, lon2) & has_new
+    errors = sample.undulation[inside] - merged.undulation(lat2[inside], lon2[inside])
 
-        version = manifest["store_version"] + 1
-        spline_meta = {"order": params.order, "h0": params.h0, "tile_size": params.tile_size}
-        changed = set(tile_groups(delta.spline, params.tile_size))
-        groups = tile_groups(merged, params.tile_size)
-        node_tile = group_by_tile(directions(lat2[inside], lon2[inside]), params.tile_size)
-        entries = {tuple(e["tile"]): e for e in manifest["tiles"]}
-        crash_point("before-tiles")
-        for key in sorted(changed):
-            tile = tuple(int(v) for v in unpack_keys(np.array([key]))[0])
-            stats = tile_stats(errors[node_tile == key], [])
-            if tile in entries and stats["nodes"] == 0:
-                # outside the region: the old measurements still describe it
-                kept = {k: entries[tile][k] for k in ("max_error_m", "rms_error_m", "check_points",
-                                                      "node_max_error_m", "node_rms_error_m", "nodes")}
-                stats = kept
-            entries[tile] = write_tile_entry(root, key, groups[key], version, spline_meta, stats)
-            crash_point("during-tiles")
-        crash_point("after-tiles")
-        region_stats = error_stats(errors)
-        record = {
-            "action": "update",
-            "time": utc_now(),
-            "store_version": version,
-            "previous_version": manifest["store_version"],
-            "source": source.provenance.source,
-            "sha256": source.provenance.sha256,
-            "model": source.provenance.model,
-            "region": list(region.as_tuple()),
-            "blend_width_km": blend_width_km,
-            "tiles_rewritten": len(changed),
-            "coefficients_added": int(merged.coefficient_count - store.spline.coefficient_count),
-            "levels": [vars(r) for r in delta.levels],
-            "nodes_in_region": region_stats["count"],
-            "max_error_m": region_stats["max_error_m"],
-            "rms_error_m": region_stats["rms_error_m"],
-            "tolerance_m": params.tolerance_m,
-            "converged": bool(delta.converged),
-        }
-        new_manifest = dict(manifest)
-        new_manifest.update({
-            "store_version": version,
-            "updated": record["time"],
-            "spline": dict(manifest["spline"], levels=[
-                {"level": lv.level, "h": lv.h, "coefficients": len(lv)} for lv in merged.levels
-            ], coefficients=merged.coefficient_count),
-            "tiles": [entries[k] for k in sorted(entries)],
-            "history": manifest.get("history", []) + [record],
-        })
-        commit(root, new_manifest, keep_files=[e["file"] for e in manifest["tiles"]])
-    return record
+    version = manifest["store_version"] + 1
+    spline_meta = {"order": params.order, "h0": params.h0, "tile_size": params.tile_size}
+    if manifest.get("store_id"):
+        spline_meta["store_id"] = manifest["store_id"]
+    changed = set(tile_groups(delta.spline, params.tile_size))
+    groups = tile_groups(merged, params.tile_size)
+    node_tile = group_by_tile(directions(lat2[inside], lon2[inside]), params.tile_size)
+    entries = {tuple(e["tile"]): e for e in manifest["tiles"]}
+    crash_point("before-tiles")
+    for key in sorted(changed):
+        tile = tuple(int(v) for v in unpack_keys(np.array([key]))[0])
+        stats = tile_stats(errors[node_tile == key], [])
+        if tile in entries and stats["nodes"] == 0:
+            # outside the region: the old measurements still describe it
+            kept = {k: entries[tile][k] for k in ("max_error_m", "rms_error_m", "check_points",
+                                                  "node_max_error_m", "node_rms_error_m", "nodes")
+                    if k in entries[tile]}
+            stats = kept
+        entries[tile] = write_tile_entry(root, key, groups[key], version, spline_meta, stats, attempt)
+        crash_point("during-tiles")
+    crash_point("after-tiles")
+    region_stats = error_stats(errors)
+    record = {
+        "action": "update",
+        "time": utc_now(),
+        "store_version": version,
+        "previous_version": manifest["store_version"],
+        "source": source.provenance.source,
+        "sha256": source.provenance.sha256,
+        "model": source.provenance.model,
+        "region": list(region.as_tuple()),
+        "blend_width_km": blend_width_km,
+        "tiles_rewritten": len(changed),
+        "coefficients_added": int(merged.coefficient_count - store.spline.coefficient_count),
+        "levels": [vars(r) for r in delta.levels],
+        "nodes_in_region": region_stats["count"],
+        "max_error_m": region_stats["max_error_m"],
+        "rms_error_m": region_stats["rms_error_m"],
+        "tolerance_m": params.tolerance_m,
+        "converged": bool(delta.converged),
+    }
+    new_manifest = dict(manifest)
+    new_manifest.pop("integrity", None)
+    new_manifest.update({
+        "format_version": FORMAT_VERSION,
+        "store_version": version,
+        "updated": record["time"],
+        "coverage": coverage_record(store.coverage.union(new_coverage)),
+        "spline": dict(manifest["spline"], levels=[
+            {"level": lv.level, "h": lv.h, "coefficients": len(lv)} for lv in merged.levels
+        ], coefficients=merged.coefficient_count),
+        "tiles": [entries[k] for k in sorted(entries)],
+        "history": manifest.get("history", []) + [record],
+    })
+    return record, new_manifest
 
 
 def _merge(old: AmbientSpline, delta: AmbientSpline) -> AmbientSpline:

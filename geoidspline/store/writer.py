@@ -3,14 +3,29 @@
 Writing is atomic: tile files are written under new names (they are never changed
 once written), then ``manifest.json`` is replaced with :func:`os.replace`, so a crash
 leaves either the old manifest with its old files or the new one with all of its own.
-Files no manifest names are removed afterwards. A directory without
+Tile files no manifest names are removed afterwards. A directory without
 ``manifest.json`` is not a store (a first write that crashed), and opening it says so.
+
+One writer at a time, enforced by the kernel: a writer holds ``fcntl.flock`` on
+``STORE/.lock`` (the file is never removed; the kernel releases the lock when its
+holder exits or is killed) and reads the manifest only once it holds the lock.
+
+A writer removes only names the store format owns (:func:`~.format.is_store_file`),
+never another file: a directory holding anything else is refused, and with
+``overwrite`` the other files are left where they are. A fault while writing (disk
+full, read-only file system, no permission) is one :class:`StoreError` naming the file
+and the cause; the store's previous version stays as it was.
 """
 
 from __future__ import annotations
 
-import json
+import errno
+import hashlib
+import logging
 import os
+import signal
+import stat
+import uuid
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -22,14 +37,20 @@ from ..bspline import keys as _keys
 from ..bspline.level import cube_of_support_centres
 from ..errors import StoreCorruptError, StoreError
 from ..sphere.coordinates import directions
+from ..sphere.coverage import Coverage
+from .coverage import coverage_record
 from .format import (
     FORMAT_NAME,
     FORMAT_VERSION,
     LOCK,
     MANIFEST,
+    MANIFEST_TMP,
+    MARKER,
     TILE_DIR,
     error_stats,
+    is_store_file,
     load_manifest,
+    manifest_text,
     tile_name,
     utc_now,
     write_tile_file,
@@ -39,6 +60,8 @@ if TYPE_CHECKING:  # annotations only
     from ..fitting.check_points import CheckPoints
     from ..hierarchy.ambient import AmbientSpline
 
+log = logging.getLogger("geoidspline.store")
+
 
 def group_by_tile(dirs, tile_size):
     tiles = np.floor(dirs / tile_size).astype(np.int64)
@@ -47,61 +70,268 @@ def group_by_tile(dirs, tile_size):
 
 
 def crash_point(name):
-    """Test hook: die here, like SIGKILL (no clean-up), when GEOIDSPLINE_CRASH_AT=name."""
+    """Test hooks at the commit points of a write.
+
+    ``GEOIDSPLINE_CRASH_AT=name``: die here like SIGKILL (no clean-up).
+    ``GEOIDSPLINE_STOP_AT=name``: stop here (SIGSTOP), for a test to SIGKILL the process.
+    """
     if os.environ.get("GEOIDSPLINE_CRASH_AT") == name:
         os._exit(77)
+    if os.environ.get("GEOIDSPLINE_STOP_AT") == name:
+        os.kill(os.getpid(), signal.SIGSTOP)
+
+
+# -- faults ---------------------------------------------------------------------------
+
+_CAUSES = {
+    errno.ENOSPC: "no space left on the device (disk full)",
+    errno.EDQUOT: "disk quota exceeded",
+    errno.EROFS: "read-only file system",
+    errno.EACCES: "permission denied",
+    errno.EPERM: "operation not permitted",
+    errno.EIO: "input/output error",
+    errno.EFBIG: "file too large for the file system",
+}
+
+
+def fault_cause(exc: BaseException) -> str:
+    """What went wrong, in words, for an I/O fault (errno first, never a guess)."""
+    if isinstance(exc, OSError) and exc.errno is not None:
+        return _CAUSES.get(exc.errno, exc.strerror or str(exc))
+    if isinstance(exc, MemoryError):
+        return "out of memory"
+    return str(exc) or type(exc).__name__
+
+
+class _Attempt:
+    """The files one write creates; on an I/O fault they are removed again and the fault
+    becomes one :class:`StoreError` naming the file being written and the cause."""
+
+    def __init__(self, root: Path, previous_version):
+        self.root = root
+        self.previous_version = previous_version
+        self.created: list[Path] = []
+        self.current: Path = root
+
+    def writing(self, path: Path):
+        self.current = path
+        return path
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, exc, tb):
+        if exc is None or not isinstance(exc, (OSError, RuntimeError, MemoryError)) or isinstance(exc, StoreError):
+            return False
+        for path in self.created:
+            try:
+                path.unlink(missing_ok=True)
+            except OSError:
+                pass
+        kept = (f"the store's version {self.previous_version} is unchanged" if self.previous_version
+                else "no store was written")
+        raise StoreError(f"{self.current}: cannot write the store {self.root}: {fault_cause(exc)}; {kept}") from None
+
+
+def _netcdf_fault(directory: Path, exc: Exception) -> BaseException:
+    """netCDF/HDF5 report a failed write as 'NetCDF: HDF error', or as 'Permission
+    denied' on a full disk: find the cause from the file system while the partial file
+    still exists."""
+    if isinstance(exc, OSError) and exc.errno not in (errno.EACCES, errno.EPERM, None):
+        return exc  # a cause the library did name
+    try:
+        st = os.statvfs(directory)
+    except OSError:
+        return exc
+    if st.f_flag & os.ST_RDONLY:
+        return OSError(errno.EROFS, f"Read-only file system ({exc})")
+    if isinstance(exc, OSError) and not os.access(directory, os.W_OK):
+        return exc  # really no permission
+    if st.f_bavail * st.f_frsize < (1 << 20) or (st.f_files and st.f_favail == 0):
+        return OSError(errno.ENOSPC, f"No space left on device ({exc}; {st.f_bavail * st.f_frsize} bytes free)")
+    return exc
+
+
+def _write_tile(path: Path, tile, levels, indices, values, attrs):
+    try:
+        write_tile_file(path, tile, levels, indices, values, attrs)
+    except (RuntimeError, OSError) as exc:
+        raise _netcdf_fault(path.parent, exc) from None
+
+
+# -- the lock -------------------------------------------------------------------------
 
 
 class StoreLock:
-    """Exclusive writer lock of a store: ``STORE/.lock`` holding the writer's pid.
+    """Exclusive writer lock of a store: ``fcntl.flock`` on ``STORE/.lock``.
 
-    Created with O_EXCL, so two writers cannot both take it; a lock whose process is
-    gone (a killed writer) is taken over with a warning.
+    Taken without waiting: a store another process is writing is refused with a
+    :class:`StoreError` naming that process. The kernel releases the lock when its
+    holder exits or is killed, so a dead writer never blocks the next one; the file
+    itself is never removed (removing it would let two writers lock two different
+    files) and holds the holder's pid for messages only. Worker processes forked while
+    the lock is held share it until they exit.
     """
 
     def __init__(self, root: Path):
-        self.path = Path(root) / LOCK
+        self.root = Path(root)
+        self.path = self.root / LOCK
+        self.fd: int | None = None
 
     def __enter__(self):
-        for _ in range(2):
-            try:
-                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-            except FileExistsError:
-                try:
-                    pid = int(self.path.read_text().strip() or 0)
-                except (OSError, ValueError):
-                    pid = 0
-                if pid and _process_alive(pid):
-                    raise StoreError(
-                        f"{self.path.parent}: another writer (pid {pid}) is updating this store; "
-                        f"try again when it has finished"
-                    ) from None
-                import logging
+        import fcntl
 
-                logging.getLogger("geoidspline.store").warning(
-                    "%s: removing the stale lock of pid %s, which is gone", self.path.parent, pid or "?")
-                self.path.unlink(missing_ok=True)
-                continue
-            except PermissionError:
-                raise StoreError(f"{self.path.parent}: not writable (cannot create {LOCK})") from None
-            with os.fdopen(fd, "w") as fh:
-                fh.write(str(os.getpid()))
-            return self
-        raise StoreError(f"{self.path.parent}: cannot take the writer lock")
+        try:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, 0o644)
+        except OSError as exc:
+            if exc.errno == errno.ELOOP:
+                raise StoreCorruptError(f"{self.path}: is a symbolic link, not the store's lock file") from None
+            raise StoreError(f"{self.root}: cannot take the writer lock {LOCK}: {fault_cause(exc)}") from None
+        try:
+            mode = os.fstat(fd).st_mode
+            if not stat.S_ISREG(mode):
+                raise StoreCorruptError(f"{self.path}: is not a regular file, not the store's lock file")
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = _read_pid(fd)
+                raise StoreError(
+                    f"{self.root}: another writer{f' (pid {holder})' if holder else ''} is writing this store; "
+                    f"try again when it has finished"
+                ) from None
+            except OSError as exc:
+                raise StoreError(f"{self.root}: cannot take the writer lock {LOCK}: {fault_cause(exc)}") from None
+        except BaseException:
+            os.close(fd)
+            raise
+        try:  # for messages only: a full disk must not stop the writer here
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        except OSError:
+            pass
+        self.fd = fd
+        return self
 
     def __exit__(self, *exc):
-        self.path.unlink(missing_ok=True)
+        import fcntl
+
+        fd, self.fd = self.fd, None
+        if fd is not None:
+            try:
+                os.ftruncate(fd, 0)
+            except OSError:
+                pass
+            fcntl.flock(fd, fcntl.LOCK_UN)
+            os.close(fd)
         return False
 
 
-def _process_alive(pid: int) -> bool:
+def _read_pid(fd) -> int | None:
     try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
+        text = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
+        return int(text) if text.isdigit() else None
+    except (OSError, ValueError):
+        return None
+
+
+# -- the directory --------------------------------------------------------------------
+
+
+def scan_directory(root: Path) -> tuple[list[str], list[str]]:
+    """(names the store format owns, every other name) in ``root`` and ``root/tiles``,
+    relative to ``root``; an empty ``tiles`` directory counts as neither."""
+    ours, others = [], []
+    with os.scandir(root) as entries:
+        for entry in entries:
+            name = entry.name
+            if name == TILE_DIR and entry.is_dir(follow_symlinks=False):
+                with os.scandir(entry.path) as tiles:
+                    for tile in tiles:
+                        rel = f"{TILE_DIR}/{tile.name}"
+                        (ours if is_store_file(rel) and tile.is_file(follow_symlinks=False) else others).append(rel)
+            elif is_store_file(name) and entry.is_file(follow_symlinks=False):
+                ours.append(name)
+            else:
+                others.append(name)
+    return sorted(ours), sorted(others)
+
+
+def _manifest_state(root: Path) -> str | None:
+    """sha256 of the bytes of manifest.json, None when there is none (to see a change)."""
+    try:
+        with open(root / MANIFEST, "rb") as fh:
+            return hashlib.sha256(fh.read()).hexdigest()
+    except FileNotFoundError:
+        return None
+
+
+def _previous_store(root: Path, overwrite: bool) -> dict | None:
+    """The manifest of the store at ``root`` that a new write replaces, or None.
+
+    Refuses (before anything is written) a directory that is not a store, a store
+    without ``overwrite``, and leftovers of an unfinished write without ``overwrite``.
+    """
+    if not root.exists():
+        return None
+    if root.is_symlink() and not root.is_dir():
+        raise StoreError(f"{root}: exists and is not a directory")
+    if not root.is_dir():
+        raise StoreError(f"{root}: exists and is not a directory")
+    try:
+        ours, others = scan_directory(root)
+    except OSError as exc:
+        raise StoreError(f"{root}: cannot be listed: {fault_cause(exc)}") from None
+    if (root / TILE_DIR).is_symlink() or ((root / TILE_DIR).exists() and not (root / TILE_DIR).is_dir()):
+        raise StoreError(f"{root / TILE_DIR}: is not a directory of a store (a symbolic link or a file); refusing "
+                         f"to write through it")
+    if MANIFEST in ours:
+        try:
+            previous = load_manifest(root)
+        except StoreCorruptError as exc:
+            if not overwrite:
+                raise StoreError(f"{root}: a damaged store is here ({exc}); pass overwrite=True to replace it") \
+                    from None
+            return None  # replacing a damaged store is what --overwrite is for
+        except StoreError as exc:
+            raise StoreError(f"{root}: {exc}; refusing to replace it") from None
+        if not overwrite:
+            raise StoreError(f"{root}: a store already exists here (pass overwrite=True to replace it)")
+        return previous
+    leftovers = [name for name in ours if name not in (LOCK, MARKER)]
+    if leftovers:
+        if not overwrite:
+            raise StoreError(
+                f"{root}: holds the leftovers of a store write that did not finish ({len(leftovers)} files such as "
+                f"{leftovers[0]}) and no {MANIFEST}; pass overwrite=True to clear them")
+        return None
+    if others and MARKER not in ours:
+        raise StoreError(f"{root}: directory is not empty and is not a geoidspline store "
+                         f"(it holds {others[0]}); nothing was written")
+    return None
+
+
+def _create_store_directory(root: Path):
+    """Create ``root`` (if needed), its marker and ``tiles/``; the marker comes first so
+    that a write killed at any later point leaves a directory recognised as a store's."""
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+        marker = root / MARKER
+        if not marker.exists():
+            fd = os.open(marker, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
+            try:
+                os.write(fd, b"geoidspline tile store: written by geoidspline, do not put other files here\n")
+            finally:
+                os.close(fd)
+        crash_point("after-marker")
+        (root / TILE_DIR).mkdir(exist_ok=True)
+    except OSError as exc:
+        raise StoreError(f"{root}: cannot create the store directory: {fault_cause(exc)}; no store was written") \
+            from None
+    if (root / TILE_DIR).is_symlink() or not (root / TILE_DIR).is_dir():
+        raise StoreError(f"{root / TILE_DIR}: is not a directory of a store (a symbolic link or a file)")
+
+
+# -- tiles ----------------------------------------------------------------------------
 
 
 def tile_groups(spline: AmbientSpline, tile_size: float) -> dict:
@@ -125,17 +355,21 @@ def tile_groups(spline: AmbientSpline, tile_size: float) -> dict:
     return {int(key): (lvl[order[a:b]], idx[order[a:b]], val[order[a:b]]) for key, a, b in zip(unique, starts, stops)}
 
 
-def write_tile_entry(root, key, group, version, spline_meta, stats) -> dict:
+def write_tile_entry(root, key, group, version, spline_meta, stats, attempt: _Attempt | None = None) -> dict:
     """Write one tile file under a new name and return its manifest entry."""
     lvl, idx, val = group
     tile = _keys.unpack_keys(np.array([key]))[0]
     name = tile_name(tile, version)
-    write_tile_file(root / TILE_DIR / name, tile, lvl, idx, val, spline_meta)
+    path = root / TILE_DIR / name
+    if attempt is not None:
+        attempt.writing(path)
+        attempt.created.append(path)
+    _write_tile(path, tile, lvl, idx, val, {**spline_meta, "store_version": version})
     return {
         "tile": [int(v) for v in tile],
         "file": f"{TILE_DIR}/{name}",
-        "bytes": (root / TILE_DIR / name).stat().st_size,
-        "sha256": sha256_file(root / TILE_DIR / name),
+        "bytes": path.stat().st_size,
+        "sha256": sha256_file(path),
         "coefficients": int(val.size),
         "levels": [int(v) for v in np.unique(lvl)],
         **stats,
@@ -155,25 +389,55 @@ def tile_stats(node_errors, check_errors):
     }
 
 
-def commit(root: Path, manifest: dict, keep_files=()):
+# -- the commit -----------------------------------------------------------------------
+
+
+def _write_all(fd, data: bytes):
+    view = memoryview(data)
+    while view:
+        written = os.write(fd, view)
+        view = view[written:]
+
+
+def commit(root: Path, manifest: dict, keep_files=(), expect_state: str | None = None,
+           attempt: _Attempt | None = None):
     """Make ``manifest`` the store's state in one atomic rename, then remove tile files
     that neither it nor ``keep_files`` (the previous version's, for readers that
-    opened it just before) name."""
+    opened it just before) name. Only names the store format owns are removed.
+
+    ``expect_state`` is :func:`_manifest_state` as the writer read it under the lock:
+    a manifest changed since (a writer that ignored the lock) is never overwritten.
+    """
     fsync_dir(root / TILE_DIR)
     crash_point("before-manifest")
-    tmp = root / (MANIFEST + ".tmp")
-    with open(tmp, "w") as fh:
-        json.dump(manifest, fh, indent=1)
-        fh.flush()
-        os.fsync(fh.fileno())
+    if _manifest_state(root) != expect_state:
+        raise StoreError(f"{root}: the store changed while this write ran (another writer ignored the lock); "
+                         "nothing was committed: run it again")
+    tmp = root / MANIFEST_TMP
+    if attempt is not None:
+        attempt.writing(tmp)
+        attempt.created.append(tmp)
+    tmp.unlink(missing_ok=True)  # a killed writer's; never followed if a symlink
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
+    try:
+        _write_all(fd, manifest_text(manifest))
+        os.fsync(fd)
+    finally:
+        os.close(fd)
     crash_point("manifest-written")
     os.replace(tmp, root / MANIFEST)
+    if attempt is not None:
+        attempt.created.clear()  # committed: nothing of this write is to be undone now
     fsync_dir(root)
     crash_point("after-manifest")
     live = {e["file"] for e in manifest["tiles"]} | set(keep_files)
-    for stale in (root / TILE_DIR).iterdir():
-        if f"{TILE_DIR}/{stale.name}" not in live:
-            stale.unlink(missing_ok=True)
+    try:
+        ours, _ = scan_directory(root)
+        for rel in ours:
+            if rel.startswith(f"{TILE_DIR}/") and rel not in live:
+                (root / rel).unlink(missing_ok=True)
+    except OSError as exc:  # committed already: stale files are removed by the next write
+        log.warning("%s: stale tile files not removed (%s)", root, fault_cause(exc))
 
 
 def write_store(path, result, provenance, check: CheckPoints | None = None,
@@ -181,97 +445,97 @@ def write_store(path, result, provenance, check: CheckPoints | None = None,
     """Write a fit (:class:`geoidspline.fitting.driver.FitResult`) as a tile store at ``path``.
 
     An existing store is refused unless ``overwrite``; even then its files stay valid
-    until the new manifest replaces the old one.
+    until the new manifest replaces the old one. A directory that is not a store is
+    refused; leftovers of an unfinished write need ``overwrite``; nothing but the
+    names the store format owns is ever removed.
     """
     root = Path(path)
-    manifest_path = root / MANIFEST
-    previous = None
-    if root.exists() and not root.is_dir():
-        raise StoreError(f"{root}: exists and is not a directory")
-    if manifest_path.exists():
-        if not overwrite:
-            raise StoreError(f"{root}: a store already exists here (pass overwrite=True to replace it)")
-        try:
-            previous = load_manifest(root)
-        except StoreCorruptError:
-            previous = None  # replacing a damaged store is what --overwrite is for
-    elif root.exists() and any(p.name not in (TILE_DIR, LOCK) for p in root.iterdir()):
-        raise StoreError(f"{root}: directory is not empty and is not a geoidspline store")
-    (root / TILE_DIR).mkdir(parents=True, exist_ok=True)
-    if not os.access(root, os.W_OK):
-        raise StoreError(f"{root}: not writable")
+    _previous_store(root, overwrite)  # refuse before writing anything
+    _create_store_directory(root)
     with StoreLock(root):
+        crash_point("after-lock")
+        previous = _previous_store(root, overwrite)  # again, under the lock
+        state = _manifest_state(root)
         version = (previous["store_version"] + 1) if previous else 1
-
-        params = result.parameters
-        spline = result.spline
-        node_tile = group_by_tile(result.node_directions, params.tile_size)
-        check_errors = None
-        if check is not None:
-            check_errors = check.truth - spline.undulation(check.latitude, check.longitude)
-            check_tile = group_by_tile(directions(check.latitude, check.longitude), params.tile_size)
-        spline_meta = {"order": params.order, "h0": params.h0, "tile_size": params.tile_size}
-        entries = []
-        crash_point("before-tiles")
-        for key, group in tile_groups(spline, params.tile_size).items():
-            stats = tile_stats(result.node_errors[node_tile == key],
-                                check_errors[check_tile == key] if check is not None else [])
-            entries.append(write_tile_entry(root, key, group, version, spline_meta, stats))
-            crash_point("during-tiles")
-        crash_point("after-tiles")
-
-        node_stats = error_stats(result.node_errors)
-        check_stats = error_stats(check_errors if check is not None else [])
-        manifest = {
-            "format": FORMAT_NAME,
-            "format_version": FORMAT_VERSION,
-            "store_version": version,
-            "created": previous["created"] if previous else utc_now(),
-            "updated": utc_now(),
-            "software": f"geoidspline {__version__}",
-            "provenance": provenance.as_dict(),
-            "region": list(result.region.as_tuple()),
-            "spline": {
-                "reference_manifold": "unit sphere; direction u = (cos lat cos lon, cos lat sin lon, sin lat)",
-                "order": params.order,
-                "h0": params.h0,
-                "tile_size": params.tile_size,
-                "levels": [
-                    {"level": lv.level, "h": lv.h, "coefficients": len(lv)} for lv in spline.levels
-                ],
-                "coefficients": spline.coefficient_count,
-            },
-            "fit": {
-                "method": "hierarchical overlays (Lehmann 2013, section 5.2)",
-                "parameters": params.as_dict(),
-                "tolerance_m": params.tolerance_m,
-                "converged": bool(result.converged),
-                "seconds": round(result.seconds, 3),
-                "level_reports": [vars(r) for r in result.levels],
-                **(extra or {}),
-            },
-            "accuracy": {
-                "nodes": node_stats["count"],
-                "node_max_error_m": node_stats["max_error_m"],
-                "node_rms_error_m": node_stats["rms_error_m"],
-                "node_p99_error_m": node_stats["p99_error_m"],
-                "check_points": check_stats["count"],
-                "check_truth": check.description if check is not None else None,
-                "max_error_m": check_stats["max_error_m"],
-                "rms_error_m": check_stats["rms_error_m"],
-                "p99_error_m": check_stats["p99_error_m"],
-                "units": "m",
-            },
-            "tiles": entries,
-            "history": (previous.get("history", []) if previous else []) + [{
-                "action": "fit",
-                "time": utc_now(),
-                "store_version": version,
-                "source": provenance.source,
-                "sha256": provenance.sha256,
-                "region": list(result.region.as_tuple()),
-            }],
-        }
-        keep = [e["file"] for e in previous["tiles"]] if previous else []
-        commit(root, manifest, keep)
+        with _Attempt(root, previous["store_version"] if previous else None) as attempt:
+            manifest = _fit_manifest(root, result, provenance, check, previous, version, extra, attempt)
+            keep = [e["file"] for e in previous["tiles"]] if previous else []
+            commit(root, manifest, keep, expect_state=state, attempt=attempt)
     return root
+
+
+def _fit_manifest(root, result, provenance, check, previous, version, extra, attempt) -> dict:
+    """Write the fit's tile files; return the manifest naming them."""
+    params = result.parameters
+    spline = result.spline
+    store_id = uuid.uuid4().hex
+    node_tile = group_by_tile(result.node_directions, params.tile_size)
+    check_errors = None
+    if check is not None:
+        check_errors = check.truth - spline.undulation(check.latitude, check.longitude)
+        check_tile = group_by_tile(directions(check.latitude, check.longitude), params.tile_size)
+    spline_meta = {"order": params.order, "h0": params.h0, "tile_size": params.tile_size, "store_id": store_id}
+    entries = []
+    crash_point("before-tiles")
+    for key, group in tile_groups(spline, params.tile_size).items():
+        stats = tile_stats(result.node_errors[node_tile == key],
+                           check_errors[check_tile == key] if check is not None else [])
+        entries.append(write_tile_entry(root, key, group, version, spline_meta, stats, attempt))
+        crash_point("during-tiles")
+    crash_point("after-tiles")
+
+    coverage = result.coverage if result.coverage is not None else Coverage.of_region(result.region)
+    node_stats = error_stats(result.node_errors)
+    check_stats = error_stats(check_errors if check is not None else [])
+    return {
+        "format": FORMAT_NAME,
+        "format_version": FORMAT_VERSION,
+        "store_version": version,
+        "store_id": store_id,
+        "created": previous["created"] if previous else utc_now(),
+        "updated": utc_now(),
+        "software": f"geoidspline {__version__}",
+        "provenance": provenance.as_dict(),
+        "region": list(result.region.as_tuple()),
+        "coverage": coverage_record(coverage, provenance.source),
+        "spline": {
+            "reference_manifold": "unit sphere; direction u = (cos lat cos lon, cos lat sin lon, sin lat)",
+            "order": params.order,
+            "h0": params.h0,
+            "tile_size": params.tile_size,
+            "levels": [
+                {"level": lv.level, "h": lv.h, "coefficients": len(lv)} for lv in spline.levels
+            ],
+            "coefficients": spline.coefficient_count,
+        },
+        "fit": {
+            "method": "hierarchical overlays (Lehmann 2013, section 5.2)",
+            "parameters": params.as_dict(),
+            "tolerance_m": params.tolerance_m,
+            "converged": bool(result.converged),
+            "seconds": round(result.seconds, 3),
+            "level_reports": [vars(r) for r in result.levels],
+            **(extra or {}),
+        },
+        "accuracy": {
+            "nodes": node_stats["count"],
+            "node_max_error_m": node_stats["max_error_m"],
+            "node_rms_error_m": node_stats["rms_error_m"],
+            "node_p99_error_m": node_stats["p99_error_m"],
+            "check_points": check_stats["count"],
+            "check_truth": check.description if check is not None else None,
+            "max_error_m": check_stats["max_error_m"],
+            "rms_error_m": check_stats["rms_error_m"],
+            "p99_error_m": check_stats["p99_error_m"],
+            "units": "m",
+        },
+        "tiles": entries,
+        "history": (previous.get("history", []) if previous else []) + [{
+            "action": "fit",
+            "time": utc_now(),
+            "store_version": version,
+            "source": provenance.source,
+            "sha256": provenance.sha256,
+            "region": list(result.region.as_tuple()),
+        }],
+    }
