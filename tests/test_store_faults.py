@@ -33,7 +33,6 @@ from geoidspline.hierarchy.ambient import AmbientSpline
 from geoidspline.sources.base import Provenance
 from geoidspline.sources.grid import GeoidGrid
 from geoidspline.sphere.region import Region
-from geoidspline.store.format import manifest_text
 from geoidspline.store.reader import verify_store
 from geoidspline.store.update import update_store
 from geoidspline.store.writer import StoreLock, commit, write_store
