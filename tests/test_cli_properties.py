@@ -127,7 +127,8 @@ def row(draw):
     if kind == "junk":
         return draw(junk_text) + draw(st.sampled_from(["", ",", ",30", ",abc,1"]))
     if kind == "hemisphere":
-        return f"{draw(inside_lat):.2f}{draw(st.sampled_from('NS'))},{draw(inside_lon):.2f}{draw(st.sampled_from('EW'))}"
+        lat, lon = draw(inside_lat), draw(inside_lon)
+        return f"{lat:.2f}{draw(st.sampled_from('NS'))},{lon:.2f}{draw(st.sampled_from('EW'))}"
     if kind == "inside":
         lat, lon = draw(number_field(inside_lat)), draw(number_field(inside_lon))
     elif kind == "wrapped":

@@ -116,6 +116,15 @@ def test_crs_input_outside_the_coverage(small_store):
     assert inside.exit_code == 0 and inside.stdout.startswith("20.000000000,30.000000000,")
 
 
+def test_crs_longitudes_beyond_a_million_degrees_are_refused(small_store, api):
+    wrapped_inside = 30.0 + 360.0 * 2778  # 1,000,110: would wrap to 30 E, inside the region
+    bad = query(small_store, "--crs", "EPSG:4326", repr(wrapped_inside), "20")
+    assert_user_error(bad)
+    assert "cannot transform" in bad.stderr
+    sane = query(small_store, "--crs", "EPSG:4326", repr(wrapped_inside - 360.0), "20")
+    assert sane.exit_code == 0 and sane.stdout.strip().endswith("," + fmt(api.undulation(20.0, 30.0)))
+
+
 def test_jsonl_outside_the_coverage(small_store):
     result = query(small_store, "--input", "-", "--format", "jsonl", "--with-error", input="48.85,2.35\n20,30\n")
     assert result.exit_code == 1

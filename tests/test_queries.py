@@ -243,36 +243,43 @@ def test_query_deflection_columns(small_store, store, tmp_path):
 # ----------------------------------------------------------------------------- tile error bounds
 
 
-def nearby_error_by_scan(store, lat, lon):
-    """The bound's measured part by a plain scan: for each point, the largest of
-    max_error_m and node_max_error_m over the tiles whose cube meets u ± order·h0/2
-    (h0 the coarsest spacing); the store's overall figure where none has any."""
+def nearby_by_scan(store, lat, lon):
+    """The bound's parts by a plain scan: for each point, over the tiles whose cube meets
+    u ± order·h0/2 (h0 the coarsest spacing), the largest of max_error_m and
+    node_max_error_m (the store's overall figure where none has any), and the largest
+    excess max(0, max_error_m - node_max_error_m)."""
     meta = store.manifest["spline"]
     size = meta["tile_size"]
     reach = meta["order"] * max([meta["h0"]] + [lv["h"] for lv in meta["levels"]]) / 2
-    figures = {}
+    figures, excesses = {}, {}
     for e in store.manifest["tiles"]:
         known = [v for v in (e["max_error_m"], e["node_max_error_m"]) if v is not None]
         if known:
             figures[tuple(e["tile"])] = max(known)
+        if len(known) == 2:
+            excesses[tuple(e["tile"])] = max(0.0, e["max_error_m"] - e["node_max_error_m"])
     acc = store.manifest["accuracy"]
     overall = max(acc["max_error_m"], acc["node_max_error_m"])
-    out = []
+    nearby, excess = [], []
     for u in directions(np.asarray(lat, float), np.asarray(lon, float)):
         lo = np.floor((u - reach) / size).astype(int)
         hi = np.floor((u + reach) / size).astype(int)
-        near = [figures[(i, j, k)] for i in range(lo[0], hi[0] + 1) for j in range(lo[1], hi[1] + 1)
-                for k in range(lo[2], hi[2] + 1) if (i, j, k) in figures]
-        out.append(max(near) if near else overall)
-    return np.array(out)
+        near = [(i, j, k) for i in range(lo[0], hi[0] + 1) for j in range(lo[1], hi[1] + 1)
+                for k in range(lo[2], hi[2] + 1)]
+        nearby.append(max([figures[t] for t in near if t in figures], default=overall))
+        excess.append(max([excesses[t] for t in near if t in excesses],
+                          default=max(0.0, acc["max_error_m"] - acc["node_max_error_m"])))
+    return np.array(nearby), np.array(excess)
 
 
-def test_tile_error_bound_is_the_factor_times_the_largest_error_measured_nearby(store):
+def test_tile_error_bound_is_the_factor_times_the_largest_error_measured_nearby_plus_the_grid_term(store):
     lat, lon = interior_points(200, seed=9, region=(10.0, 20.0, 30.0, 40.0))
-    nearby = derived.nearby_measured_error(store, lat, lon)
-    np.testing.assert_array_equal(nearby, nearby_error_by_scan(store, lat, lon))
+    nearby, excess = nearby_by_scan(store, lat, lon)
+    np.testing.assert_array_equal(derived.nearby_measured_error(store, lat, lon), nearby)
+    np.testing.assert_array_equal(derived.grid_interpolation_uncertainty(store, lat, lon), excess)
+    assert store.manifest["provenance"]["kind"] == "grid" and excess.max() > 0  # the grid term is in use
     bound = derived.tile_error_bound(store, lat, lon)
-    np.testing.assert_array_equal(bound, derived.ERROR_BOUND_FACTOR * nearby)
+    np.testing.assert_array_equal(bound, derived.ERROR_BOUND_FACTOR * nearby + excess)
     assert np.isfinite(bound).all()  # every point inside the coverage has a bound
     acc = store.manifest["accuracy"]
     assert np.all(nearby <= max(acc["max_error_m"], acc["node_max_error_m"]))
@@ -284,16 +291,26 @@ def test_tile_error_bound_is_the_factor_times_the_largest_error_measured_nearby(
     assert store.error_bound(20.0, 30.0) == derived.tile_error_bound(store, 20.0, 30.0)
 
 
+def test_a_model_store_has_no_grid_term(model_store):
+    store = geoidspline.open_store(model_store)
+    lat, lon = interior_points(50, seed=4, region=MODEL_REGION)
+    assert np.all(derived.grid_interpolation_uncertainty(store, lat, lon) == 0.0)
+    np.testing.assert_array_equal(derived.tile_error_bound(store, lat, lon),
+                                  derived.ERROR_BOUND_FACTOR * derived.nearby_measured_error(store, lat, lon))
+
+
 def test_tile_error_bound_falls_back_to_the_store_figure_for_tiles_without_figures(store):
     """A store whose tiles carry no figures (a tile rewritten by an update has only
     node figures; here none at all) still bounds every covered point, by its overall
-    maximum."""
+    figures."""
     bare = SimpleNamespace(manifest={**store.manifest, "tiles": [
         {**e, "max_error_m": None, "node_max_error_m": None} for e in store.manifest["tiles"]]},
         covers=store.covers)
     acc = store.manifest["accuracy"]
     bound = derived.tile_error_bound(bare, [20.0, 12.5], [30.0, 39.0])
-    np.testing.assert_array_equal(bound, derived.ERROR_BOUND_FACTOR * max(acc["max_error_m"], acc["node_max_error_m"]))
+    overall = max(acc["max_error_m"], acc["node_max_error_m"])
+    excess = max(0.0, acc["max_error_m"] - acc["node_max_error_m"])
+    np.testing.assert_array_equal(bound, derived.ERROR_BOUND_FACTOR * overall + excess)
 
 
 def test_tile_error_bound_holds_against_the_analytic_field(store, analytic, small_store):
