@@ -436,9 +436,9 @@ NGA's F477.
 Every answer is true or refused. A point outside the store's coverage (outside the
 region it was fitted for, or where its source had no data) gets no number: an
 `ERROR: line N: outside the store's coverage (...)` row (for LAT LON: an ERROR line),
-exit status 1; `--outside nan` writes nan (jsonl: null) there instead, exit 0. So do
+exit status 1; `--outside nan` writes nan (jsonl: null) there instead, exit 0.
 NaN, infinite or non-numeric coordinates, a latitude beyond ±90 and a longitude beyond
-±1e6 degrees (not wrapped).
+±1e6 degrees (not wrapped) are errors in any case.
 
 \b
 CSV rows are echoed with the results appended as new columns, in this order
