@@ -15,6 +15,7 @@ from __future__ import annotations
 import errno
 import functools
 import logging
+import os
 import re
 import sys
 
@@ -62,6 +63,14 @@ class _ErrorLines:
         except click.Abort:
             click.echo("ERROR: aborted", err=True)
             sys.exit(130)
+        try:  # what is still buffered, now, while a fault can still be reported
+            sys.stdout.flush()
+        except BrokenPipeError:
+            _discard_stdout()
+        except OSError as exc:
+            _discard_stdout()
+            click.echo(f"ERROR: cannot write to the standard output: {exc.strerror or exc}", err=True)
+            sys.exit(1)
         sys.exit(result if isinstance(result, int) else 0)
 
 
@@ -122,18 +131,72 @@ def store_options(help_text: str, *, positional: bool = False, aliases=()):
     return decorate
 
 
+class OutputError(GeoidSplineError):
+    """The standard output cannot be written (a full disk, a quota, an I/O error)."""
+
+
+class _Output:
+    """The standard output for results: every write flushed, and a fault writing it
+    turned into :class:`OutputError` (a closed pipe stays ``BrokenPipeError``)."""
+
+    def __init__(self, stream):
+        self.stream = stream
+
+    def write(self, text):
+        try:
+            self.stream.write(text)
+            self.stream.flush()
+        except BrokenPipeError:
+            raise
+        except OSError as exc:
+            raise OutputError(f"cannot write to the standard output: {exc.strerror or exc}") from None
+
+
+def output_stream() -> _Output:
+    """Where a command writes its results (the current ``sys.stdout``)."""
+    return _Output(sys.stdout)
+
+
+def echo(message="") -> None:
+    """``click.echo`` of one line of results to the standard output, with the faults of
+    :class:`_Output`."""
+    output_stream().write(f"{message}\n")
+
+
+def _discard_stdout():
+    """Point the standard output at /dev/null, so that the interpreter's last flush of
+    what is still buffered cannot fail again (no "Exception ignored" after our message)."""
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):
+        return  # not a real file (tests): nothing is flushed at exit
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, fd)
+    finally:
+        os.close(devnull)
+
+
 def user_errors(func):
-    """Report GeoidSplineError and file-system faults as one ``ERROR: ...`` line, exit 1."""
+    """Report GeoidSplineError and file-system faults as one ``ERROR: ...`` line, exit 1.
+
+    A closed pipe on the standard output (``| head``) ends the command quietly, exit 0.
+    """
 
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
         try:
             return func(*args, **kwargs)
+        except OutputError as exc:
+            _discard_stdout()
+            click.echo(f"ERROR: {exc}", err=True)
+            sys.exit(1)
         except GeoidSplineError as exc:
             click.echo(f"ERROR: {for_the_command_line(str(exc))}", err=True)
             sys.exit(1)
         except OSError as exc:
             if exc.errno == errno.EPIPE:  # the reader went away (| head): not an error of ours
+                _discard_stdout()
                 sys.exit(0)
             where = f"{exc.filename}: " if exc.filename else ""
             click.echo(f"ERROR: {where}{exc.strerror or exc}", err=True)

@@ -8,7 +8,7 @@ import time
 
 import click
 
-from ._common import command, store_options, user_errors, verbosity_options
+from ._common import command, echo, store_options, user_errors, verbosity_options
 
 log = logging.getLogger("geoidspline.cli")
 
@@ -56,9 +56,9 @@ def main(store_path, out, spacing, region, as_json, quiet, verbose):
         "seconds": round(time.perf_counter() - started, 3),
     }
     if as_json:
-        click.echo(json.dumps(summary, indent=1))
+        echo(json.dumps(summary, indent=1))
         return
-    click.echo(f"wrote {out}: {nlat} x {nlon} nodes every {spacing:g} degrees, "
+    echo(f"wrote {out}: {nlat} x {nlon} nodes every {spacing:g} degrees, "
                f"latitude {summary['south']:g}..{summary['north']:g}, "
                f"longitude {summary['west']:g}..{summary['east']:g}")
 

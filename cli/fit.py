@@ -12,7 +12,7 @@ import click
 from geoidspline.fitting.parameters import FIT_METHODS, FitParameters
 from geoidspline.sources.harmonics.presets import PRESETS
 
-from ._common import command, store_options, user_errors, verbosity_options
+from ._common import command, echo, store_options, user_errors, verbosity_options
 
 log = logging.getLogger("geoidspline.cli")
 
@@ -113,23 +113,23 @@ def main(ctx, source, store_path, update, blend_width, region, tolerance, h0, ma
     info["wall_seconds"] = round(time.perf_counter() - started, 2)
     info["converged"] = bool(result.converged)
     if as_json:
-        click.echo(json.dumps(info, indent=1))
+        echo(json.dumps(info, indent=1))
         sys.exit(0 if result.converged else 3)
-    click.echo(f"store      {out}  ({info['tiles']} tiles, {info['bytes']:,} bytes)")
-    click.echo(f"source     {src.provenance.source} ({src.provenance.model})")
-    click.echo(f"region     S {fit_region.south:g}  W {fit_region.west:g}  N {fit_region.north:g}  E {fit_region.east:g}")
-    click.echo("level  h          coefficients  max|err| m  nodes>tol  seconds")
+    echo(f"store      {out}  ({info['tiles']} tiles, {info['bytes']:,} bytes)")
+    echo(f"source     {src.provenance.source} ({src.provenance.model})")
+    echo(f"region     S {fit_region.south:g}  W {fit_region.west:g}  N {fit_region.north:g}  E {fit_region.east:g}")
+    echo("level  h          coefficients  max|err| m  nodes>tol  seconds")
     for r in result.levels:
-        click.echo(f"{r.level:5d}  {r.h:<9.6g}  {r.coefficients:12,d}  {r.max_error_m:10.4f}  "
+        echo(f"{r.level:5d}  {r.h:<9.6g}  {r.coefficients:12,d}  {r.max_error_m:10.4f}  "
                    f"{r.nodes_above_tolerance:9d}  {r.seconds:7.1f}")
     state = "reached" if result.converged else "NOT reached (raise --max-level)"
-    click.echo(f"total      {info['coefficients']:,} coefficients; tolerance {tolerance:g} m {state}")
-    click.echo(f"nodes      {info['nodes']:,}: max |error| {info['node_max_error_m']:.4f} m, "
+    echo(f"total      {info['coefficients']:,} coefficients; tolerance {tolerance:g} m {state}")
+    echo(f"nodes      {info['nodes']:,}: max |error| {info['node_max_error_m']:.4f} m, "
                f"RMS {info['node_rms_error_m']:.4f} m")
     if info["check_points"]:
-        click.echo(f"check      {info['check_points']:,} points ({info['check_truth']}): "
+        echo(f"check      {info['check_points']:,} points ({info['check_truth']}): "
                    f"max {info['max_error_m']:.4f} m, RMS {info['rms_error_m']:.4f} m")
-    click.echo(f"time       {info['wall_seconds']:.1f} s")
+    echo(f"time       {info['wall_seconds']:.1f} s")
     if not result.converged:
         sys.exit(3)
 

@@ -8,7 +8,7 @@ import click
 
 from geoidspline.sources.harmonics.presets import PRESETS
 
-from ._common import command, store_options, user_errors, verbosity_options
+from ._common import command, echo, store_options, user_errors, verbosity_options
 
 
 @command("info")
@@ -49,12 +49,12 @@ def main(store_path, as_json, model_path, correction_path, preset, points, verif
 
         problems = verify_store(store_path)
         if as_json:
-            click.echo(json.dumps({"store": str(store_path), "ok": not problems, "problems": problems}, indent=1))
+            echo(json.dumps({"store": str(store_path), "ok": not problems, "problems": problems}, indent=1))
         else:
             for problem in problems:
-                click.echo(f"ERROR: {problem}")
+                echo(f"ERROR: {problem}")
             if not problems:
-                click.echo(f"{store_path}: every tile matches the manifest")
+                echo(f"{store_path}: every tile matches the manifest")
         sys.exit(1 if problems else 0)
     store = geoidspline.open_store(store_path)
     info = store.info()
@@ -65,36 +65,36 @@ def main(store_path, as_json, model_path, correction_path, preset, points, verif
         synthesis = load_synthesis(model_path, correction_path, preset, like_store=store)
         info["check_against"] = check_against(store, synthesis, points)
     if as_json:
-        click.echo(json.dumps(info, indent=1))
+        echo(json.dumps(info, indent=1))
         return
     prov = info["provenance"]
-    click.echo(f"store        {info['store']} (format {info['format_version']}, version {info['store_version']})")
-    click.echo(f"source       {prov['source']} sha256 {str(prov['sha256'])[:16]}...")
-    click.echo(f"model        {prov['model']}, ellipsoid {prov['ellipsoid']}, tide system {prov['tide_system']}, "
+    echo(f"store        {info['store']} (format {info['format_version']}, version {info['store_version']})")
+    echo(f"source       {prov['source']} sha256 {str(prov['sha256'])[:16]}...")
+    echo(f"model        {prov['model']}, ellipsoid {prov['ellipsoid']}, tide system {prov['tide_system']}, "
                f"zero-degree term {prov['zero_degree_term_m']} m")
     s, w, n, e = info["region"]
-    click.echo(f"region       S {s:g}  W {w:g}  N {n:g}  E {e:g} (degrees)")
-    click.echo(f"spline       order {info['order']}, h0 {info['h0']:g}, tolerance {info['tolerance_m']:g} m, "
+    echo(f"region       S {s:g}  W {w:g}  N {n:g}  E {e:g} (degrees)")
+    echo(f"spline       order {info['order']}, h0 {info['h0']:g}, tolerance {info['tolerance_m']:g} m, "
                f"{'converged' if info['converged'] else 'tolerance NOT reached'}")
     for lv in info["levels"]:
-        click.echo(f"  level {lv['level']}    h {lv['h']:<10.6g} {lv['coefficients']:>10,d} coefficients")
-    click.echo(f"coefficients {info['coefficients']:,} in {info['tiles']} tiles, {info['bytes']:,} bytes")
-    click.echo(f"data nodes   {info['nodes']:,}: max |error| {info['node_max_error_m']:.4f} m, "
+        echo(f"  level {lv['level']}    h {lv['h']:<10.6g} {lv['coefficients']:>10,d} coefficients")
+    echo(f"coefficients {info['coefficients']:,} in {info['tiles']} tiles, {info['bytes']:,} bytes")
+    echo(f"data nodes   {info['nodes']:,}: max |error| {info['node_max_error_m']:.4f} m, "
                f"RMS {info['node_rms_error_m']:.4f} m")
     if info["check_points"]:
-        click.echo(f"check points {info['check_points']:,}: max {info['max_error_m']:.4f} m, "
+        echo(f"check points {info['check_points']:,}: max {info['max_error_m']:.4f} m, "
                    f"RMS {info['rms_error_m']:.4f} m, 99% {info['p99_error_m']:.4f} m")
-        click.echo(f"             truth: {info['check_truth']}")
+        echo(f"             truth: {info['check_truth']}")
     check = info.get("check_against")
     if check is not None:
         corr = f" + {check['correction']}" if check["correction"] else ""
-        click.echo(f"check against {check['model']}{corr} ({check['model_name']}, degree {check['max_degree']}, "
+        echo(f"check against {check['model']}{corr} ({check['model_name']}, degree {check['max_degree']}, "
                    f"preset {check['preset']})")
-        click.echo(f"             {check['points']:,} random points uniform in area (seed {check['seed']}): "
+        echo(f"             {check['points']:,} random points uniform in area (seed {check['seed']}): "
                    f"max {check['max_error_m']:.4f} m, RMS {check['rms_error_m']:.4f} m, "
                    f"99% {check['p99_error_m']:.4f} m, mean {check['mean_error_m']:+.4f} m")
         if not check["same_source"]:
-            click.echo("             note: the store was not fitted from this model file (sha256 differs): "
+            echo("             note: the store was not fitted from this model file (sha256 differs): "
                        "the figures include its source's own difference from the model")
 
 

@@ -7,6 +7,7 @@ import json
 import logging
 import math
 import os
+import re
 import select
 import sys
 
@@ -14,66 +15,155 @@ import click
 
 from geoidspline.sources.harmonics.presets import PRESETS
 
-from ._common import command, store_options, user_errors, verbosity_options
+from geoidspline.sphere.region import MAX_ABS_POINT_LONGITUDE_DEG
+
+from ._common import command, echo, output_stream, store_options, user_errors, verbosity_options
 
 log = logging.getLogger("geoidspline.cli")
 
 BATCH_BYTES = 1 << 16
 
+#: The UTF-8 byte-order mark some editors put at the start of a CSV file.
+_BOM = b"\xef\xbb\xbf"
+
 DEFLECTION_COLUMNS = ("xi_arcsec", "eta_arcsec", "dNdn_m_per_m", "dNde_m_per_m")
 HEIGHT_OUTPUT = {"ellipsoidal": "orthometric_height_m", "orthometric": "ellipsoidal_height_m"}
 
 
-def _line_batches(stream):
-    """Yield lists of complete lines (str, without newline) as soon as they arrive.
+def _byte_chunks(stream):
+    """Yield the stream's bytes in chunks as soon as they arrive.
 
     Reads whatever the stream has ready (up to 64 KiB) instead of waiting for a full
     batch, so a co-process sending one line gets its answer at once while a file or
-    pipe is processed in large vectorised batches.
+    pipe is processed in large vectorised batches. Every kind of stream is read as
+    bytes, so lines are split the same way (on LF only) whatever it is.
     """
     try:
         fd = stream.fileno()
     except (AttributeError, OSError, ValueError):
         fd = None
-    if fd is None or getattr(stream, "buffer", None) is None:
-        batch = []
-        for line in stream:
-            batch.append(line.rstrip("\r\n"))
-            if len(batch) >= 4096:
-                yield batch
-                batch = []
-        if batch:
-            yield batch
-        return
+    buffer = getattr(stream, "buffer", None)
+    if fd is not None and buffer is not None:
+        while True:
+            chunk = os.read(fd, BATCH_BYTES)
+            if not chunk:
+                return
+            # take more while it is already there, up to one batch
+            while len(chunk) < BATCH_BYTES and select.select([fd], [], [], 0)[0]:
+                more = os.read(fd, BATCH_BYTES)
+                if not more:
+                    break
+                chunk += more
+            yield chunk
+    elif buffer is not None:
+        read = getattr(buffer, "read1", None) or buffer.read
+        while chunk := read(BATCH_BYTES):
+            yield chunk
+    else:  # a text stream without bytes underneath (io.StringIO)
+        while text := stream.read(BATCH_BYTES):
+            yield text.encode("utf-8", "surrogatepass")
+
+
+def _line_batches(stream):
+    """Yield lists of complete lines (str, without LF or a final CR) as they arrive.
+
+    Bytes that are not UTF-8 become U+FFFD (the row is then reported as bad); a UTF-8
+    byte-order mark at the start of the stream is dropped.
+    """
     pending = b""
-    while True:
-        chunk = os.read(fd, BATCH_BYTES)
-        if not chunk:
-            break
+    bom_checked = False
+    for chunk in _byte_chunks(stream):
         pending += chunk
-        # take more while it is already there, up to one batch
-        while len(pending) < BATCH_BYTES and select.select([fd], [], [], 0)[0]:
-            more = os.read(fd, BATCH_BYTES)
-            if not more:
-                break
-            pending += more
+        if not bom_checked:
+            if len(pending) < len(_BOM) and b"\n" not in pending:
+                continue  # the bytes of a BOM may still be arriving
+            pending = pending.removeprefix(_BOM)
+            bom_checked = True
         *lines, pending = pending.split(b"\n")
         if lines:
             yield [ln.decode("utf-8", "replace").rstrip("\r") for ln in lines]
+    if not bom_checked:
+        pending = pending.removeprefix(_BOM)
     if pending:
         yield [pending.decode("utf-8", "replace").rstrip("\r")]
 
 
-def _looks_like_header(line, lat_col, lon_col):
-    parts = [p.strip() for p in line.split(",")]
-    if len(parts) <= max(lat_col, lon_col):
-        return False
+def _unquoted(field):
+    """A field without surrounding blanks and one pair of double quotes (CSV quoting)."""
+    field = field.strip()
+    if len(field) >= 2 and field[0] == field[-1] == '"':
+        field = field[1:-1].strip()
+    return field
+
+
+def _number(field):
+    """The float in a (possibly quoted) CSV field; ValueError if it holds none."""
+    return float(_unquoted(field))
+
+
+#: A column name: a letter or underscore, then letters, digits, underscores, blanks,
+#: '.' or '-', optionally a unit in brackets: lat, Latitude, lon_deg, "y (m)", x [m].
+_NAME = re.compile(r"[^\W\d][\w .\-]*?(\s*[(\[][^()\[\]]*[)\]])?")
+#: A hemisphere letter before a number (N45.2, s 33.4) is a coordinate, not a name.
+_HEMISPHERE_FIRST = re.compile(r"[NSEWnsew]\s*[-+]?[0-9.]")
+
+
+def _is_name(field):
+    """Whether a field looks like a column name (see :data:`_NAME`) and not a number."""
+    text = _unquoted(field)
     try:
-        float(parts[lat_col])
-        float(parts[lon_col])
+        float(text)
+        return False  # nan, inf, 1e5: numbers, even when spelled with letters
     except ValueError:
-        return True
-    return False
+        pass
+    return bool(_NAME.fullmatch(text)) and not _HEMISPHERE_FIRST.match(text)
+
+
+def _looks_like_header(line, coord_columns):
+    """The header rule: the first non-blank line is a header when every coordinate
+    field of it is a column name (:func:`_is_name`). So ``lat,lon`` is a header while
+    ``-33.45S,-70.66W``, ``abc,30`` or ``N45,E7`` are data rows (bad ones)."""
+    parts = line.split(",")
+    if len(parts) <= max(coord_columns):
+        return False
+    return all(_is_name(parts[c]) for c in coord_columns)
+
+
+def _geodetic_problem(latitude, longitude):
+    """Why a finite latitude/longitude (degrees) cannot be answered, or None."""
+    if abs(latitude) > 90.0:
+        return f"latitude {latitude:g} is outside [-90, 90] degrees"
+    if abs(longitude) > MAX_ABS_POINT_LONGITUDE_DEG:
+        return (f"longitude {longitude:g} is beyond ±{MAX_ABS_POINT_LONGITUDE_DEG:g} degrees "
+                f"(not wrapped: a value this large is a mistake)")
+    return None
+
+
+def coverage(store, latitude, longitude):
+    """Which points (1-D degrees) a store covers, and a message for each one it does not.
+
+    Returns (covered mask, {position: message}). The reason comes from the store's
+    ``coverage_reason`` where it has one (outside the region, no data in the source
+    here); a store without it covers its region.
+    """
+    import numpy as np
+
+    covered = np.asarray(store.covers(latitude, longitude), dtype=bool).reshape(-1)
+    outside = np.flatnonzero(~covered)
+    messages = {}
+    if outside.size:
+        s, w, n, e = store.manifest["region"]
+        where = f"S {s:g} W {w:g} N {n:g} E {e:g}"
+        reason_of = getattr(store, "coverage_reason", None)
+        reasons = ["outside the region"] * outside.size
+        if callable(reason_of):
+            reasons = [str(r) for r in np.asarray(reason_of(latitude[outside], longitude[outside]),
+                                                  dtype=object).reshape(-1)]
+        for k, reason in zip(outside.tolist(), reasons):
+            if reason == "outside the region":
+                reason = f"outside its region {where}"
+            messages[k] = f"outside the store's coverage ({reason})"
+    return covered, messages
 
 
 class Query:
@@ -83,10 +173,16 @@ class Query:
     x, y in 0, 1 (always_xy order) and, for a 3D CRS, z in 2. With ``height_in`` (2D
     input) the height is in ``height_column``; with a 3D CRS the ellipsoidal height is
     the one the CRS conversion gives.
+
+    A row gets values only when they are true: its coordinates are finite numbers in
+    range (latitude within ±90°, longitude within ±1e6° before wrapping) and, for a
+    store, the point is inside the store's coverage. Otherwise the row is a problem
+    (an ``ERROR`` row), except that with ``outside="nan"`` a point outside the coverage
+    gets NaN values instead.
     """
 
     def __init__(self, source, *, is_store, deflection=False, height_in=None, height_column=None,
-                 crs=None, with_error=False, precision=4, fmt="csv"):
+                 crs=None, with_error=False, precision=4, fmt="csv", outside="error"):
         self.source = source
         self.is_store = is_store
         self.deflection = deflection
@@ -95,6 +191,7 @@ class Query:
         self.with_error = with_error
         self.precision = precision
         self.fmt = fmt
+        self.outside = outside
         self.crs_dim = 2
         if crs is not None:
             from geoidspline.query.crs import crs_info
@@ -106,8 +203,13 @@ class Query:
         else:
             self.coord_columns = (0, 1)
             self.height_column = (2 if height_column is None else height_column) if height_in else None
+        if self.height_column is not None and self.height_column in self.coord_columns:
+            raise ValueError(f"height column {self.height_column} is a coordinate column")
         needed = list(self.coord_columns) + ([self.height_column] if self.height_column is not None else [])
+        #: fields a row needs at least
         self.width = max(needed) + 1
+        #: parsed numbers per row: the coordinates, then the height (if any)
+        self.slots = len(self.coord_columns) + (self.height_column is not None)
         # output columns: (name, kind) with kind deg | m | arcsec | ratio
         columns = []
         if crs is not None:
@@ -130,14 +232,15 @@ class Query:
     def parse(self, rows, line_numbers):
         """Split rows into fields and parse the numbers; return (fields, numbers, problems).
 
-        ``numbers`` has shape (len(rows), width) with NaN where unused or bad.
+        ``numbers`` has shape (len(rows), slots): the coordinates, then the height, NaN
+        in rows with a problem; ``problems`` maps a row's position to its message.
         """
         import numpy as np
 
         fast = self._parse_plain(rows)
         if fast is not None:
             return fast
-        numbers = np.full((len(rows), self.width), np.nan)
+        numbers = np.full((len(rows), self.slots), np.nan)
         problems = {}
         fields = []
         names = "x/y" if self.crs is not None else "latitude/longitude"
@@ -153,7 +256,7 @@ class Query:
                 continue
             coords = [parts[c] for c in self.coord_columns]
             try:
-                values = [float(v) for v in coords]
+                values = [_number(v) for v in coords]
             except ValueError:
                 shown = ", ".join(repr(v) for v in coords)
                 problems[i] = f"line {n}: {names} are not numbers: {shown}"
@@ -162,22 +265,23 @@ class Query:
                 shown = ", ".join(repr(v) for v in coords)
                 problems[i] = f"line {n}: {names} must be finite numbers, got {shown}"
                 continue
-            if self.crs is None and abs(values[0]) > 90.0:
-                problems[i] = f"line {n}: latitude {values[0]:g} is outside [-90, 90] degrees"
-                continue
+            if self.crs is None:
+                problem = _geodetic_problem(values[0], values[1])
+                if problem:
+                    problems[i] = f"line {n}: {problem}"
+                    continue
             if self.height_column is not None:
                 token = parts[self.height_column]
                 try:
-                    height = float(token)
+                    height = _number(token)
                 except ValueError:
                     problems[i] = f"line {n}: {self.height_in} height (column {self.height_column}) is not a number: {token!r}"
                     continue
                 if not math.isfinite(height):
                     problems[i] = f"line {n}: {self.height_in} height must be a finite number, got {token!r}"
                     continue
-                numbers[i, self.height_column] = height
-            for c, v in zip(self.coord_columns, values):
-                numbers[i, c] = v
+                numbers[i, -1] = height
+            numbers[i, : len(values)] = values
         return fields, numbers, problems
 
     def _parse_plain(self, rows):
@@ -195,11 +299,10 @@ class Query:
                                 dtype=np.float64, ndmin=2, comments=None)
         except ValueError:
             return None
-        if coords.shape[0] != len(rows) or not np.all(np.isfinite(coords)) or np.any(np.abs(coords[:, 0]) > 90.0):
+        if (coords.shape[0] != len(rows) or not np.all(np.isfinite(coords)) or np.any(np.abs(coords[:, 0]) > 90.0)
+                or np.any(np.abs(coords[:, 1]) > MAX_ABS_POINT_LONGITUDE_DEG)):
             return None
-        numbers = np.full((len(rows), self.width), np.nan)
-        numbers[:, list(self.coord_columns)] = coords
-        return _SplitRows(rows), numbers, {}
+        return _SplitRows(rows), coords, {}
 
     def _layout(self):
         if self.crs is None:
@@ -209,19 +312,27 @@ class Query:
         else:
             names = ["x", "y"]
         if self.height_column is not None:
-            names = names + ["..."] * (self.height_column - len(names)) + [f"{self.height_in} height"]
+            gap = self.height_column - len(names)
+            names = names + ["..."] * min(gap, 1) + [f"{self.height_in} height in column {self.height_column}"]
         return ",".join(names)
 
     # -- evaluation -----------------------------------------------------------------
     def evaluate(self, numbers, line_numbers, problems):
-        """Output values (len, ncolumns) for the rows without problems; adds problems."""
+        """Output values (len, ncolumns) for the rows without problems; adds problems.
+
+        A store is asked only at the points it covers; a point outside its coverage is a
+        problem, or (``outside="nan"``) a row of NaN values; so is a NaN the source
+        returns anywhere else (never printed as if it were a value).
+        """
         import numpy as np
 
         count = numbers.shape[0]
         out = np.full((count, len(self.columns)), np.nan)
         lat = np.full(count, np.nan)
         lon = np.full(count, np.nan)
-        good = np.array([i not in problems for i in range(count)], dtype=bool)
+        good = np.ones(count, dtype=bool)
+        if problems:
+            good[list(problems)] = False
         h_known = None
         if self.crs is None:
             lat[good], lon[good] = numbers[good, 0], numbers[good, 1]
@@ -235,9 +346,19 @@ class Query:
             h_known[good] = h
             for i in np.flatnonzero(good & ~(np.isfinite(lat) & np.isfinite(lon))):
                 problems[int(i)] = (f"line {line_numbers[i]}: cannot transform "
-                                    f"{tuple(float(v) for v in numbers[i, list(self.coord_columns)])} "
+                                    f"{tuple(float(v) for v in numbers[i, :len(self.coord_columns)])} "
                                     f"from {self.crs} to WGS84 latitude/longitude")
                 good[i] = False
+        if self.crs is not None:
+            out[:, 0], out[:, 1] = lat, lon  # the converted position, even outside the coverage
+        if self.is_store and good.any():
+            idx = np.flatnonzero(good)
+            covered, reasons = coverage(self.source, lat[idx], lon[idx])
+            for k in np.flatnonzero(~covered):
+                i = int(idx[k])
+                good[i] = False
+                if self.outside != "nan":
+                    problems[i] = f"line {line_numbers[i]}: {reasons[int(k)]}"
         if not good.any():
             return out, lat, lon
         idx = np.flatnonzero(good)
@@ -252,7 +373,7 @@ class Query:
         if self.height_in:
             from geoidspline.query.derived import convert_height
 
-            height = h_known[idx] if self.crs_dim == 3 else numbers[idx, self.height_column]
+            height = h_known[idx] if self.crs_dim == 3 else numbers[idx, -1]
             values[HEIGHT_OUTPUT[self.height_in]] = np.asarray(convert_height(undulation, height, self.height_in)).reshape(-1)
         if self.with_error:
             from geoidspline.query.derived import tile_error_bound
@@ -260,6 +381,13 @@ class Query:
             values["error_bound_m"] = np.asarray(tile_error_bound(self.source, la, lo)).reshape(-1)
         for k, (name, _) in enumerate(self.columns):
             out[idx, k] = values[name]
+        first_value = 2 if self.crs is not None else 0  # keep the converted position
+        for k in np.flatnonzero(~np.isfinite(undulation)):
+            # a store that has no value here (a hole it knows of) says so with NaN
+            i = int(idx[k])
+            out[i, first_value:] = np.nan
+            if self.outside != "nan":
+                problems[i] = f"line {line_numbers[i]}: the source has no value at this point (NaN)"
         return out, lat, lon
 
     # -- formatting -----------------------------------------------------------------
@@ -305,6 +433,14 @@ i.e. NGA's F477 for EGM96, and nga-hsynth for an EGM2008 model without correctio
 NGA's F477.
 
 \b
+Every answer is true or refused. A point outside the store's coverage (outside the
+region it was fitted for, or where its source had no data) gets no number: an
+`ERROR: line N: outside the store's coverage (...)` row (for LAT LON: an ERROR line),
+exit status 1; `--outside nan` writes nan (jsonl: null) there instead, exit 0.
+NaN, infinite or non-numeric coordinates, a latitude beyond ±90 and a longitude beyond
+±1e6 degrees (not wrapped) are errors in any case.
+
+\b
 CSV rows are echoed with the results appended as new columns, in this order
 (column names, also appended to a header row when the input has one):
   latitude_deg, longitude_deg  with --crs: the input converted to WGS84 degrees
@@ -314,18 +450,27 @@ CSV rows are echoed with the results appended as new columns, in this order
                                  and the geoid gradient in metres per metre
   orthometric_height_m         with --height-in ellipsoidal: H = h - N
   ellipsoidal_height_m         with --height-in orthometric: h = H + N
-  error_bound_m                with --with-error: the largest check-point error of
-                                 the store tile the point is in (nan: none)
+  error_bound_m                with --with-error: a bound on |N - truth| that held
+                                 at 99.9% of random points or more (see README)
 With LAT LON (or X Y [Z] [HEIGHT]) on the command line only the appended values are
 printed, comma-separated. --precision gives the decimals of metres and arcseconds
 (degrees get 5 more; the m/m gradients are printed as %.<precision>e).
 
 \b
-Input columns (0-based): latitude, longitude in 0, 1 (header row optional). With --crs
-they are x, y in that CRS (longitude, latitude for a geographic CRS: always x first),
-plus z in column 2 for a 3D CRS (geocentric EPSG:4978, geographic 3D EPSG:4979), whose
-converted ellipsoidal height is then what --height-in ellipsoidal uses. Otherwise the
-height for --height-in is in --height-column (default 2, the third column).
+Input: comma-separated fields (blanks around a field and one pair of double quotes
+are dropped; a UTF-8 byte-order mark is ignored; blank lines are skipped but counted).
+Latitude, longitude in columns 0, 1 (0-based). With --crs they are x, y in that CRS
+(longitude, latitude for a geographic CRS: always x first), plus z in column 2 for a
+3D CRS (geocentric EPSG:4978, geographic 3D EPSG:4979), whose converted ellipsoidal
+height is then what --height-in ellipsoidal uses. Otherwise the height for
+--height-in is in --height-column (default 2, the third column; not a coordinate's).
+
+\b
+Header: the first non-blank line is a header (echoed with the new column names) when
+each of its coordinate fields is a name: not a number, a letter or underscore first,
+then letters, digits, underscores, blanks, '.' or '-', optionally a unit in brackets
+(lat, Latitude, lon_deg, "y (m)"). Any other line is a data row: -33.45S,-70.66W or
+N45,E7 is a bad row, not a header.
 
 \b
 --format jsonl prints one JSON object per row with the keys, always all present:
@@ -334,7 +479,8 @@ error (null, or the message of a bad row); null for values that are not availabl
 A header row is not echoed in jsonl.
 
 A bad row becomes an `ERROR: line N: ...` row (jsonl: its "error" key), the rest go
-on, and the exit status is then 1.
+on in order, and the exit status is then 1. Output that cannot be written (a full disk)
+is one ERROR line on stderr, exit 1; a closed pipe (| head) ends quietly.
 """
 
 
@@ -357,7 +503,10 @@ on, and the exit status is then 1.
 @click.option("--crs", default=None, metavar="CRS",
               help="Input coordinates are x,y[,z] in this CRS (e.g. EPSG:32633, EPSG:4978); "
                    "appends latitude_deg, longitude_deg.")
-@click.option("--with-error", is_flag=True, help="Append error_bound_m, the tile's check-point max error (store only).")
+@click.option("--with-error", is_flag=True,
+              help="Append error_bound_m, a bound on the store's error at the point (store only; see README).")
+@click.option("--outside", type=click.Choice(["error", "nan"]), default="error", show_default=True,
+              help="A point outside the store's coverage: an ERROR row (exit 1), or nan values (exit 0).")
 @click.option("--format", "fmt", type=click.Choice(["csv", "jsonl"]), default="csv", show_default=True,
               help="Output format.")
 @click.option("--precision", type=click.IntRange(0, 15), default=4, show_default=True,
@@ -366,7 +515,7 @@ on, and the exit status is then 1.
 @verbosity_options
 @user_errors
 def main(store_path, model_path, correction_path, preset, input_path, deflection, height_in, height_column,
-         crs, with_error, fmt, precision, coordinates, quiet, verbose):
+         crs, with_error, outside, fmt, precision, coordinates, quiet, verbose):
     coordinates = tuple(coordinates) or None
     if (input_path is None) == (coordinates is None):
         raise click.UsageError("give either LAT LON or --input FILE (use '-' for stdin)")
@@ -379,14 +528,20 @@ def main(store_path, model_path, correction_path, preset, input_path, deflection
     if height_column is not None and height_in is None:
         raise click.UsageError("--height-column goes with --height-in")
 
+    crs_dim = 2
     if crs is not None:
         from geoidspline.query.crs import crs_info
 
-        if crs_info(crs)[1] == 3:
+        crs_dim = crs_info(crs)[1]
+        if crs_dim == 3:
             if height_column is not None:
                 raise click.UsageError(f"--crs {crs} is 3D: the height is its z (column 2); drop --height-column")
             if height_in == "orthometric":
                 raise click.UsageError(f"--crs {crs} is 3D: its z gives an ellipsoidal height, not an orthometric one")
+    if height_column is not None and height_column < 2:
+        what = ("x", "y") if crs is not None else ("latitude", "longitude")
+        raise click.UsageError(f"--height-column {height_column} is the {what[height_column]} column: "
+                               f"the height must be in another column (2 or more)")
 
     if store_path is not None:
         import geoidspline
@@ -399,7 +554,8 @@ def main(store_path, model_path, correction_path, preset, input_path, deflection
         log.info("model %s, preset %s, degree %d", source.model.name, source.preset, source.max_degree)
 
     q = Query(source, is_store=store_path is not None, deflection=deflection, height_in=height_in,
-              height_column=height_column, crs=crs, with_error=with_error, precision=precision, fmt=fmt)
+              height_column=height_column, crs=crs, with_error=with_error, precision=precision, fmt=fmt,
+              outside=outside)
     if coordinates is not None:
         if len(coordinates) != q.width:
             raise click.UsageError(f"expected {q.width} coordinate values ({q._layout()}), got {len(coordinates)}")
@@ -412,24 +568,19 @@ def main(store_path, model_path, correction_path, preset, input_path, deflection
 
 
 def _single(q: Query, coordinates):
+    """One point from the command line: the values, or one ERROR line and exit 1 (the
+    same rules as a CSV row)."""
     from geoidspline.errors import CoordinateError
 
-    if q.plain and q.fmt == "csv":
-        # the plain query: the value and nothing else (a latitude out of range is the
-        # source's CoordinateError)
-        value = q.source.undulation(*coordinates)
-        click.echo(f"{value:.{q.precision}f}")
-        return
     fields = [repr(float(v)) for v in coordinates]
     _, numbers, problems = q.parse([",".join(fields)], [1])
-    if not problems:
-        out, lat, lon = q.evaluate(numbers, [1], problems)
+    out, lat, lon = q.evaluate(numbers, [1], problems)
     if problems:
         raise CoordinateError(problems[0].split(": ", 1)[1])
     if q.fmt == "jsonl":
-        click.echo(q.json_record(None, [repr(float(v)) for v in coordinates], out[0], lat[0], lon[0]))
+        echo(q.json_record(None, fields, out[0], lat[0], lon[0]))
     else:
-        click.echo(q.csv_values(out[0]))
+        echo(q.csv_values(out[0]))
 
 
 class _SplitRows:
@@ -443,7 +594,7 @@ class _SplitRows:
 
 
 def _stream(q: Query, stream):
-    out = sys.stdout
+    out = output_stream()
     line_number = 0
     bad = 0
     header_checked = False
@@ -456,7 +607,7 @@ def _stream(q: Query, stream):
         numbered = [(n, row) for n, row in zip(numbers_range, batch) if row.strip()]
         if not header_checked and numbered:
             header_checked = True
-            if _looks_like_header(numbered[0][1], *q.coord_columns[:2]):
+            if _looks_like_header(numbered[0][1], q.coord_columns):
                 if not jsonl:
                     out.write(numbered[0][1].rstrip() + "," + names + "\n")
                 numbered = numbered[1:]
@@ -470,7 +621,6 @@ def _stream(q: Query, stream):
             # the common case formatted in one comprehension (NaN prints as "nan", as below)
             p = q.precision
             out.write("\n".join(f"{row.rstrip()},{v:.{p}f}" for row, v in zip(rows, values[:, 0].tolist())) + "\n")
-            out.flush()
             continue
         lines = []
         for i, row in enumerate(rows):
@@ -485,7 +635,6 @@ def _stream(q: Query, stream):
             else:
                 lines.append(f"{row.rstrip()},{q.csv_values(values[i])}")
         out.write("\n".join(lines) + "\n")
-        out.flush()
     return bad
 
 

@@ -10,7 +10,7 @@ import click
 
 from geoidspline.sources.harmonics.presets import PRESETS
 
-from ._common import command, store_options, user_errors, verbosity_options
+from ._common import command, echo, store_options, user_errors, verbosity_options
 
 
 @command("update")
@@ -60,19 +60,19 @@ def run_update(source, store, region, blend_width, workers, correction, preset, 
                           executor=Executor(workers=workers))
     record["wall_seconds"] = round(time.perf_counter() - started, 2)
     if as_json:
-        click.echo(json.dumps(record, indent=1))
+        echo(json.dumps(record, indent=1))
         sys.exit(0 if record["converged"] else 3)
-    click.echo(f"store      {store}  version {record['previous_version']} -> {record['store_version']}")
-    click.echo(f"source     {record['source']} ({record['model']})")
+    echo(f"store      {store}  version {record['previous_version']} -> {record['store_version']}")
+    echo(f"source     {record['source']} ({record['model']})")
     s, w, n, e = record["region"]
-    click.echo(f"region     S {s:g}  W {w:g}  N {n:g}  E {e:g}, blend {record['blend_width_km']:g} km")
-    click.echo(f"tiles      {record['tiles_rewritten']} rewritten, {record['coefficients_added']:+,d} coefficients")
+    echo(f"region     S {s:g}  W {w:g}  N {n:g}  E {e:g}, blend {record['blend_width_km']:g} km")
+    echo(f"tiles      {record['tiles_rewritten']} rewritten, {record['coefficients_added']:+,d} coefficients")
     if record["nodes_in_region"]:
-        click.echo(f"region     {record['nodes_in_region']:,} nodes: max |error| {record['max_error_m']:.4f} m, "
+        echo(f"region     {record['nodes_in_region']:,} nodes: max |error| {record['max_error_m']:.4f} m, "
                    f"RMS {record['rms_error_m']:.4f} m")
     if not record["converged"]:
-        click.echo(f"tolerance  {record['tolerance_m']:g} m NOT reached with the store's levels")
-    click.echo(f"time       {record['wall_seconds']:.1f} s")
+        echo(f"tolerance  {record['tolerance_m']:g} m NOT reached with the store's levels")
+    echo(f"time       {record['wall_seconds']:.1f} s")
     if not record["converged"]:
         sys.exit(3)
 

@@ -236,10 +236,14 @@ def test_query_one_point(small_store, api):
 
 
 def test_query_negative_coordinates(small_store, api):
-    """Southern latitudes and western longitudes are ordinary positional values."""
-    result = query(small_store, "-20", "-30.5")
+    """Southern latitudes and western longitudes are ordinary positional values (and a
+    longitude is taken modulo 360: -330 E is 30 E, inside the store's region)."""
+    result = query(small_store, "20", "-330")
     assert result.exit_code == 0, result.output
-    assert result.stdout.strip() == fmt(api.undulation(-20.0, -30.5))
+    assert result.stdout.strip() == fmt(api.undulation(20.0, 30.0))
+    south_west = query(small_store, "-20", "-30.5")  # parsed as a point, not options
+    assert_user_error(south_west)
+    assert "outside the store's coverage" in south_west.stderr
 
 
 def test_query_input_with_header(small_store, api, tmp_path):
@@ -333,11 +337,11 @@ def test_query_header_after_leading_empty_line(small_store, api, tmp_path):
 
 
 def test_query_reads_stdin(small_store, api):
-    result = query(small_store, "--input", "-", input="20,30\n-5.5,100\n")
+    result = query(small_store, "--input", "-", input="20,30\n15.5,-335\n")
     assert result.exit_code == 0, result.output
     assert result.stdout.splitlines() == [
         f"20,30,{fmt(api.undulation(20.0, 30.0))}",
-        f"-5.5,100,{fmt(api.undulation(-5.5, 100.0))}",
+        f"15.5,-335,{fmt(api.undulation(15.5, 25.0))}",
     ]
 
 

@@ -243,45 +243,112 @@ def test_query_deflection_columns(small_store, store, tmp_path):
 # ----------------------------------------------------------------------------- tile error bounds
 
 
-def manifest_tile_error(store, lat, lon):
-    """The tile's max_error_m by a plain scan of the manifest (None → NaN)."""
-    size = store.manifest["spline"]["tile_size"]
-    table = {tuple(e["tile"]): e["max_error_m"] for e in store.manifest["tiles"]}
-    out = []
+def nearby_by_scan(store, lat, lon):
+    """The bound's parts by a plain scan: for each point, over the tiles whose cube meets
+    u ± order·h0/2 (h0 the coarsest spacing), the largest of max_error_m and
+    node_max_error_m (the store's overall figure where none has any), and the largest
+    excess max(0, max_error_m - node_max_error_m)."""
+    meta = store.manifest["spline"]
+    size = meta["tile_size"]
+    reach = meta["order"] * max([meta["h0"]] + [lv["h"] for lv in meta["levels"]]) / 2
+    figures, excesses = {}, {}
+    for e in store.manifest["tiles"]:
+        known = [v for v in (e["max_error_m"], e["node_max_error_m"]) if v is not None]
+        if known:
+            figures[tuple(e["tile"])] = max(known)
+        if len(known) == 2:
+            excesses[tuple(e["tile"])] = max(0.0, e["max_error_m"] - e["node_max_error_m"])
+    acc = store.manifest["accuracy"]
+    overall = max(acc["max_error_m"], acc["node_max_error_m"])
+    nearby, excess = [], []
     for u in directions(np.asarray(lat, float), np.asarray(lon, float)):
-        value = table.get(tuple(int(v) for v in np.floor(u / size)))
-        out.append(np.nan if value is None else value)
-    return np.array(out)
+        lo = np.floor((u - reach) / size).astype(int)
+        hi = np.floor((u + reach) / size).astype(int)
+        near = [(i, j, k) for i in range(lo[0], hi[0] + 1) for j in range(lo[1], hi[1] + 1)
+                for k in range(lo[2], hi[2] + 1)]
+        nearby.append(max([figures[t] for t in near if t in figures], default=overall))
+        excess.append(max([excesses[t] for t in near if t in excesses],
+                          default=max(0.0, acc["max_error_m"] - acc["node_max_error_m"])))
+    return np.array(nearby), np.array(excess)
 
 
-def test_tile_error_bound_is_the_manifest_value(store):
+def test_tile_error_bound_is_the_factor_times_the_largest_error_measured_nearby_plus_the_grid_term(store):
     lat, lon = interior_points(200, seed=9, region=(10.0, 20.0, 30.0, 40.0))
+    nearby, excess = nearby_by_scan(store, lat, lon)
+    np.testing.assert_array_equal(derived.nearby_measured_error(store, lat, lon), nearby)
+    np.testing.assert_array_equal(derived.grid_interpolation_uncertainty(store, lat, lon), excess)
+    assert store.manifest["provenance"]["kind"] == "grid" and excess.max() > 0  # the grid term is in use
     bound = derived.tile_error_bound(store, lat, lon)
-    expected = manifest_tile_error(store, lat, lon)
-    np.testing.assert_array_equal(bound, expected)
-    assert np.isfinite(bound).sum() > 150  # most of the region's tiles have check points
-    assert len({float(v) for v in bound[np.isfinite(bound)]}) > 1  # more than one tile met
-    assert np.nanmax(bound) <= store.manifest["accuracy"]["max_error_m"]
-    # outside the fitted region and for NaN: no bound
+    np.testing.assert_array_equal(bound, derived.ERROR_BOUND_FACTOR * nearby + excess)
+    assert np.isfinite(bound).all()  # every point inside the coverage has a bound
+    acc = store.manifest["accuracy"]
+    assert np.all(nearby <= max(acc["max_error_m"], acc["node_max_error_m"]))
+    assert np.all(nearby >= min(acc["max_error_m"], acc["node_max_error_m"]) / 10)  # not vacuous
+    # outside the coverage and for NaN: no bound
     out = derived.tile_error_bound(store, [45.0, -20.0, np.nan], [30.0, 30.0, 30.0])
     assert np.isnan(out).all()
     assert np.ndim(derived.tile_error_bound(store, 20.0, 30.0)) == 0
+    assert store.error_bound(20.0, 30.0) == derived.tile_error_bound(store, 20.0, 30.0)
+
+
+def test_a_model_store_has_no_grid_term(model_store):
+    store = geoidspline.open_store(model_store)
+    lat, lon = interior_points(50, seed=4, region=MODEL_REGION)
+    assert np.all(derived.grid_interpolation_uncertainty(store, lat, lon) == 0.0)
+    np.testing.assert_array_equal(derived.tile_error_bound(store, lat, lon),
+                                  derived.ERROR_BOUND_FACTOR * derived.nearby_measured_error(store, lat, lon))
+
+
+def test_tile_error_bound_falls_back_to_the_store_figure_for_tiles_without_figures(store):
+    """A store whose tiles carry no figures (a tile rewritten by an update has only
+    node figures; here none at all) still bounds every covered point, by its overall
+    figures."""
+    bare = SimpleNamespace(manifest={**store.manifest, "tiles": [
+        {**e, "max_error_m": None, "node_max_error_m": None} for e in store.manifest["tiles"]]},
+        covers=store.covers)
+    acc = store.manifest["accuracy"]
+    bound = derived.tile_error_bound(bare, [20.0, 12.5], [30.0, 39.0])
+    overall = max(acc["max_error_m"], acc["node_max_error_m"])
+    excess = max(0.0, acc["max_error_m"] - acc["node_max_error_m"])
+    np.testing.assert_array_equal(bound, derived.ERROR_BOUND_FACTOR * overall + excess)
+
+
+def test_tile_error_bound_holds_against_the_analytic_field(store, analytic, small_store):
+    """The session store was fitted from a 2° grid of an analytic field: against the
+    grid's nodes and its bicubic interpolation at the cell centres (the truth the bound
+    is defined against) it holds everywhere; against the analytic field itself, which
+    the grid only samples, at the random points too (the field is smooth)."""
+    grid = small_store.grid
+    lat = np.arange(10.0, 30.01, 2.0)
+    lon = np.arange(20.0, 40.01, 2.0)
+    nodes = np.meshgrid(lat, lon, indexing="ij")
+    centres = np.meshgrid(lat[:-1] + 1.0, lon[:-1] + 1.0, indexing="ij")
+    for la, lo in (nodes, centres):
+        la, lo = la.ravel(), lo.ravel()
+        error = np.abs(store.undulation(la, lo) - grid.undulation(la, lo))
+        assert np.all(error <= store.error_bound(la, lo))
+    la, lo = interior_points(5000, seed=21, region=(10.0, 20.0, 30.0, 40.0))
+    error = np.abs(store.undulation(la, lo) - analytic(la, lo))
+    held = np.mean(error <= store.error_bound(la, lo))
+    assert held >= 0.999, held
 
 
 def test_query_with_error_column(small_store, store, tmp_path):
     lat, lon = interior_points(6, seed=10)
     lat, lon = np.round(lat, 3), np.round(lon, 3)
-    expected = manifest_tile_error(store, lat, lon)
+    expected = derived.tile_error_bound(store, lat, lon)
     assert np.isfinite(expected).all()
     rows = "".join(f"{a},{b}\n" for a, b in zip(lat, lon)) + "45,30\n"
     result = query(small_store, "--input", "-", "--with-error", "--precision", "10", input=rows)
-    assert result.exit_code == 0, result.output
+    assert result.exit_code == 1, result.output  # 45 N is outside the store's coverage
     lines = result.stdout.splitlines()
     for i, line in enumerate(lines[:-1]):
         assert line.split(",")[-1] == f"{expected[i]:.10f}"
-    assert lines[-1].split(",")[-1] == "nan"  # 45 N is outside the store's region
+    assert lines[-1] == "ERROR: line 7: outside the store's coverage (outside its region S 10 W 20 N 30 E 40)"
     single = query(small_store, "--with-error", "--precision", "10", lat[0], lon[0])
     assert single.stdout.strip().split(",") == [f"{store.undulation(lat[0], lon[0]):.10f}", f"{expected[0]:.10f}"]
+    opted = query(small_store, "--input", "-", "--with-error", "--outside", "nan", input="45,30\n")
+    assert opted.exit_code == 0 and opted.stdout == "45,30,nan,nan\n"
 
 
 # ----------------------------------------------------------------------------- CRS and heights
@@ -440,7 +507,7 @@ def test_query_jsonl_has_stable_keys(small_store, store, tmp_path):
     assert good["undulation_m"] == round(float(n), 4)
     assert good["orthometric_height_m"] == float(f"{100 - n:.4f}")
     assert good["xi_arcsec"] == float(f"{d.xi_arcsec:.4f}") and good["dNde_m_per_m"] == float(f"{d.dn_deast:.4e}")
-    assert good["error_bound_m"] == float(f"{manifest_tile_error(store, [20.0], [30.0])[0]:.4f}")
+    assert good["error_bound_m"] == float(f"{derived.tile_error_bound(store, 20.0, 30.0):.4f}")
     assert good2["line"] == 4
     assert bad1["line"] == 3 and bad1["error"].startswith("line 3: ") and "not numbers" in bad1["error"]
     assert bad1["undulation_m"] is None and bad1["fields"] == ["abc", "30", "1"]

@@ -7,6 +7,7 @@ import functools
 import numpy as np
 
 from ..errors import CoordinateError
+from ..sphere.region import MAX_ABS_POINT_LONGITUDE_DEG
 
 
 def _shaped(values, shape):
@@ -72,7 +73,8 @@ def to_geodetic(x, y, z=None, crs="EPSG:4326"):
     PROJ string, ...). Geographic 2D/3D, geocentric and projected CRSs are accepted;
     an unknown CRS or another kind (vertical, compound, engineering) raises
     :class:`CoordinateError`. Points PROJ cannot transform (or a geographic latitude
-    beyond ±90°) give NaN. Longitudes come
+    beyond ±90°, or a longitude beyond ±1e6° that wrapping would turn into noise) give
+    NaN. Longitudes come
     back in [−180, 180]. Scalars give scalars.
     """
     crs_obj, kind, transformer = _transformer(str(crs))
@@ -96,7 +98,9 @@ def to_geodetic(x, y, z=None, crs="EPSG:4326"):
     lat = np.array(lat, dtype=np.float64, copy=True)
     h = np.array(h, dtype=np.float64, copy=True)
     with np.errstate(invalid="ignore"):
+        # a longitude beyond ±1e6° would wrap to noise that looks like a position
         bad = ~(np.isfinite(lon) & np.isfinite(lat)) | (np.abs(lat) > 90.0)
+        bad |= np.abs(lon) > MAX_ABS_POINT_LONGITUDE_DEG
     lon[bad] = np.nan
     lat[bad] = np.nan
     h[bad | ~np.isfinite(h)] = np.nan

@@ -100,7 +100,9 @@ def export_grid(store, path, spacing_deg, region=None):
       usable with ``+proj=vgridshift``; written with ``rasterio``, which must be
       installed (the optional extra ``geotiff``).
 
-    Returns the :class:`~geoidspline.sources.grid.GeoidGrid` that was written.
+    Nodes outside the store's coverage (where its source had no data) are written as
+    no data (GTX: -88.8888, netCDF and GeoTIFF: NaN); a lattice with no covered node is
+    refused. Returns the :class:`~geoidspline.sources.grid.GeoidGrid` that was written.
     """
     from ..sources.base import Provenance
     from ..sources.grid import GeoidGrid
@@ -125,7 +127,14 @@ def export_grid(store, path, spacing_deg, region=None):
         raise InputFileError(path, "the output directory does not exist")
     latitude, longitude, used = export_lattice(store, spacing_deg, region)
     lat2, lon2 = np.meshgrid(latitude, longitude, indexing="ij")
-    values = store.undulation(lat2, lon2)
+    values, covered = _covered_values(store, lat2, lon2, used)
+    if not covered.any():
+        raise CoordinateError(
+            f"export region {used.as_tuple()} (S W N E degrees) holds no node inside the store's coverage"
+        )
+    if not covered.all():
+        log.warning("%s: %d of %d nodes lie where the store has no data; written as no data",
+                    path, int((~covered).sum()), covered.size)
     prov = store.manifest.get("provenance", {})
     notes = (
         f"sampled from geoidspline store {store.path} (version {store.manifest.get('store_version')}) "
@@ -154,6 +163,30 @@ def export_grid(store, path, spacing_deg, region=None):
     else:
         _write_geotiff(path, grid)
     return grid
+
+
+def _covered_values(store, lat2, lon2, region):
+    """The store's values at the lattice nodes and where it covers them (NaN elsewhere).
+
+    A node on the region's edge may lie a rounding error (< 1e-9°) outside it: such a
+    node is tested, and evaluated, 1e-9° inside instead, so edges are not lost as no data.
+    """
+    values = np.array(store.undulation(lat2, lon2), dtype=np.float64)
+    covered = np.asarray(store.covers(lat2, lon2), dtype=bool) & np.isfinite(values)
+    miss = ~covered
+    if miss.any():
+        centre_lat = 0.5 * (region.south + region.north)
+        centre_lon = lon2.flat[0] + 0.5 * region.longitude_span
+        lat_in = lat2[miss] + _AXIS_TOL * np.sign(centre_lat - lat2[miss])
+        lon_in = lon2[miss] + (_AXIS_TOL * np.sign(centre_lon - lon2[miss]) if region.longitude_span < 360.0 else 0.0)
+        inside = np.asarray(store.covers(lat_in, lon_in), dtype=bool)
+        if inside.any():
+            again = np.array(store.undulation(lat_in[inside], lon_in[inside]), dtype=np.float64).reshape(-1)
+            rows, cols = np.nonzero(miss)
+            values[rows[inside], cols[inside]] = again
+            covered[rows[inside], cols[inside]] = np.isfinite(again)
+    values[~covered] = np.nan
+    return values, covered
 
 
 def _write_geotiff(path: Path, grid):

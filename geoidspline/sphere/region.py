@@ -10,6 +10,19 @@ from ..errors import CoordinateError
 
 __all__ = ["Region", "GLOBAL"]
 
+#: Largest |west| or |east| a region accepts (degrees): any longitude interval can be
+#: written within [-180, 360], so a bound beyond one and a half turns is a mistake (a
+#: latitude typed as a longitude, a missing decimal point), not a region.
+MAX_ABS_BOUND_LONGITUDE_DEG = 540.0
+
+#: Largest |longitude| of a point that is wrapped modulo 360 rather than refused
+#: (degrees). Up to here a float64 longitude keeps 1e-10° (10 µm) after wrapping; beyond
+#: it, as for 1e308, the wrapped value is noise that would look like an answer.
+MAX_ABS_POINT_LONGITUDE_DEG = 1e6
+
+#: Rounding allowed on a full turn (degrees): 0 to 360.0000000001 is the whole circle.
+_SPAN_TOL_DEG = 1e-9
+
 
 @dataclass(frozen=True)
 class Region:
@@ -18,7 +31,10 @@ class Region:
     Longitudes are taken modulo 360: ``west`` is normalised to [-180, 180) and ``east``
     to (west, west + 360], so a region may cross the antimeridian (west=170, east=-170
     is the 20° wide band across it). ``Region.from_bounds(-90, -180, 90, 180)`` is the
-    whole sphere.
+    whole sphere. Refused (:class:`CoordinateError`): non-finite bounds, south >= north
+    or beyond ±90°, a west or east beyond ±540° (:data:`MAX_ABS_BOUND_LONGITUDE_DEG`),
+    and ``east - west > 360`` (more than the whole circle: ``-72 1000`` is a mistake,
+    not a band).
     """
 
     south: float
@@ -35,9 +51,18 @@ class Region:
                 "region needs -90 <= south < north <= 90 (degrees), got "
                 f"south={self.south}, north={self.north}"
             )
+        for name, value in (("west", self.west), ("east", self.east)):
+            if abs(value) > MAX_ABS_BOUND_LONGITUDE_DEG:
+                raise CoordinateError(
+                    f"region {name} longitude {value:g} is beyond ±{MAX_ABS_BOUND_LONGITUDE_DEG:g} degrees "
+                    f"(a typing mistake? give west and east in [-180, 360])")
+        if self.east - self.west > 360.0 + _SPAN_TOL_DEG:
+            raise CoordinateError(
+                f"region spans {self.east - self.west:g} degrees of longitude (west={self.west:g}, "
+                f"east={self.east:g}): at most 360 (-180 180 is the whole circle)")
         west = (float(self.west) + 180.0) % 360.0 - 180.0
         east = float(self.east)
-        span = (east - self.west) if (east - self.west) >= 360.0 else (east - self.west) % 360.0
+        span = 360.0 if (east - self.west) >= 360.0 - _SPAN_TOL_DEG else (east - self.west) % 360.0
         if span == 0.0:
             raise CoordinateError(f"region has zero longitude width: west={self.west}, east={self.east}")
         object.__setattr__(self, "west", west)
