@@ -6,10 +6,14 @@ sample spacing, and says why for each. Every choice rests on a measured fit
 (:data:`MEASURED`, rows of ``benchmarks/results/fits.jsonl`` and
 ``benchmarks/results/choose.jsonl``) and on two laws:
 
-- convergence: the quasi-interpolation error of a spline of order n falls as h^n
-  (METHOD.md §3; Unser 1999), and a model of degree N has the same relative
-  resolution at the same ``h * N`` (its shortest wavelength is 2π/N on the unit
-  sphere), so the level-0 error is ``E_ref * (h N / (h N)_ref) ** n``;
+- convergence: a model of degree N has the same relative resolution at the same
+  ``h * N`` (its shortest wavelength is 2π/N on the unit sphere), so level 0's max
+  error is read off a measured curve of ``h * N`` (:data:`LEVEL0_ERROR`, log-log
+  interpolation between measured points). Measured, it falls faster than the
+  asymptotic h^n (about h^8-h^9 for order 6 at h N = 1.4-2.3: the spline is near the
+  model's resolution there), so the curve is used and not the power law; below its
+  finest point it is extended by h^n (the asymptotic rate, the slower one), and h0 is
+  never chosen coarser than its coarsest point;
 - size: the B-splines touching the cells that meet the sphere number
   ``density * area / h**2`` (area in steradians); ``density`` grows with the order
   (the support is thicker radially) and is measured.
@@ -39,11 +43,10 @@ CHOSEN_FIELDS = ("method", "order", "h0", "max_level", "sample_spacing_deg", "to
 
 @dataclass(frozen=True)
 class ConvergencePoint:
-    """One measured quasi-interpolated level 0 of a global model fit.
+    """One measured quasi-interpolated level 0 of a model fit.
 
-    ``level0_max_m``: max |error| after level 0 alone at every node of the 5' lattice
-    (from ``geoid-fit -v``); ``coefficients``: level 0's B-splines, global.
-    ``reference``: where the figure was measured.
+    ``level0_max_m``: max |error| of level 0 alone; ``coefficients``: level 0's
+    B-splines over the whole sphere; ``reference``: where it was measured.
     """
 
     model: str
@@ -64,7 +67,8 @@ class ConvergencePoint:
         return self.coefficients * self.h0**2 / (4.0 * math.pi)
 
 
-#: The measured convergence, one row per spline order (the rule's anchors).
+#: The global anchors, one per spline order: coefficient counts (and, for order 6,
+#: the global level-0 error that scales the regional curve).
 MEASURED = {
     6: ConvergencePoint(
         "EGM96 (F477 + CORRCOEF)", 360, 6, 0.0045, 0.0026, 5_585_796,
@@ -72,16 +76,23 @@ MEASURED = {
         "(results/fits.jsonl 2026-11-23T21:36, 2a41d02): level 0 alone 2.6 mm at the 5' nodes",
     ),
     4: ConvergencePoint(
-        "EGM96 (F477 + CORRCOEF)", 360, 4, 0.004, 0.0094, 4_712_294,
-        "benchmarks/README.md 'Millimetre stores from models' (cubic h = 0.004: 9.4 mm over "
-        "the Himalaya) and scenario egm96-cm (results/fits.jsonl 2026-11-23T22:26, 8cb19eb)",
+        "EGM96 (F477 + CORRCOEF)", 360, 4, 0.004, float("nan"), 4_712_294,
+        "scenario egm96-cm (results/fits.jsonl 2026-11-23T22:26, 8cb19eb)",
     ),
 }
 
-#: The largest h·N at which each order's law was checked (regional convergence runs,
-#: results/choose.jsonl); beyond it the spline no longer resolves the model's shortest
-#: wavelengths and the error stops following h^n, so h0 is not chosen coarser.
-MAX_H_TIMES_DEGREE = {6: 2.34, 4: 1.8}
+#: Level 0's max |error| (metres) against h·N, per order: EGM96 (F477 + CORRCOEF),
+#: quasi-interpolation alone, region 25..35N 80..95E (the Himalaya, the steepest
+#: geoid), max over the 5' nodes (results/choose.jsonl, 2026-11-29). Global maxima are
+#: larger by :data:`GLOBAL_OVER_REGIONAL`.
+LEVEL0_ERROR = {
+    6: ((1.44, 0.000841), (1.62, 0.002171), (1.98, 0.013498), (2.34, 0.063712)),
+    4: ((1.08, 0.005020), (1.44, 0.017251), (1.80, 0.049309)),
+}
+
+#: Global level-0 max over the regional one at the same h: 2.6 mm (egm96-mm, every 5'
+#: node of the sphere) against 2.17 mm (the region of LEVEL0_ERROR), order 6, h 0.0045.
+GLOBAL_OVER_REGIONAL = 0.0026 / 0.002171
 
 #: Node tolerance used, as a fraction of the tolerance asked for: check points between
 #: the nodes were 0.74 (EGM96) and 0.90 (EGM2008 to 120) of the node max in the
@@ -123,10 +134,18 @@ def region_area(region: Region) -> float:
 
 
 def _level0_spacing(order: int, degree: int, level0_max_m: float) -> float:
-    """h0 at which level 0's max error is ``level0_max_m`` by the measured law."""
-    ref = MEASURED[order]
-    h_n = ref.h_times_degree * (level0_max_m / ref.level0_max_m) ** (1.0 / order)
-    return min(h_n, MAX_H_TIMES_DEGREE[order]) / degree
+    """h0 at which level 0's global max error is ``level0_max_m`` by :data:`LEVEL0_ERROR`."""
+    points = LEVEL0_ERROR[order]
+    h_n = np.log([p[0] for p in points])
+    err = np.log([p[1] * GLOBAL_OVER_REGIONAL for p in points])
+    target = math.log(level0_max_m)
+    if target <= err[0]:  # finer than measured: the asymptotic rate h^order
+        return math.exp(h_n[0] + (target - err[0]) / order) / degree
+    return math.exp(float(np.interp(target, err, h_n))) / degree  # clamped at the coarsest
+
+
+def _max_h_times_degree(order: int) -> float:
+    return LEVEL0_ERROR[order][-1][0]
 
 
 def _round_down(value: float, digits: int = 3) -> float:
@@ -196,12 +215,11 @@ def _for_model(source, tolerance_m, region, given):
             h0 = math.sqrt(ref.density * area / MAX_LEVEL0_COEFFICIENTS)
             capped = True
         h0 = min(_round_down(h0), 0.1)
-        law = (f"level-0 max error {ref.level0_max_m * 1e3:.2g} mm x (h N / {ref.h_times_degree:.3g})^{order} "
-               f"(measured: {ref.model}, h0 {ref.h0:g})")
+        law = "the measured level-0 error against h N (EGM96, fitting.choose.LEVEL0_ERROR)"
         if capped:
             reasons["h0"] = (f"{h0:g}: capped at {MAX_LEVEL0_COEFFICIENTS:,} level-0 coefficients (memory); "
                              f"{exact:.3g} would reach {level0_target * 1e3:.2g} mm by {law}; overlays take the rest")
-        elif exact * degree >= MAX_H_TIMES_DEGREE[order] - 1e-12:
+        elif exact * degree >= _max_h_times_degree(order) - 1e-12:
             reasons["h0"] = (f"{h0:g}: h N = {h0 * degree:.3g}, the coarsest measured for order {order} "
                              f"(a coarser spline stops resolving degree {degree})")
         else:
