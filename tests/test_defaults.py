@@ -240,3 +240,13 @@ def test_stages_in_chunks_give_the_values_of_one_call(toy24, monkeypatch):
     assert "x: 3/3 chunks" in stream.getvalue()  # 3000, 3000, 4000: no short last chunk
     monkeypatch.setattr(interpolation, "SYNTHESIS_STEPS", 7)
     np.testing.assert_array_equal(sample_nodes(toy24, region, 2.5).undulation, whole.undulation)
+
+
+def test_bars_show_count_of_total():
+    from geoidspline.fitting.progress import BarProgress
+
+    stream = io.StringIO()
+    with BarProgress(stream).stage("level 0 blocks", 3, "block") as advance:
+        advance(1)
+        advance(2)
+    assert "level 0 blocks:   0%| | 0/3" in stream.getvalue().replace(" " * 10, " ")  # the total before the first block
