@@ -1,25 +1,48 @@
-"""Level-0 convergence of quasi-interpolation against h*N: the table behind fitting.choose.LEVEL0_ERROR.
+"""Level-0 convergence of quasi-interpolation against h·N: the table behind
+``geoidspline.fitting.choose.LEVEL0_ERROR``.
 
-Usage: python benchmarks/level0_convergence.py ORDER:H [ORDER:H ...]  (EGM96 F477 + CORRCOEF from ../shared/data;
-region 25..35N 80..95E; one JSON line per fit: node max at the 5' lattice, max/RMS at 5000 random exact points).
+    python benchmarks/level0_convergence.py ORDER:H0 [ORDER:H0 ...]
+
+EGM96 (F477 + CORRCOEF, from the shared data beside the repository), level 0 alone
+(``max_level=0``, ``method="interpolation"``) over 25..35N 80..95E (the Himalaya, the
+steepest geoid). One JSON line per fit: level-0 coefficients in the region, the max
+|error| at the 5' nodes, and max/RMS at 5,000 random points against the exact synthesis.
 """
-import sys, time, json, numpy as np
-from geoidspline.sources.resolve import open_source
-from geoidspline.fitting.parameters import FitParameters
-from geoidspline.fitting.driver import fit_source
-from geoidspline.fitting.check_points import check_points
-from geoidspline.sphere.region import Region
+
+from __future__ import annotations
+
+import json
+import sys
+import time
 from pathlib import Path
-D = str(Path(__file__).resolve().parents[2] / "shared" / "data" / "egm96") + "/"
-src = open_source(D+"egm96_to360.ascii.gz", D+"CORRCOEF.gz")
-region = Region.from_bounds(25, 80, 35, 95)   # Himalaya / Tibet edge, steepest
-chk = check_points(src, region, count=5000, seed=3)
-for order, h in [(int(a), float(b)) for a, b in (x.split(":") for x in sys.argv[1:])]:
-    t = time.perf_counter()
-    p = FitParameters(order=order, h0=h, max_level=0, tolerance_m=1e-6, method="interpolation", tile_size=0.4)
-    r = fit_source(src, region, p)
-    pts_err = r.spline.undulation(chk.latitude, chk.longitude) - chk.truth
-    row = dict(order=order, h=h, hN=h*360, coef=len(r.spline.levels[0]), node_max_mm=r.node_max_error_m*1e3,
-               check_max_mm=float(np.abs(pts_err).max()*1e3), check_rms_mm=float(np.sqrt(np.mean(pts_err**2))*1e3),
-               s=round(time.perf_counter()-t,1))
-    print(json.dumps(row), flush=True)
+
+import numpy as np
+
+from geoidspline.fitting.check_points import check_points
+from geoidspline.fitting.driver import fit_source
+from geoidspline.fitting.parameters import FitParameters
+from geoidspline.sources.resolve import open_source
+from geoidspline.sphere.region import Region
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "egm96"
+REGION = Region.from_bounds(25, 80, 35, 95)
+
+
+def main(specs):
+    source = open_source(DATA / "egm96_to360.ascii.gz", DATA / "CORRCOEF.gz")
+    check = check_points(source, REGION, count=5000, seed=3)
+    for spec in specs:
+        order, h0 = int(spec.split(":")[0]), float(spec.split(":")[1])
+        start = time.perf_counter()
+        params = FitParameters(order=order, h0=h0, max_level=0, tolerance_m=1e-6, method="interpolation")
+        result = fit_source(source, REGION, params)
+        errors = result.spline.undulation(check.latitude, check.longitude) - check.truth
+        print(json.dumps({
+            "order": order, "h": h0, "hN": h0 * source.max_degree, "coef": len(result.spline.levels[0]),
+            "node_max_mm": result.node_max_error_m * 1e3, "check_max_mm": float(np.abs(errors).max() * 1e3),
+            "check_rms_mm": float(np.sqrt(np.mean(errors**2)) * 1e3), "s": round(time.perf_counter() - start, 1),
+        }), flush=True)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
