@@ -75,6 +75,27 @@ SCENARIOS = {
         "global EGM96 (NGA F477 with CORRCOEF) to 1 cm with cubics, the query benchmark's store: "
         "quasi-interpolation at h = 0.004, least-squares overlays where nodes exceed 7 mm",
     ),
+    # issue 11: no option but the tolerance (geoidspline.fitting.choose picks the rest)
+    "egm96-default-2mm": (
+        ["{shared}/egm96/egm96_to360.ascii.gz", "--correction", "{shared}/egm96/CORRCOEF.gz", "--tolerance", "0.002"],
+        {"check_max_error_m": 0.002, "check_rms_error_m": 0.0003, "wall_seconds": 180, "coefficients": 5_586_925},
+        "global EGM96 (F477 + CORRCOEF) with --tolerance 0.002 only: the parameters chosen from it",
+    ),
+    "egm96-default-1cm": (
+        ["{shared}/egm96/egm96_to360.ascii.gz", "--correction", "{shared}/egm96/CORRCOEF.gz", "--tolerance", "0.01"],
+        {"check_max_error_m": 0.01},
+        "global EGM96 (F477 + CORRCOEF) with --tolerance 0.01 only",
+    ),
+    "egm96-default-1mm": (
+        ["{shared}/egm96/egm96_to360.ascii.gz", "--correction", "{shared}/egm96/CORRCOEF.gz", "--tolerance", "0.001"],
+        {"check_max_error_m": 0.001},
+        "global EGM96 (F477 + CORRCOEF) with --tolerance 0.001 only",
+    ),
+    "egm2008-120-default-1mm": (
+        ["{shared}/egm2008/EGM2008_120.gfc", "--tolerance", "0.001"],
+        {"check_max_error_m": 0.001},
+        "global EGM2008 to degree 120 with --tolerance 0.001 only",
+    ),
     "egm2008-120-mm": (
         ["{shared}/egm2008/EGM2008_120.gfc", "--method", "interpolation", "--order", "6",
          "--h0", "0.011", "--max-level", "1", "--tolerance", "0.0008", "--sample-spacing", "0.0833"],

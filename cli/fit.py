@@ -19,6 +19,11 @@ log = logging.getLogger("geoidspline.cli")
 
 _DEFAULTS = FitParameters()
 
+#: Options that fix a fit parameter (given: used as given; not given: chosen from the
+#: tolerance by geoidspline.fitting.choose), option name -> FitParameters field.
+_CHOSEN = {"method": "method", "order": "order", "h0": "h0", "max_level": "max_level",
+           "sample_spacing": "sample_spacing_deg", "tolerance": "tolerance_m"}
+
 #: Options of a new fit that a regional update cannot honour: it refits with the store's
 #: own parameters, so that the result is one spline.
 _FIT_ONLY = ("tolerance", "h0", "max_level", "order", "method", "sample_spacing", "overwrite", "scheduler")
@@ -34,11 +39,11 @@ _FIT_ONLY = ("tolerance", "h0", "max_level", "order", "method", "sample_spacing"
 @click.option("--region", nargs=4, type=float, metavar="S W N E", default=None,
               help="Region in degrees: south west north east (default: global).")
 @click.option("--tolerance", type=click.FloatRange(min=0.0, min_open=True), default=_DEFAULTS.tolerance_m,
-              show_default=True, help="Largest |error| in metres accepted at the data nodes.")
-@click.option("--h0", type=float, default=_DEFAULTS.h0, show_default=True, help="Level-0 grid spacing on the unit sphere.")
-@click.option("--max-level", type=int, default=_DEFAULTS.max_level, show_default=True,
-              help="Finest overlay level (h = h0 / 2**level).")
-@click.option("--order", type=int, default=_DEFAULTS.order, show_default=True, help="Spline order (4 = cubic, C²).")
+              show_default=True, help="Largest |error| in metres accepted. The options below that are not "
+                                      "given are chosen from it for the fewest coefficients (the summary says why).")
+@click.option("--h0", type=float, default=None, help="Level-0 grid spacing on the unit sphere [default: chosen].")
+@click.option("--max-level", type=int, default=None, help="Finest overlay level (h = h0 / 2**level) [default: chosen].")
+@click.option("--order", type=int, default=None, help="Spline order (4 = cubic, C²) [default: chosen].")
 @click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
               help="Worker processes solving blocks (same coefficients, not stored).")
 @click.option("--scheduler", type=str, default=None, metavar="TEXT",
@@ -49,10 +54,11 @@ _FIT_ONLY = ("tolerance", "h0", "max_level", "order", "method", "sample_spacing"
               help="Synthesis conventions for a model SOURCE [default: chosen from the model].")
 @click.option("--sample-spacing", type=float, default=None,
               help="Lattice spacing in degrees at which a model SOURCE is synthesised "
-                   "[default: 90/N for degree N, at most a quarter of h0].")
-@click.option("--method", type=click.Choice(FIT_METHODS), default=_DEFAULTS.method, show_default=True,
+                   "[default: chosen].")
+@click.option("--method", type=click.Choice(FIT_METHODS), default=None,
               help="How level 0 is computed: least squares (any source) or quasi-interpolation of a model "
-                   "SOURCE (no linear solves: the way to millimetre-level global stores).")
+                   "SOURCE (no linear solves: the way to millimetre-level global stores) [default: chosen: "
+                   "interpolation for a model, least squares for a grid].")
 @click.option("--overwrite", is_flag=True, help="Replace an existing store at --store.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @verbosity_options
@@ -85,45 +91,48 @@ def main(ctx, source, store_path, update, blend_width, region, tolerance, h0, ma
     if store_path is None:
         raise click.UsageError("give --store DIR, the store to write (or use geoid-update for a regional update)")
     out = store_path
+    from click.core import ParameterSource
+
+    from geoidspline.fitting.choose import choose_parameters
     from geoidspline.fitting.driver import check_method
     from geoidspline.fitting.executors import Executor
+    from geoidspline.fitting.progress import for_terminal
     from geoidspline.sphere.region import GLOBAL, Region
 
-    params = FitParameters(
-        order=order, tolerance_m=tolerance, h0=h0, max_level=max_level,
-        sample_spacing_deg=sample_spacing, method=method,
-    )
     executor = Executor(workers=workers, scheduler=scheduler)
     fit_region = Region.from_bounds(*region) if region else GLOBAL
     src = open_source(source, correction, preset)
+    options = {"method": method, "order": order, "h0": h0, "max_level": max_level,
+               "sample_spacing": sample_spacing, "tolerance": tolerance}
+    given = {field: options[name] for name, field in _CHOSEN.items()
+             if name != "tolerance" and ctx.get_parameter_source(name) is not ParameterSource.DEFAULT}
+    choice = choose_parameters(src, tolerance, fit_region, given)
+    params = choice.parameters
     check_method(src, params)
     log.info("source %s (%s), region %s", src.provenance.source, src.provenance.model, fit_region.as_tuple())
     started = time.perf_counter()
-    bar = None
-    if not quiet:
-        from tqdm import tqdm
-
-        bar = tqdm(desc="solving", unit=" problems", file=sys.stderr, leave=False)
-    try:
-        result, info = build_store(src, out, fit_region, params, progress=bar.update if bar is not None else None,
-                                   overwrite=overwrite, executor=executor)
-    finally:
-        if bar is not None:
-            bar.close()
+    result, info = build_store(src, out, fit_region, params, progress=for_terminal(quiet, verbose),
+                               overwrite=overwrite, executor=executor, extra={"choices": choice.as_manifest()})
     info["wall_seconds"] = round(time.perf_counter() - started, 2)
     info["converged"] = bool(result.converged)
+    info["choices"] = choice.as_manifest()
     if as_json:
         echo(json.dumps(info, indent=1))
         sys.exit(0 if result.converged else 3)
     echo(f"store      {out}  ({info['tiles']} tiles, {info['bytes']:,} bytes)")
     echo(f"source     {src.provenance.source} ({src.provenance.model})")
     echo(f"region     S {fit_region.south:g}  W {fit_region.west:g}  N {fit_region.north:g}  E {fit_region.east:g}")
+    for field in _CHOSEN.values():
+        value = getattr(params, field)
+        reason = choice.reasons[field]
+        label = "given " if reason.startswith("given") else "chosen"
+        echo(f"{label}     {field} = {value if value is not None else '-'}: {reason}")
     echo("level  h          coefficients  max|err| m  nodes>tol  seconds")
     for r in result.levels:
         echo(f"{r.level:5d}  {r.h:<9.6g}  {r.coefficients:12,d}  {r.max_error_m:10.4f}  "
                    f"{r.nodes_above_tolerance:9d}  {r.seconds:7.1f}")
     state = "reached" if result.converged else "NOT reached (raise --max-level)"
-    echo(f"total      {info['coefficients']:,} coefficients; tolerance {tolerance:g} m {state}")
+    echo(f"total      {info['coefficients']:,} coefficients; tolerance {params.tolerance_m:.3g} m at the nodes {state}")
     echo(f"nodes      {info['nodes']:,}: max |error| {info['node_max_error_m']:.4f} m, "
                f"RMS {info['node_rms_error_m']:.4f} m")
     if info["check_points"]:

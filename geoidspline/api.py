@@ -12,6 +12,7 @@ from .fitting.check_points import check_points
 from .fitting.driver import FitResult, fit_source
 from .fitting.executors import Executor
 from .fitting.parameters import FitParameters
+from .fitting.progress import as_progress
 from .sphere.region import GLOBAL, Region
 from .store.reader import TileStore
 from .store.writer import write_store
@@ -31,16 +32,22 @@ def open_store(path, *, lazy: bool = True, verify: bool = True) -> TileStore:
 
 def build_store(source, path, region: Region | None = None, params: FitParameters | None = None,
                 progress=None, overwrite=False, check_count=20_000,
-                executor: Executor | None = None) -> tuple[FitResult, dict]:
+                executor: Executor | None = None, extra: dict | None = None) -> tuple[FitResult, dict]:
     """Fit ``source`` over ``region``, measure it and write the store at ``path``.
 
+    ``progress``: a :class:`~geoidspline.fitting.progress.Progress` (every stage) or a
+    callable given the number of blocks just solved. ``extra``: more entries of the
+    manifest's ``fit`` section (``choices``: why the parameters are what they are).
     Returns the fit result and the store's summary (``TileStore.info()``).
     """
     region = region or GLOBAL
     params = params or FitParameters()
+    progress = as_progress(progress)
     result = fit_source(source, region, params, progress=progress, executor=executor)
-    check = check_points(source, region, count=check_count)
-    write_store(path, result, source.provenance, check=check, overwrite=overwrite)
+    check = check_points(source, region, count=check_count, progress=progress)
+    with progress.stage("write", 1, "store") as advance:
+        write_store(path, result, source.provenance, check=check, overwrite=overwrite, extra=extra)
+        advance(1)
     return result, TileStore.open(path).info()
 
 
@@ -51,7 +58,8 @@ def _as_region(region) -> Region:
 
 
 def fit(source, store, *, region=None, overwrite: bool = False, workers: int = 1, scheduler: str | None = None,
-        correction=None, preset: str | None = None, progress=None, **parameters) -> TileStore:
+        correction=None, preset: str | None = None, progress=None, choose: bool = False,
+        **parameters) -> TileStore:
     """Fit a geoid source into a new tile store at ``store`` and open it.
 
     ``source``: a grid or model file path, a catalogue name (``"egm96-15"``) or a source
@@ -61,15 +69,27 @@ def fit(source, store, *, region=None, overwrite: bool = False, workers: int = 1
     :class:`~geoidspline.sphere.Region` (default global). ``parameters``: any field of
     :class:`~geoidspline.fitting.parameters.FitParameters` (``tolerance_m``, ``h0``,
     ``max_level``, ``order``, ``method``, ...). ``workers``/``scheduler``: where blocks are
-    solved (:class:`~geoidspline.fitting.executors.Executor`), never stored.
+    solved (:class:`~geoidspline.fitting.executors.Executor`), never stored. ``choose``:
+    the fields not in ``parameters`` are chosen from ``tolerance_m`` (default 0.5 m) for
+    the fewest coefficients, as ``geoid-fit`` does
+    (:func:`~geoidspline.fitting.choose.choose_parameters`; the reasons go into the
+    manifest's ``fit.choices``); otherwise they keep FitParameters' defaults.
     """
     from .sources.resolve import open_source
 
     if isinstance(source, (str, bytes)) or hasattr(source, "__fspath__"):
         source = open_source(source, correction, preset)
-    params = dataclasses.replace(FitParameters(), **parameters)
+    extra = None
+    if choose:
+        from .fitting.choose import choose_parameters
+
+        tolerance = parameters.pop("tolerance_m", FitParameters().tolerance_m)
+        choice = choose_parameters(source, tolerance, _as_region(region), given=parameters)
+        params, extra = choice.parameters, {"choices": choice.as_manifest()}
+    else:
+        params = dataclasses.replace(FitParameters(), **parameters)
     build_store(source, store, _as_region(region), params, progress=progress, overwrite=overwrite,
-                executor=Executor(workers=workers, scheduler=scheduler))
+                executor=Executor(workers=workers, scheduler=scheduler), extra=extra)
     return TileStore.open(store)
 
 

@@ -33,9 +33,10 @@ from ..hierarchy.overlays import OverlayRefinement
 from ..sphere.coverage import Coverage
 from ..sphere.region import GLOBAL, Region
 from .executors import Executor
-from .interpolation import interpolate_level, lattice_spacing
+from .interpolation import interpolate_level, lattice_spacing, sample_nodes
 from .least_squares import local_problems
 from .parameters import MIN_H_PER_DATA_SPACING, FitParameters
+from .progress import as_progress
 from .sites import DataNodes, sites_for_level
 
 log = logging.getLogger(__name__)
@@ -91,8 +92,9 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
     """Fit the nodes of a :class:`~geoidspline.sources.NodeSample` over ``region``.
 
     ``sample`` must cover the region plus the support margin of level 0 (see
-    :func:`fit_source`, which asks the source for exactly that). ``progress``, when
-    given, is called with the number of local problems just solved. With
+    :func:`fit_source`, which asks the source for exactly that). ``progress``: a
+    :class:`~geoidspline.fitting.progress.Progress` told of each level's blocks and
+    node errors, or a callable given the number of local problems just solved. With
     ``base_is_overlay`` the sample holds residuals of an existing spline (a regional
     update) and level 0 is refined and regularised like any overlay. ``first_level``, a
     :class:`LevelSpline` computed already (by quasi-interpolation), stands as level 0;
@@ -100,6 +102,7 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
     """
     refinement = refinement or OverlayRefinement(params.refine_radius)
     executor = executor or Executor()
+    progress = as_progress(progress)
     start = time.perf_counter() - (first_level[1] if first_level is not None else 0.0)
     nodes = DataNodes.from_sample(sample, region)
     try:
@@ -145,13 +148,14 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
                 else nodes.values[node_of_site].copy()
             problems = list(local_problems(level, h, params, keys, points, values, force_tiles,
                                             overlay=level > 0 or base_is_overlay))
-            own_keys, own_coefs, solved = solve_level(problems, executor, progress)
+            with progress.stage(f"level {level} blocks", len(problems), "block") as advance:
+                own_keys, own_coefs, solved = solve_level(problems, executor, advance)
             if own_keys.size != keys.size:
                 raise FitError(f"level {level}: tiles returned {own_keys.size} of {keys.size} coefficients")
             lv = LevelSpline(level, h, params.order, own_keys, own_coefs)
             site_count = points.shape[0]
         levels.append(lv)
-        errors -= AmbientSpline([lv]).evaluate_points(region_dirs)
+        subtract_level(errors, lv, region_dirs, progress, f"level {level} node errors")
         above = np.abs(errors) > params.tolerance_m
         violating = region_dirs[above]
         report = LevelReport(
@@ -179,6 +183,25 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
     )
 
 
+#: Nodes a step of the node-error stage evaluates (large enough for the compiled path).
+ERROR_CHUNK = 1_000_000
+
+
+def subtract_level(errors, level: LevelSpline, directions, progress, name):
+    """``errors -= level`` at ``directions``, in chunks of :data:`ERROR_CHUNK` reported as
+    a stage (the same values as one call: every chunk takes the same compiled path)."""
+    spline = AmbientSpline([level])
+    bounds = list(range(0, errors.size, ERROR_CHUNK))[1:] + [errors.size]
+    if len(bounds) > 1 and bounds[-1] - bounds[-2] < ERROR_CHUNK:
+        bounds.pop(-2)  # no short last chunk: it would take the small-batch path
+    with progress.stage(name, len(bounds), "chunk") as advance:
+        start = 0
+        for stop in bounds:
+            errors[start:stop] -= spline.evaluate_points(directions[start:stop])
+            start = stop
+            advance(1)
+
+
 def support_margin_deg(params: FitParameters) -> float:
     """Angular reach (degrees) of the level-0 B-splines beyond the region's cells."""
     chord = params.order * params.h0 * math.sqrt(3.0)
@@ -198,7 +221,7 @@ def fit_source(source, region: Region | None = None, params: FitParameters | Non
         # a model's own default (90/N degrees) can leave a low-degree model with a
         # handful of nodes: keep at least a few per level-0 cell
         spacing = min(source.lattice_step(None), math.degrees(params.h0) / 4.0)
-    sample = source.nodes(clip_to_extent(data_region, source), spacing_deg=spacing)
+    sample = sample_nodes(source, clip_to_extent(data_region, source), spacing, as_progress(progress))
     return fit_nodes(sample, region, params, progress=progress, force_tiles=force_tiles, executor=executor)
 
 
@@ -223,7 +246,8 @@ def _fit_by_interpolation(source, region, params, spacing, progress, force_tiles
         raise FitError(f"no cells of spacing {h} meet the sphere over the region {region.as_tuple()}")
     keys = touching_keys(cells, params.order)
     spacing = lattice_spacing(source, h, spacing)
-    coefficients, band, lattice_points = interpolate_level(source, keys, h, params.order, spacing)
+    coefficients, band, lattice_points = interpolate_level(source, keys, h, params.order, spacing,
+                                                           progress=as_progress(progress))
     level0 = LevelSpline(0, h, params.order, keys, coefficients)
     # the band's lattice holds every node of the region: it is the nodes' sample too
     return fit_nodes(band, region, params, progress=progress, force_tiles=force_tiles,

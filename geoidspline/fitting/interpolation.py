@@ -40,7 +40,8 @@ from ..errors import FitError
 from ..sources.base import NodeSample
 from ..sphere.region import Region
 
-__all__ = ["prefilter_taps", "sample_band", "lattice_spacing", "interpolate_level", "prefilter_terms"]
+__all__ = ["prefilter_taps", "sample_band", "sample_nodes", "lattice_spacing", "interpolate_level",
+           "prefilter_terms"]
 
 
 log = logging.getLogger(__name__)
@@ -78,7 +79,53 @@ def prefilter_taps(order: int, terms: int | None = None) -> np.ndarray:
     return taps
 
 
-def sample_band(source, latitude_south: float, latitude_north: float, spacing_deg: float):
+#: Steps the synthesis stage of a model is reported in (a few rows of its lattice each).
+SYNTHESIS_STEPS = 40
+
+
+def sample_nodes(source, region: Region, spacing_deg: float | None, progress=None) -> NodeSample:
+    """``source.nodes(region, spacing_deg)``, a model's lattice synthesised a band of rows
+    at a time and reported to ``progress`` (a :class:`~geoidspline.fitting.progress.Progress`)
+    as the stage "synthesis". Rows are independent, so the values are those of one call."""
+    from .progress import as_progress
+
+    progress = as_progress(progress)
+    if not hasattr(source, "lattice_step"):  # a grid: its nodes are read, not computed
+        with progress.stage("read nodes", 1, "grid") as advance:
+            sample = source.nodes(region, spacing_deg=spacing_deg)
+            advance(1)
+        return sample
+    step = source.lattice_step(spacing_deg)
+    k = round(180.0 / step)
+    # the rows nodes() would take (its own rounding), split into bands of >= 2 rows
+    i0 = max(0, math.floor((region.south + 90.0) / step + 1e-9))
+    i1 = min(k, math.ceil((region.north + 90.0) / step - 1e-9))
+    per_band = max(2, math.ceil((i1 - i0 + 1) / SYNTHESIS_STEPS))
+    starts = list(range(i0, i1 + 1, per_band))
+    if len(starts) > 1 and i1 + 1 - starts[-1] < 2:
+        starts.pop()
+    bands = [(a, (starts[n + 1] - 1) if n + 1 < len(starts) else i1) for n, a in enumerate(starts)]
+    if len(bands) == 1 or i1 - i0 < 3:
+        bands = [(i0, i1)]
+    pieces = []
+    with progress.stage("synthesis", len(bands), "band") as advance:
+        for a, b in bands:
+            south = max(-90.0, min(90.0, a * step - 90.0))
+            north = max(-90.0, min(90.0, b * step - 90.0))
+            pieces.append(source.nodes(Region(south, region.west, north, region.east) if (a, b) != (i0, i1)
+                                       else region, spacing_deg=step))
+            advance(1)
+    if len(pieces) == 1:
+        return pieces[0]
+    return NodeSample(np.concatenate([p.latitude for p in pieces]), pieces[0].longitude,
+                      np.concatenate([p.undulation for p in pieces], axis=0))
+
+
+#: Lattice points a step of the lookup stage interpolates.
+LOOKUP_CHUNK = 2_000_000
+
+
+def sample_band(source, latitude_south: float, latitude_north: float, spacing_deg: float, progress=None):
     """The source on a full-circle latitude band, padded for the Lagrange lookups.
 
     Returns ``(grid, lat0, step, NodeSample)``: ``grid[i, j]`` is N at latitude
@@ -90,7 +137,7 @@ def sample_band(source, latitude_south: float, latitude_north: float, spacing_de
     columns = round(360.0 / step)
     south = max(-90.0, latitude_south - _PAD * step)
     north = min(90.0, latitude_north + _PAD * step)
-    sample = source.nodes(Region(south, -180.0, north, 180.0), spacing_deg=step)
+    sample = sample_nodes(source, Region(south, -180.0, north, 180.0), step, progress)
     lat = sample.latitude
     values = sample.undulation[:, :columns]  # the last column repeats the first (+360)
     if values.shape[1] != columns or not np.isclose(sample.longitude[0], -180.0):
@@ -119,14 +166,18 @@ def lattice_spacing(source, h: float, spacing_deg: float | None = None) -> float
 
 
 def interpolate_level(source, keys, h: float, order: int, spacing_deg: float,
-                      terms: int | None = None):
+                      terms: int | None = None, progress=None):
     """Coefficients (metres) of B-splines ``keys`` (sorted) by quasi-interpolation.
 
     Returns ``(coefficients, band, lattice_points)``: ``band`` is the
     :class:`NodeSample` of the lattice synthesised for the lookups (every latitude the
     coefficients depend on, all longitudes), ``lattice_points`` the number of lattice
-    points sampled.
+    points sampled. ``progress``: a :class:`~geoidspline.fitting.progress.Progress` told
+    of the stages "synthesis", "lookups" and "prefilter".
     """
+    from .progress import as_progress
+
+    progress = as_progress(progress)
     start = time.perf_counter()
     taps = prefilter_taps(order, terms)
     half = (taps.size - 1) // 2
@@ -140,17 +191,24 @@ def interpolate_level(source, keys, h: float, order: int, spacing_deg: float,
     lon = np.empty(lattice.size)
     # B-spline k lives on cells k .. k + order - 1: its centre is at (k + order/2) h
     kern.key_directions(lattice, KEY_OFFSET, KEY_BITS, order / 2.0, h, lat, lon)
-    grid, lat0, step, band = sample_band(source, float(lat.min()), float(lat.max()), spacing_deg)
+    grid, lat0, step, band = sample_band(source, float(lat.min()), float(lat.max()), spacing_deg, progress)
     t_synth = time.perf_counter()
     values = np.empty(lattice.size)
-    kern.lattice_lookup(grid, lat0, step, -180.0 - _PAD * step, step, lat, lon, values)
+    # each point's lookup is independent: chunks give the values of one call
+    bounds = list(range(0, lattice.size, LOOKUP_CHUNK)) + [lattice.size]
+    with progress.stage("lookups", len(bounds) - 1, "chunk") as advance:
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            kern.lattice_lookup(grid, lat0, step, -180.0 - _PAD * step, step, lat[a:b], lon[a:b], values[a:b])
+            advance(1)
     del lat, lon, grid
-    for axis, step_key in enumerate(steps):
-        in_keys = sets[3 - axis]
-        out_keys = sets[2 - axis]
-        out = np.empty(out_keys.size)
-        kern.filter_axis(in_keys, values, out_keys, step_key, taps, out)
-        values = out
+    with progress.stage("prefilter", len(steps), "axis") as advance:
+        for axis, step_key in enumerate(steps):
+            in_keys = sets[3 - axis]
+            out_keys = sets[2 - axis]
+            out = np.empty(out_keys.size)
+            kern.filter_axis(in_keys, values, out_keys, step_key, taps, out)
+            values = out
+            advance(1)
     log.info(
         "quasi-interpolation at h=%.6g: %d coefficients from %d lattice points (%d taps an axis), "
         "band %.3f..%.3f deg at %.4g deg, %.1f s (synthesis and lookups %.1f s)",

@@ -1,0 +1,280 @@
+"""Fit parameters chosen from the tolerance: the fewest coefficients that reach it.
+
+A user gives a source and the largest error she accepts; :func:`choose_parameters`
+picks the method, spline order, level-0 spacing h0, the number of levels and the
+sample spacing, and says why for each. Every choice rests on a measured fit
+(:data:`MEASURED`, rows of ``benchmarks/results/fits.jsonl`` and
+``benchmarks/results/choose.jsonl``) and on two laws:
+
+- convergence: a model of degree N has the same relative resolution at the same
+  ``h * N`` (its shortest wavelength is 2π/N on the unit sphere), so level 0's max
+  error is read off a measured curve of ``h * N`` (:data:`LEVEL0_ERROR`, log-log
+  interpolation between measured points). Measured, it falls faster than the
+  asymptotic h^n (about h^8-h^9 for order 6 at h N = 1.4-2.3: the spline is near the
+  model's resolution there), so the curve is used and not the power law; below its
+  finest point it is extended by h^n (the asymptotic rate, the slower one), and h0 is
+  never chosen coarser than its coarsest point;
+- size: the B-splines touching the cells that meet the sphere number
+  ``density * area / h**2`` (area in steradians); ``density`` grows with the order
+  (the support is thicker radially) and is measured.
+
+Grids are fitted the way the thesis's Andes headline is (least squares, cubic splines,
+h0 = 0.1, overlays down to the grid's own resolution): quasi-interpolation needs a
+source exact everywhere.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..sphere.region import GLOBAL, Region
+from .parameters import MIN_H_PER_DATA_SPACING, FitParameters
+
+__all__ = ["MEASURED", "ConvergencePoint", "Choice", "choose_parameters", "CHOSEN_FIELDS"]
+
+
+#: The FitParameters fields :func:`choose_parameters` chooses (the rest keep their defaults).
+CHOSEN_FIELDS = ("method", "order", "h0", "max_level", "sample_spacing_deg", "tolerance_m")
+
+
+@dataclass(frozen=True)
+class ConvergencePoint:
+    """One measured quasi-interpolated level 0 of a model fit.
+
+    ``level0_max_m``: max |error| of level 0 alone; ``coefficients``: level 0's
+    B-splines over the whole sphere; ``reference``: where it was measured.
+    """
+
+    model: str
+    degree: int
+    order: int
+    h0: float
+    level0_max_m: float
+    coefficients: int
+    reference: str
+
+    @property
+    def h_times_degree(self) -> float:
+        return self.h0 * self.degree
+
+    @property
+    def density(self) -> float:
+        """Coefficients per steradian times h0²."""
+        return self.coefficients * self.h0**2 / (4.0 * math.pi)
+
+
+#: The global anchors, one per spline order: coefficient counts (and, for order 6,
+#: the global level-0 error that scales the regional curve).
+MEASURED = {
+    6: ConvergencePoint(
+        "EGM96 (F477 + CORRCOEF)", 360, 6, 0.0045, 0.0026, 5_585_796,
+        "benchmarks/README.md 'Millimetre stores from models', scenario egm96-mm "
+        "(results/fits.jsonl 2026-11-23T21:36, 2a41d02): level 0 alone 2.6 mm at the 5' nodes",
+    ),
+    4: ConvergencePoint(
+        "EGM96 (F477 + CORRCOEF)", 360, 4, 0.004, float("nan"), 4_712_294,
+        "scenario egm96-cm (results/fits.jsonl 2026-11-23T22:26, 8cb19eb)",
+    ),
+}
+
+#: Level 0's max |error| (metres) against h·N, per order: EGM96 (F477 + CORRCOEF),
+#: quasi-interpolation alone, region 25..35N 80..95E (the Himalaya, the steepest
+#: geoid), max over the 5' nodes (results/choose.jsonl, 2026-11-29). Global maxima are
+#: larger by :data:`GLOBAL_OVER_REGIONAL`.
+LEVEL0_ERROR = {
+    6: ((1.44, 0.000841), (1.62, 0.002171), (1.98, 0.013498), (2.34, 0.063712)),
+    4: ((1.08, 0.005020), (1.44, 0.017251), (1.80, 0.049309)),
+}
+
+#: Global level-0 max over the regional one at the same h: 2.6 mm (egm96-mm, every 5'
+#: node of the sphere) against 2.17 mm (the region of LEVEL0_ERROR), order 6, h 0.0045.
+GLOBAL_OVER_REGIONAL = 0.0026 / 0.002171
+
+#: Node tolerance used, as a fraction of the tolerance asked for: check points between
+#: the nodes were 0.74 (EGM96) and 0.90 (EGM2008 to 120) of the node max in the
+#: measured fits, so 0.8 keeps the error anywhere under the tolerance.
+NODE_TOLERANCE_FRACTION = 0.8
+
+#: Level 0's max error relative to the node tolerance: in egm96-mm (2.6 mm against
+#: 1.5 mm) this left 220 of 9.3 M nodes for the overlay (1,129 coefficients, 21 s).
+#: Many overlays on a quasi-interpolated level are slow and were seen to make the worst
+#: node worse (benchmarks/README.md), so level 0 does nearly all the work.
+LEVEL0_OVER_TOLERANCE = 0.0026 / 0.0015
+
+#: Level-0 coefficients above which h0 is not made finer (about 0.7 GB of peak memory
+#: per million in the measured fits: 3.8 GB for 5.6 M); overlays take the rest.
+MAX_LEVEL0_COEFFICIENTS = 12_000_000
+
+#: Node lattice of a model: 5' (the measured fits) or 30/N degrees when finer (the
+#: 6-point Lagrange lookups' accuracy, :func:`geoidspline.fitting.interpolation.lattice_spacing`).
+NODE_SPACING_DEG = 1.0 / 12.0
+
+
+@dataclass(frozen=True)
+class Choice:
+    """The chosen parameters and, per field, why (``given`` when the caller fixed it)."""
+
+    parameters: FitParameters
+    reasons: dict
+    tolerance_m: float  # the tolerance asked for
+
+    def as_manifest(self) -> dict:
+        """The ``fit.choices`` note of a store."""
+        return {"tolerance_asked_m": self.tolerance_m, "reasons": dict(self.reasons)}
+
+
+def region_area(region: Region) -> float:
+    """Area of ``region`` on the unit sphere (steradians)."""
+    span = math.radians(min(region.longitude_span, 360.0))
+    return span * (math.sin(math.radians(region.north)) - math.sin(math.radians(region.south)))
+
+
+def _level0_spacing(order: int, degree: int, level0_max_m: float) -> float:
+    """h0 at which level 0's global max error is ``level0_max_m`` by :data:`LEVEL0_ERROR`."""
+    points = LEVEL0_ERROR[order]
+    h_n = np.log([p[0] for p in points])
+    err = np.log([p[1] * GLOBAL_OVER_REGIONAL for p in points])
+    target = math.log(level0_max_m)
+    if target <= err[0]:  # finer than measured: the asymptotic rate h^order
+        return math.exp(h_n[0] + (target - err[0]) / order) / degree
+    return math.exp(float(np.interp(target, err, h_n))) / degree  # clamped at the coarsest
+
+
+def _max_h_times_degree(order: int) -> float:
+    return LEVEL0_ERROR[order][-1][0]
+
+
+def _round_down(value: float, digits: int = 3) -> float:
+    """``value`` rounded down to ``digits`` significant digits (h0 errs on the fine side)."""
+    scale = 10.0 ** (digits - 1 - math.floor(math.log10(value)))
+    return math.floor(value * scale) / scale
+
+
+def choose_parameters(source, tolerance_m: float, region: Region | None = None, given: dict | None = None) -> Choice:
+    """Parameters for the fewest coefficients that reach ``tolerance_m`` (metres).
+
+    ``given``: FitParameters fields the caller fixed (an expert option); they are used
+    as given and the rest chosen around them. Returns a :class:`Choice`.
+    """
+    region = region or GLOBAL
+    given = dict(given or {})
+    everything_given = all(f in given for f in CHOSEN_FIELDS if f != "tolerance_m")
+    if everything_given:  # the expert's command as before: the tolerance holds at the nodes
+        given.setdefault("tolerance_m", tolerance_m)
+    if getattr(source.provenance, "kind", None) == "harmonic" and hasattr(source, "max_degree") \
+            and given.get("method", "interpolation") == "interpolation":
+        values, reasons = _for_model(source, tolerance_m, region, given)
+    else:
+        values, reasons = _for_grid(source, tolerance_m, region, given)
+    for name in given:
+        reasons[name] = "given"
+    if everything_given:
+        reasons["tolerance_m"] = "given (with every other parameter: used at the nodes as it is)"
+    values.update(given)
+    fields = {f.name for f in dataclasses.fields(FitParameters)}
+    return Choice(FitParameters(**{k: v for k, v in values.items() if k in fields}), reasons, tolerance_m)
+
+
+def _for_model(source, tolerance_m, region, given):
+    degree = int(source.max_degree)
+    values, reasons = {"method": "interpolation"}, {}
+    reasons["method"] = ("quasi-interpolation: the model is exact everywhere, so level 0 needs no "
+                         "linear solve; least-squares overlays only where nodes stay above the tolerance")
+    node_tol = tolerance_m * NODE_TOLERANCE_FRACTION
+    if "tolerance_m" not in given:
+        values["tolerance_m"] = node_tol
+        reasons["tolerance_m"] = (f"{node_tol:.3g} m at the nodes = {NODE_TOLERANCE_FRACTION:g} x {tolerance_m:g} m: "
+                                  "the error between nodes was up to 0.9 x the node max in the measured fits")
+    else:
+        node_tol = given["tolerance_m"]
+    level0_target = LEVEL0_OVER_TOLERANCE * node_tol
+    area = region_area(region)
+    # the order with the fewest level-0 coefficients at the error target
+    candidates = {}
+    for order in ([given["order"]] if "order" in given else sorted(MEASURED)):
+        if order not in MEASURED:
+            raise ValueError(f"no measured convergence for order {order}: give --h0 too")
+        h0 = given.get("h0") or _level0_spacing(order, degree, level0_target)
+        candidates[order] = (h0, MEASURED[order].density * area / h0**2)
+    order = min(candidates, key=lambda o: candidates[o][1])
+    h0, count = candidates[order]
+    if "order" not in given:
+        others = ", ".join(f"order {o}: {c:,.0f}" for o, (_, c) in sorted(candidates.items()) if o != order)
+        reasons["order"] = (f"{order}: fewest level-0 coefficients for {level0_target * 1e3:.2g} mm "
+                            f"(about {count:,.0f}; {others}) by the measured convergence")
+    values["order"] = order
+    capped = False
+    if "h0" not in given:
+        ref = MEASURED[order]
+        exact = h0
+        if count > MAX_LEVEL0_COEFFICIENTS:
+            h0 = math.sqrt(ref.density * area / MAX_LEVEL0_COEFFICIENTS)
+            capped = True
+        h0 = min(_round_down(h0), 0.1)
+        law = "the measured level-0 error against h N (EGM96, fitting.choose.LEVEL0_ERROR)"
+        if capped:
+            reasons["h0"] = (f"{h0:g}: capped at {MAX_LEVEL0_COEFFICIENTS:,} level-0 coefficients (memory); "
+                             f"{exact:.3g} would reach {level0_target * 1e3:.2g} mm by {law}; overlays take the rest")
+        elif exact * degree >= _max_h_times_degree(order) - 1e-12:
+            reasons["h0"] = (f"{h0:g}: h N = {h0 * degree:.3g}, the coarsest measured for order {order} "
+                             f"(a coarser spline stops resolving degree {degree})")
+        else:
+            reasons["h0"] = (f"{h0:g}: h N = {h0 * degree:.3g} for a level-0 max error of "
+                             f"{level0_target * 1e3:.2g} mm by {law}")
+    values["h0"] = h0
+    if "max_level" not in given:
+        values["max_level"] = 2 if capped else 1
+        reasons["max_level"] = (f"{values['max_level']}: " + (
+            "level 0 is capped, two overlay levels" if capped else
+            "one least-squares overlay (half spacing) for the few nodes level 0 leaves above the tolerance"))
+    if "sample_spacing_deg" not in given:
+        spacing = min(NODE_SPACING_DEG, 30.0 / degree)
+        values["sample_spacing_deg"] = spacing
+        reasons["sample_spacing_deg"] = (f"{spacing:.4g} deg: 5' nodes as in the measured fits (or 30/N when finer), "
+                                         f"{math.degrees(h0) / spacing:.1f} nodes a level-0 cell to measure the error")
+    return values, reasons
+
+
+def _for_grid(source, tolerance_m, region, given):
+    defaults = FitParameters()
+    values = {"method": "least-squares", "order": defaults.order, "h0": defaults.h0}
+    reasons = {
+        "method": "least squares: a grid is known at its nodes only",
+        "order": f"{defaults.order} (cubic, C²), h0 {defaults.h0:g}: the thesis's Andes headline "
+                 "(benchmarks scenario andes: < 0.5 m with 29,005 coefficients, results/fits.jsonl 2026-11-23T18:57)",
+        "h0": f"{defaults.h0:g}: as the Andes headline",
+    }
+    h0 = given.get("h0", defaults.h0)
+    spacing = _data_spacing_rad(source, region)
+    if spacing is None:
+        values["max_level"] = defaults.max_level
+        reasons["max_level"] = f"{defaults.max_level}: the default (the source's node spacing is unknown)"
+    else:
+        finest = MIN_H_PER_DATA_SPACING * spacing
+        level = max(0, min(12, math.floor(math.log2(h0 / finest) + 1e-9)))
+        values["max_level"] = level
+        reasons["max_level"] = (f"{level}: h = {h0 / 2**level:.4g} is the finest level at least {MIN_H_PER_DATA_SPACING:g} x "
+                                f"the data spacing ({spacing:.4g} on the unit sphere); finer is not determined "
+                                "between the nodes")
+    values["tolerance_m"] = tolerance_m
+    reasons["tolerance_m"] = f"{tolerance_m:g} m at the grid's nodes"
+    reasons["sample_spacing_deg"] = ("the source's own nodes" if spacing is not None
+                                     else "the default for a least-squares fit of a model: 90/N, at most h0/4")
+    return values, reasons
+
+
+def _data_spacing_rad(source, region: Region) -> float | None:
+    """The node spacing the driver measures (:func:`geoidspline.fitting.driver.fit_nodes`)."""
+    lat_step = getattr(source, "latitude_spacing", None)
+    lon_step = getattr(source, "longitude_spacing", None)
+    if lat_step is None or lon_step is None:
+        return None
+    south = max(region.south, source.extent.south)
+    north = min(region.north, source.extent.north)
+    lat = np.arange(south, north + 0.5 * lat_step, lat_step) if north > south else np.array([south])
+    mean_cos = float(np.cos(np.radians(np.abs(lat))).mean())
+    return max(math.radians(lat_step), math.radians(lon_step) * mean_cos)
