@@ -1,0 +1,1 @@
+"""What is read out of a finished store: queries, derived quantities, exports, pictures."""
