@@ -25,8 +25,9 @@ log = logging.getLogger("geoidspline.cli")
               help="With --update: width in km outside --region over which SOURCE fades into the store.")
 @click.option("--region", nargs=4, type=float, metavar="S W N E", default=None,
               help="Region in degrees: south west north east (default: global).")
-@click.option("--tolerance", type=float, default=0.5, show_default=True,
-              help="Largest |error| in metres accepted at the data nodes.")
+@click.option("--tolerance", type=float, default=None,
+              help="Largest |error| in metres accepted at the data nodes [default: 0.5; with --update: the "
+                   "store's].")
 @click.option("--h0", type=float, default=None, help="Level-0 grid spacing on the unit sphere [default: 0.1].")
 @click.option("--max-level", type=int, default=None, help="Finest overlay level (h = h0 / 2**level) [default: 8].")
 @click.option("--order", type=int, default=4, show_default=True, help="Spline order (4 = cubic, C²).")
@@ -62,13 +63,13 @@ def main(source, out, update, blend_width, region, tolerance, h0, max_level, ord
     if (out is None) == (update is None):
         raise click.UsageError("give either --out STORE (a new fit) or --update STORE (a regional update)")
     if update is not None:
-        return _update(source, update, region, blend_width, workers, correction, preset, as_json, quiet)
+        return _update(source, update, region, blend_width, workers, correction, preset, as_json, quiet, tolerance)
     from geoidspline.fit import FitParameters, check_method
     from geoidspline.region import GLOBAL, Region
 
     defaults = FitParameters()
     params = FitParameters(
-        order=order, tolerance_m=tolerance,
+        order=order, tolerance_m=0.5 if tolerance is None else tolerance,
         h0=defaults.h0 if h0 is None else h0,
         max_level=defaults.max_level if max_level is None else max_level,
         workers=workers, sample_spacing_deg=sample_spacing, scheduler=scheduler, method=method,
@@ -101,7 +102,7 @@ def main(source, out, update, blend_width, region, tolerance, h0, max_level, ord
         click.echo(f"{r.level:5d}  {r.h:<9.6g}  {r.coefficients:12,d}  {r.max_error_m:10.4f}  "
                    f"{r.nodes_above_tolerance:9d}  {r.seconds:7.1f}")
     state = "reached" if result.converged else "NOT reached (raise --max-level)"
-    click.echo(f"total      {info['coefficients']:,} coefficients; tolerance {tolerance:g} m {state}")
+    click.echo(f"total      {info['coefficients']:,} coefficients; tolerance {params.tolerance_m:g} m {state}")
     click.echo(f"nodes      {info['nodes']:,}: max |error| {info['node_max_error_m']:.4f} m, "
                f"RMS {info['node_rms_error_m']:.4f} m")
     if info["check_points"]:
@@ -112,7 +113,7 @@ def main(source, out, update, blend_width, region, tolerance, h0, max_level, ord
         sys.exit(3)
 
 
-def _update(source, store, region, blend_width, workers, correction, preset, as_json, quiet):
+def _update(source, store, region, blend_width, workers, correction, preset, as_json, quiet, tolerance=None):
     from geoidspline.catalogue import open_source
     from geoidspline.region import Region
     from geoidspline.update import update_store
@@ -121,7 +122,8 @@ def _update(source, store, region, blend_width, workers, correction, preset, as_
         raise click.UsageError("--update needs --region S W N E")
     src = open_source(source, correction, preset)
     started = time.perf_counter()
-    record = update_store(store, src, Region.from_bounds(*region), blend_width_km=blend_width, workers=workers)
+    record = update_store(store, src, Region.from_bounds(*region), blend_width_km=blend_width, workers=workers,
+                          tolerance_m=tolerance)
     record["wall_seconds"] = round(time.perf_counter() - started, 2)
     if as_json:
         click.echo(json.dumps(record, indent=1))

@@ -103,8 +103,12 @@ def _check_compatible(store: TileStore, source, region: Region):
 
 
 def update_store(path, source, region: Region, blend_width_km: float = 100.0, workers: int = 1,
-                 progress=None) -> dict:
+                 progress=None, tolerance_m: float | None = None) -> dict:
     """Replace the store's geoid inside ``region`` by ``source``; return the update report.
+
+    The update is fitted with the store's own parameters; ``tolerance_m`` (metres), when
+    given, replaces the store's tolerance for this update only (the levels available
+    stay the store's).
 
     Refused before anything is written when the store is read-only or locked by another
     writer, when the source's ellipsoid or tide system differs from the store's, or when
@@ -122,6 +126,8 @@ def update_store(path, source, region: Region, blend_width_km: float = 100.0, wo
     stored = {k: v for k, v in manifest["fit"]["parameters"].items() if k in known}
     stored["radial_offsets"] = tuple(stored["radial_offsets"])
     params = dataclasses.replace(FitParameters(**stored), workers=workers, scheduler=None)
+    if tolerance_m is not None:
+        params = dataclasses.replace(params, tolerance_m=float(tolerance_m))
     blend_deg = blend_width_km / KM_PER_DEGREE
     zone = region.expanded(blend_deg) if blend_deg > 0 else region
 
@@ -132,7 +138,10 @@ def update_store(path, source, region: Region, blend_width_km: float = 100.0, wo
         lat2, lon2 = np.meshgrid(sample.latitude, sample.longitude, indexing="ij")
         old = store.spline.undulation(lat2, lon2)
         weight = blend_weight(region, blend_deg, lat2, lon2)
-        residual = np.where(np.isfinite(sample.undulation), weight * (sample.undulation - old), np.nan)
+        # where the weight is 0 the store is kept: a zero residual, whether or not the
+        # source has data there (its no-data nodes must not leave Δ unconstrained)
+        residual = np.where(weight == 0.0, 0.0,
+                            np.where(np.isfinite(sample.undulation), weight * (sample.undulation - old), np.nan))
         delta = fit_nodes(NodeSample(sample.latitude, sample.longitude, residual), zone, params,
                           refinement=_ResidualRefinement(params.refine_radius, zone), progress=progress,
                           base_is_overlay=True)
