@@ -141,6 +141,11 @@ def test_map_extent_is_the_region_and_the_title_names_the_source(bump_store, sto
 
     with Image.open(tmp_path / "n.png") as png:
         assert png.info["Title"] == field.title
+    import os
+
+    mask = os.umask(0o022)
+    os.umask(mask)
+    assert (tmp_path / "n.png").stat().st_mode & 0o777 == 0o666 & ~mask  # not mkstemp's 0600
 
 
 def test_a_map_outside_the_store_region_is_refused(store):
@@ -344,3 +349,15 @@ def test_cli_user_errors_are_one_error_line(bump_store, tmp_path):
     assert result.exit_code == 2 and "--minus" in result.stderr
     result = invoke([path, "--out", tmp_path / "n.png", "--correction", path])
     assert result.exit_code == 2 and "--against" in result.stderr
+
+
+def test_blend_edge_is_where_the_blend_weight_reaches_zero():
+    from geoidspline.update import blend_weight
+
+    region, blend_deg = Region(30.0, 120.0, 40.0, 140.0), 1.5
+    lon, lat = gplot._blend_edge(region, blend_deg, 0.0)
+    # on the edge the weight has just reached 0; a little inside it is still positive
+    assert np.all(blend_weight(region, blend_deg, lat, lon) < 1e-9)
+    centre_lat, centre_lon = 35.0, 130.0
+    inward_lat, inward_lon = lat + 0.01 * (centre_lat - lat), lon + 0.01 * (centre_lon - lon)
+    assert np.all(blend_weight(region, blend_deg, inward_lat, inward_lon) > 0.0)

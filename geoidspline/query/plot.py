@@ -25,6 +25,7 @@ from __future__ import annotations
 import math
 import os
 import tempfile
+import textwrap
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
@@ -550,15 +551,43 @@ def _degree_axes(ax, extent):
     ax.grid(True, color="0.3", linewidth=0.3, alpha=0.35)
 
 
+def _blend_edge(region: Region, blend_deg: float, shift: float, count=60):
+    """The outer edge of an update's blend: the points at ``blend_deg`` degrees of arc
+    from the region in :func:`geoidspline.update.blend_weight`'s metric (hypot of the
+    latitude and cos φ-scaled longitude excess), as (longitudes, latitudes)."""
+    s, w, n, e = region.south, region.west + shift, region.north, region.east + shift
+    t = np.linspace(0.0, 1.0, count)
+
+    def corner(lat_edge, sign_lat, lon_edge, sign_lon, outward):
+        dlat = blend_deg * (t if outward else t[::-1])
+        lat = lat_edge + sign_lat * dlat
+        lon = lon_edge + sign_lon * np.sqrt(np.maximum(blend_deg**2 - dlat**2, 0.0)) / np.cos(np.radians(lat))
+        return lon, lat
+
+    side = np.linspace(n, s, count)
+    pieces = [
+        (np.array([w, e]), np.full(2, n + blend_deg)),
+        corner(n, 1.0, e, 1.0, outward=False),
+        (e + blend_deg / np.cos(np.radians(side)), side),
+        corner(s, -1.0, e, 1.0, outward=True),
+        (np.array([e, w]), np.full(2, s - blend_deg)),
+        corner(s, -1.0, w, -1.0, outward=False),
+        (w - blend_deg / np.cos(np.radians(side[::-1])), side[::-1]),
+        corner(n, 1.0, w, -1.0, outward=True),
+    ]
+    lon = np.concatenate([p[0] for p in pieces])
+    lat = np.clip(np.concatenate([p[1] for p in pieces]), -90.0, 90.0)
+    return lon, lat
+
+
 def _draw_outlines(ax, field_):
     from matplotlib.lines import Line2D
     from matplotlib.patches import Rectangle
 
-    from ..update import KM_PER_DEGREE, blend_weight
+    from ..update import KM_PER_DEGREE
 
-    west, east, south, north = field_.extent
+    west, east = field_.extent[:2]
     handles = []
-    lat2, lon2 = np.meshgrid(field_.latitude, field_.longitude, indexing="ij")
     for region, blend_km, source in field_.outlines:
         middle = region.west + 0.5 * region.longitude_span
         shift = 360.0 * round((0.5 * (west + east) - middle) / 360.0)
@@ -566,12 +595,10 @@ def _draw_outlines(ax, field_):
                                region.north - region.south, fill=False, edgecolor="black", linewidth=1.0))
         handles.append(Line2D([], [], color="black", linewidth=1.0, label=f"update region ({source})"))
         if blend_km > 0.0:
-            weight = blend_weight(region, blend_km / KM_PER_DEGREE, lat2, lon2)
-            if np.any(weight > 1e-6) and np.any(weight <= 1e-6):
-                ax.contour(field_.longitude, field_.latitude, weight, levels=[1e-6], colors="black",
-                           linewidths=0.8, linestyles="--")
-                handles.append(Line2D([], [], color="black", linewidth=0.8, linestyle="--",
-                                      label=f"outer edge of the {blend_km:g} km blend"))
+            ax.plot(*_blend_edge(region, blend_km / KM_PER_DEGREE, shift), color="black", linewidth=0.8,
+                    linestyle="--")
+            handles.append(Line2D([], [], color="black", linewidth=0.8, linestyle="--",
+                                  label=f"outer edge of the {blend_km:g} km blend"))
     if handles:
         ax.legend(handles=handles, loc="lower left", fontsize=7, framealpha=0.85)
 
@@ -596,6 +623,8 @@ def _contours(ax, field_):
 #: subtitle line).
 _MARGINS = {"left": 0.8, "bottom": 0.55, "gap": 0.15, "bar": 0.17, "right": 0.95, "right_levels": 1.6,
             "top": 0.5, "line": 0.135}
+#: Characters of the 7.5-point subtitle per inch of figure width (a conservative average).
+_SUBTITLE_CHARS_PER_IN = 16.5
 #: The tallest map drawn, inches (taller regions get a narrower figure).
 _MAX_MAP_HEIGHT_IN = 9.0
 
@@ -618,14 +647,17 @@ def draw(field_: MapField, *, contours=None, dpi=150, width_in=8.0) -> Plot:
     aspect = 1.0 / max(math.cos(math.radians(0.5 * (south + north))), 0.2)
     m = _MARGINS
     right = m["right_levels"] if field_.scale == "levels" else m["right"]
-    subtitle = field_.subtitle + "".join(f"\n{note}" for note in field_.notes)
-    top = m["top"] + m["line"] * (subtitle.count("\n") + 1)
     ratio = (north - south) * aspect / (east - west)
     map_w = width_in - m["left"] - m["gap"] - m["bar"] - right
     map_h = map_w * ratio
     if map_h > _MAX_MAP_HEIGHT_IN:
         map_h = _MAX_MAP_HEIGHT_IN
         map_w = map_h / ratio
+    # the subtitle wrapped to the width of map and colour bar (7.5 pt: ~17 characters per inch)
+    columns = max(40, int((map_w + m["gap"] + m["bar"] + right - 0.3) * _SUBTITLE_CHARS_PER_IN))
+    subtitle = "\n".join(textwrap.fill(line, columns, subsequent_indent="  ")
+                         for line in (field_.subtitle.split("\n") + list(field_.notes)))
+    top = m["top"] + m["line"] * (subtitle.count("\n") + 1)
     fig_w = m["left"] + map_w + m["gap"] + m["bar"] + right
     fig_h = m["bottom"] + map_h + top
     figure = Figure(figsize=(fig_w, fig_h), dpi=dpi)
@@ -659,6 +691,12 @@ def draw(field_: MapField, *, contours=None, dpi=150, width_in=8.0) -> Plot:
     return Plot(figure, ax, image, colorbar, field_)
 
 
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def save_figure(figure, path, title=None) -> Path:
     """Write ``figure`` to ``path`` as PNG, PDF or SVG (by suffix), atomically: a reader
     never sees half a file. ``title`` goes into the file's metadata."""
@@ -676,6 +714,7 @@ def save_figure(figure, path, title=None) -> Path:
     os.close(fd)
     try:
         figure.savefig(tmp, format=fmt, metadata=metadata)
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes it 0600: give it a new file's usual mode
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
