@@ -31,7 +31,8 @@ from ._common import user_errors, verbosity_options
 @click.option("--region", nargs=4, type=float, metavar="S W N E", default=None,
               help="Map region in degrees: south west north east [default: the store's region].")
 @click.option("--spacing", type=float, default=None,
-              help="Pixel size in degrees [default: 720 pixels along the longer side].")
+              help="Pixel size in degrees [default: about as many pixels as the figure shows: 720 along the longer "
+                   "side at 150 dpi].")
 @click.option("--contours/--no-contours", default=None,
               help="Labelled contour lines [default: on for maps of N].")
 @click.option("--dpi", type=click.IntRange(min=30, max=1200), default=150, show_default=True,

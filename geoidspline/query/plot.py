@@ -259,7 +259,7 @@ def _stats(values, inside=None) -> dict:
 def _difference_text(stats, points_name="points") -> str:
     if not stats["points"]:
         return "no values"
-    return (f"max |Δ| {stats['max_abs_m']:.4g} m, RMS {stats['rms_m']:.4g} m, mean {stats['mean_m']:+.3g} m "
+    return (f"max |Δ| {stats['max_abs_m']:.4g} m, RMS {stats['rms_m']:.4g} m, mean {stats['mean_m']:+.4f} m "
             f"at {stats['points']:,} {points_name}")
 
 
@@ -533,6 +533,15 @@ def _norm_and_cmap(field_):
     return colors.Normalize(low, high), matplotlib.colormaps["viridis"].with_extremes(bad=bad)
 
 
+#: Tick spacings of a map axis, degrees (the usual graticule steps).
+_DEGREE_STEPS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.25, 0.5, 1.0, 2.0, 2.5, 5.0, 10.0, 15.0, 20.0, 30.0, 45.0, 60.0, 90.0)
+
+
+def _degree_step(span, most=7):
+    """The smallest graticule step giving at most ``most`` intervals over ``span`` degrees."""
+    return next((step for step in _DEGREE_STEPS if span / step <= most), _DEGREE_STEPS[-1])
+
+
 def _degree_axes(ax, extent):
     from matplotlib import ticker
 
@@ -540,9 +549,8 @@ def _degree_axes(ax, extent):
     ax.set_xlim(west, east)
     ax.set_ylim(south, north)
     ax.set_aspect(1.0 / max(math.cos(math.radians(0.5 * (south + north))), 0.2))
-    steps = [1, 2, 2.5, 3, 5, 10]
-    ax.xaxis.set_major_locator(ticker.MaxNLocator(nbins=8, steps=steps))
-    ax.yaxis.set_major_locator(ticker.MaxNLocator(nbins=8, steps=steps))
+    ax.xaxis.set_major_locator(ticker.MultipleLocator(_degree_step(east - west)))
+    ax.yaxis.set_major_locator(ticker.MultipleLocator(_degree_step(north - south)))
     ax.xaxis.set_major_formatter(ticker.FuncFormatter(lambda x, _pos: _lon_text(x)))
     ax.yaxis.set_major_formatter(ticker.FuncFormatter(lambda y, _pos: _lat_text(y)))
     ax.set_xlabel("longitude")
@@ -744,6 +752,11 @@ def plot_store(store, out, kind="undulation", *, other=None, against=None, regio
     if not path.parent.is_dir():
         raise InputFileError(path, "the output directory does not exist")
     _matplotlib()
+    if spacing is None:
+        # no more pixels than the figure shows (about 5.5 inches of map): a finer lattice
+        # would be thinned by the renderer, dropping rows and columns
+        extent = _map_extent(store, region)[1]
+        spacing = max(extent[1] - extent[0], extent[3] - extent[2]) / min(DEFAULT_PIXELS, int(5.5 * dpi))
     if kind == "undulation":
         field_ = undulation_map(store, region, spacing)
     elif kind == "error":
