@@ -222,6 +222,8 @@ def profile_figures(after, before, grid, region: Region, blend_km: float) -> dic
         zone1 = (mid1 >= 0) & (mid1 <= blend_km * 1000.0)
         xi_a, eta_a = deflection(after, lat, lon)[:2]
         xi_b, eta_b = deflection(before, lat, lon)[:2]
+        change = np.maximum(np.abs(xi_a - xi_b), np.abs(eta_a - eta_b))
+        in_blend = (distance >= 0) & (distance <= blend_km * 1000.0)
         national_edge = float(grid.undulation(lat[distance == 0], lon[distance == 0], method="bilinear")[0]) \
             if np.any(distance == 0) else float("nan")
         rows.append({
@@ -231,7 +233,9 @@ def profile_figures(after, before, grid, region: Region, blend_km: float) -> dic
             "max_second_diff_outside_blend_m": float(d2[~zone].max()),
             "max_second_diff_before_m": float(np.abs(np.diff(n_before, 2)).max()),
             "max_deflection_jump_arcsec": float(max(np.abs(np.diff(xi_a)).max(), np.abs(np.diff(eta_a)).max())),
-            "max_deflection_change_arcsec": float(max(np.abs(xi_a - xi_b).max(), np.abs(eta_a - eta_b).max())),
+            "max_deflection_change_inside_arcsec": float(change[distance < 0].max()),
+            "max_deflection_change_blend_arcsec": float(change[in_blend].max()),
+            "max_deflection_change_beyond_arcsec": float(change[distance > blend_km * 1000.0].max()),
             "hard_switch_step_m": abs(national_edge - float(n_before[distance == 0][0]))
             if np.isfinite(national_edge) else None,
             "after_minus_before_at_blend_end_m": float(abs(n_after[-1] - n_before[-1])),
@@ -298,6 +302,27 @@ def sea_holes(after, before, grid: GeoidGrid, region: Region) -> dict:
     crossings = np.argwhere(~sea[:, :-1] & sea[:, 1:])
     rng = np.random.default_rng(0)
     picks = crossings[rng.choice(len(crossings), size=min(300, len(crossings)), replace=False)]
+    coast = _row_profiles(after, lat2, lon2, picks)
+    # the same profiles on land at least 20 km from the sea: what the national model's
+    # own detail gives, for comparison
+    inland_km = distance_transform_edt(~sea, sampling=sampling) / 1000.0
+    inland_nodes = np.argwhere(~sea & (inland_km >= 20.0))
+    inland = _row_profiles(after, lat2, lon2,
+                           inland_nodes[rng.choice(len(inland_nodes), size=min(300, len(inland_nodes)), replace=False)])
+    return {
+        "sea_nodes_in_region": int(sea.sum()),
+        "nan_in_composite": int(np.count_nonzero(~np.isfinite(n_after[sea]))),
+        "change_by_distance_from_coast": bands,
+        "coastal_nodes": int(coastal.sum()),
+        "coast_hard_switch_step_m": {"median": float(np.median(switch)), "p99": float(np.percentile(switch, 99)),
+                                     "max": float(switch.max())},
+        "coast_profiles": coast, "inland_profiles": inland,
+    }
+
+
+def _row_profiles(after, lat2, lon2, picks) -> dict:
+    """Profiles along the parallel through each picked node, 10 km either side, every
+    100 m: the largest step, second difference and deflection change between samples."""
     steps, second, jumps = [], [], []
     for i, j in picks:
         _, plat, plon = _profile(lat2[i, j], lon2[i, j], 90.0, -10_000.0, 10_000.0)
@@ -306,18 +331,10 @@ def sea_holes(after, before, grid: GeoidGrid, region: Region) -> dict:
         second.append(np.abs(np.diff(values, 2)).max())
         xi, eta = deflection(after, plat, plon)[:2]
         jumps.append(max(np.abs(np.diff(xi)).max(), np.abs(np.diff(eta)).max()))
-    return {
-        "sea_nodes_in_region": int(sea.sum()),
-        "nan_in_composite": int(np.count_nonzero(~np.isfinite(n_after[sea]))),
-        "change_by_distance_from_coast": bands,
-        "coastal_nodes": int(coastal.sum()),
-        "coast_hard_switch_step_m": {"median": float(np.median(switch)), "p99": float(np.percentile(switch, 99)),
-                                     "max": float(switch.max())},
-        "coast_profiles": len(picks),
-        "coast_max_step_m": float(max(steps)), "coast_median_max_step_m": float(np.median(steps)),
-        "coast_max_second_diff_m": float(max(second)),
-        "coast_max_deflection_jump_arcsec": float(max(jumps)),
-    }
+    return {"profiles": len(picks), "max_step_m": float(max(steps)), "median_max_step_m": float(np.median(steps)),
+            "max_second_diff_m": float(max(second)), "median_max_second_diff_m": float(np.median(second)),
+            "max_deflection_jump_arcsec": float(max(jumps)),
+            "median_max_deflection_jump_arcsec": float(np.median(jumps))}
 
 
 def tiles(before_path: Path, after_path: Path, record: dict) -> dict:
@@ -346,6 +363,8 @@ def main(argv=None):
     parser.add_argument("--blend-width", type=float, default=100.0)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--no-plot", action="store_true")
+    parser.add_argument("--measure-only", action="store_true",
+                        help="measure an existing OUT_DIR/egm96+MODEL (its last update) instead of updating anew")
     parser.add_argument("--json", type=Path, default=RESULTS, help="append the rows here")
     args = parser.parse_args(argv)
 
@@ -363,15 +382,22 @@ def main(argv=None):
         export_seconds = time.perf_counter() - started
         national = read_grid(nc)  # what geoid-fit reads: the file, with its sha256
         composite = out / f"egm96+{name}"
-        if composite.exists():
-            shutil.rmtree(composite)
-        shutil.copytree(base, composite)
         cmd = [bin_path("geoid-fit"), nc, "--update", composite, "--region", *args.region,
                "--blend-width", args.blend_width, "--workers", args.workers, "--json", "-q"]
         if args.tolerance is not None:
             cmd += ["--tolerance", args.tolerance]
-        proc, update_seconds = run(cmd, expect=(0, 3))
-        record = json.loads(proc.stdout)
+        if args.measure_only:
+            record = json.loads((composite / "manifest.json").read_text())["history"][-1]
+            if record.get("sha256") != national.provenance.sha256:
+                raise SystemExit(f"{composite}: its last update is not from {nc} (sha256 differs)")
+            exit_status, update_seconds = None, record.get("wall_seconds")
+        else:
+            if composite.exists():
+                shutil.rmtree(composite)
+            shutil.copytree(base, composite)
+            proc, update_seconds = run(cmd, expect=(0, 3))
+            record = json.loads(proc.stdout)
+            exit_status = proc.returncode
         after = geoidspline.open_store(composite)
         row = {
             "date": dt.datetime.now(dt.timezone.utc).replace(microsecond=0).isoformat(),
@@ -382,8 +408,9 @@ def main(argv=None):
             "export_seconds": round(export_seconds, 1),
             "base": str(base), "base_run": base_run, "base_tolerance_m": before.manifest["fit"]["tolerance_m"],
             "region": list(region.as_tuple()), "blend_width_km": args.blend_width,
-            "update_command": " ".join(map(str, cmd)), "update_exit_status": proc.returncode,
-            "update_wall_seconds": round(update_seconds, 1),
+            "update_command": " ".join(map(str, cmd)), "update_exit_status": exit_status,
+            "update_wall_seconds": None if update_seconds is None else round(update_seconds, 1),
+            "measured_only": bool(args.measure_only),
             "update_record": {k: record.get(k) for k in ("tiles_rewritten", "coefficients_added", "nodes_in_region",
                                                          "max_error_m", "rms_error_m", "tolerance_m", "converged")},
             "agreement": agreement(after, national, region),

@@ -93,7 +93,7 @@ def main(source, out, update, blend_width, region, tolerance, h0, max_level, ord
     info["wall_seconds"] = round(time.perf_counter() - started, 2)
     if as_json:
         click.echo(json.dumps(info, indent=1))
-        return
+        sys.exit(0 if result.converged else 3)  # the same exit status as without --json
     click.echo(f"store      {out}  ({info['tiles']} tiles, {info['bytes']:,} bytes)")
     click.echo(f"source     {src.provenance.source} ({src.provenance.model})")
     click.echo(f"region     S {fit_region.south:g}  W {fit_region.west:g}  N {fit_region.north:g}  E {fit_region.east:g}")
@@ -127,7 +127,7 @@ def _update(source, store, region, blend_width, workers, correction, preset, as_
     record["wall_seconds"] = round(time.perf_counter() - started, 2)
     if as_json:
         click.echo(json.dumps(record, indent=1))
-        return
+        sys.exit(0 if record["converged"] else 3)
     click.echo(f"store      {store}  version {record['previous_version']} -> {record['store_version']}")
     click.echo(f"source     {record['source']} ({record['model']})")
     s, w, n, e = record["region"]

@@ -688,7 +688,7 @@ def draw(field_: MapField, *, contours=None, dpi=150, width_in=8.0) -> Plot:
     colorbar = figure.colorbar(image, cax=cax)
     if field_.scale == "levels" and field_.categories:
         colorbar.set_ticks([c[0] for c in field_.categories])
-        colorbar.set_ticklabels([f"{level}: h {h * EARTH_RADIUS_KM:,.0f} km, {count:,}"
+        colorbar.set_ticklabels([f"{level}: h {_km_text(h * EARTH_RADIUS_KM)} km, {count:,}"
                                  for level, h, count in field_.categories])
         colorbar.ax.tick_params(labelsize=7, length=0)
     else:
@@ -703,6 +703,10 @@ def _umask() -> int:
     mask = os.umask(0o022)
     os.umask(mask)
     return mask
+
+
+def _km_text(km) -> str:
+    return f"{km:,.0f}" if km >= 100.0 else f"{km:.3g}"
 
 
 def save_figure(figure, path, title=None) -> Path:
