@@ -422,9 +422,9 @@ def main(argv=None):
             row["sea_holes"] = sea_holes(after, before, national, region)
         if not args.no_plot:
             figure = out / f"japan_{name}_difference.png"
-            zone = region.expanded(args.blend_width / KM_PER_DEGREE).expanded(2.0)
-            plot_cmd = [bin_path("geoid-plot"), composite, "--minus", base, "--region", *zone.as_tuple(),
-                        "--out", figure, "--json", "-q"]
+            s, w, n, e = region.expanded(args.blend_width / KM_PER_DEGREE).expanded(2.0).as_tuple()
+            plot_cmd = [bin_path("geoid-plot"), composite, "--minus", base, "--region",
+                        *(round(v * 2.0) / 2.0 for v in (s, w, n, e)), "--dpi", 100, "--out", figure, "--json", "-q"]
             plot_proc, _ = run(plot_cmd)
             row["plot_command"] = " ".join(map(str, plot_cmd))
             row["plot"] = {k: json.loads(plot_proc.stdout)[k] for k in ("file", "stats")}
