@@ -7,7 +7,7 @@ layout) can be compared bit for bit and timed in the same run.
 
 Needs PROJ's egm96_15.gtx in /usr/share/proj (Debian's proj-data).
 """
-import hashlib, sys, time, json
+import hashlib, time, json
 import numpy as np
 try:
     from geoidspline.api import build_store  # new layout
@@ -19,7 +19,7 @@ except ImportError:
     from geoidspline.catalogue import resolve_source
     from geoidspline.region import Region
     from geoidspline.fit import FitParameters
-import tempfile, os
+import tempfile
 src = resolve_source("/usr/share/proj/egm96_15.gtx")
 out = tempfile.mkdtemp() + "/s"
 t = time.perf_counter()

@@ -26,7 +26,7 @@ _CHOSEN = {"method": "method", "order": "order", "h0": "h0", "max_level": "max_l
 
 #: Options of a new fit that a regional update cannot honour: it refits with the store's
 #: own parameters, so that the result is one spline.
-_FIT_ONLY = ("tolerance", "h0", "max_level", "order", "method", "sample_spacing", "overwrite", "scheduler")
+_FIT_ONLY = ("h0", "max_level", "order", "method", "sample_spacing", "overwrite", "scheduler")
 
 
 @command("fit")
@@ -87,7 +87,8 @@ def main(ctx, source, store_path, update, blend_width, region, tolerance, h0, ma
             raise click.UsageError("give --update STORE or --store STORE, not both")
         from .update import run_update
 
-        return run_update(source, update, region, blend_width, workers, correction, preset, as_json, quiet)
+        return run_update(source, update, region, blend_width, workers, correction, preset, as_json, quiet,
+                          tolerance if ctx.get_parameter_source("tolerance") is not ParameterSource.DEFAULT else None)
     if store_path is None:
         raise click.UsageError("give --store DIR, the store to write (or use geoid-update for a regional update)")
     out = store_path

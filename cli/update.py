@@ -20,6 +20,9 @@ from ._common import command, echo, store_options, user_errors, verbosity_option
               help="Region in degrees where SOURCE replaces the store's geoid: south west north east.")
 @click.option("--blend-width", type=click.FloatRange(min=0.0), default=100.0, show_default=True,
               help="Width in km outside --region over which SOURCE fades into the store (0: sharpest).")
+@click.option("--tolerance", type=click.FloatRange(min=0.0, min_open=True), default=None,
+              help="Largest |error| in metres accepted inside --region [default: the store's]; the levels "
+                   "available stay the store's.")
 @click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
               help="Worker processes solving blocks (same coefficients).")
 @click.option("--correction", type=click.Path(exists=True, dir_okay=False), default=None,
@@ -29,7 +32,7 @@ from ._common import command, echo, store_options, user_errors, verbosity_option
 @click.option("--json", "as_json", is_flag=True, help="Print the update's history record as JSON.")
 @verbosity_options
 @user_errors
-def main(source, store_path, region, blend_width, workers, correction, preset, as_json, quiet, verbose):
+def main(source, store_path, region, blend_width, tolerance, workers, correction, preset, as_json, quiet, verbose):
     """Replace the geoid of the store at --store by SOURCE inside --region.
 
     The update fits overlays to w·(N_new − N_store) with the store's own parameters (w
@@ -43,10 +46,10 @@ def main(source, store_path, region, blend_width, workers, correction, preset, a
     """
     if store_path is None:
         raise click.UsageError("give --store DIR, the store to update")
-    run_update(source, store_path, region, blend_width, workers, correction, preset, as_json, quiet)
+    run_update(source, store_path, region, blend_width, workers, correction, preset, as_json, quiet, tolerance)
 
 
-def run_update(source, store, region, blend_width, workers, correction, preset, as_json, quiet):
+def run_update(source, store, region, blend_width, workers, correction, preset, as_json, quiet, tolerance=None):
     from geoidspline.fitting.executors import Executor
     from geoidspline.sources.resolve import open_source
     from geoidspline.sphere.region import Region
@@ -57,7 +60,7 @@ def run_update(source, store, region, blend_width, workers, correction, preset, 
     src = open_source(source, correction, preset)
     started = time.perf_counter()
     record = update_store(store, src, Region.from_bounds(*region), blend_width_km=blend_width,
-                          executor=Executor(workers=workers))
+                          executor=Executor(workers=workers), tolerance_m=tolerance)
     record["wall_seconds"] = round(time.perf_counter() - started, 2)
     if as_json:
         echo(json.dumps(record, indent=1))

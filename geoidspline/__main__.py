@@ -1,8 +1,8 @@
-"""``python -m geoidspline fit|update|query|info|export ...``: the commands under one name."""
+"""``python -m geoidspline fit|update|query|info|export|plot ...``: the commands under one name."""
 
 import click
 
-from geoidspline.cli import export, fit, info, query, update
+from geoidspline.cli import export, fit, info, plot, query, update
 from geoidspline.cli._common import CONTEXT, GeoidGroup, version_option
 
 
@@ -12,7 +12,7 @@ def main():
     """geoidspline: geoid undulations as C² ambient B-spline tiles."""
 
 
-for _module in (fit, update, query, info, export):
+for _module in (fit, update, query, info, export, plot):
     main.add_command(_module.main)
 
 if __name__ == "__main__":

@@ -149,6 +149,13 @@ def test_fit_quiet_has_no_progress_bar(synthetic_gtx, tmp_path):
     assert "coefficients" in result.stdout
 
 
+def test_fit_json_keeps_exit_status_3_when_the_tolerance_is_not_reached(synthetic_gtx, tmp_path):
+    result = invoke(fit_main, [synthetic_gtx, "--out", tmp_path / "store", "--region", 10, 20, 30, 40, "--h0", 0.2,
+                               "--max-level", 0, "--tolerance", 0.001, "--json", "-q"])
+    assert result.exit_code == 3, result.output
+    assert json.loads(result.stdout)["converged"] is False
+
+
 def test_fit_json_output_parses(synthetic_gtx, tmp_path):
     out = tmp_path / "store"
     result = invoke(fit_main, [synthetic_gtx, "--out", out, *QUICK_FIT, "--json", "-q"])

@@ -138,6 +138,7 @@ def _check_writable(root: Path):
 
 
 def update_store(path, source, region: Region, blend_width_km: float = 100.0, executor: Executor | None = None,
+                 tolerance_m: float | None = None,
                  progress=None) -> dict:
     """Replace the store's geoid inside ``region`` by ``source``; return the update report.
 
@@ -150,6 +151,8 @@ def update_store(path, source, region: Region, blend_width_km: float = 100.0, ex
     Coverage: the store answers where it did before and, inside ``region``, wherever
     ``source`` has data; where the source has no data (a national grid's sea, say) the
     store keeps its own values (the residual fitted there is 0) and its coverage.
+    ``tolerance_m`` (metres), when given, is this update's tolerance instead of the
+    store's; the levels available stay the store's.
     """
     root = Path(path)
     if not blend_width_km >= 0.0:
@@ -163,16 +166,19 @@ def update_store(path, source, region: Region, blend_width_km: float = 100.0, ex
         _check_compatible(store, source, region)
         manifest = store.manifest
         with _Attempt(root, manifest["store_version"]) as attempt:
-            record, new_manifest = _update(root, store, source, region, blend_width_km, executor, progress, attempt)
+            record, new_manifest = _update(root, store, source, region, blend_width_km, executor, progress, attempt,
+                                          tolerance_m)
             commit(root, new_manifest, keep_files=[e["file"] for e in manifest["tiles"]], expect_state=state,
                    attempt=attempt)
     return record
 
 
-def _update(root, store, source, region, blend_width_km, executor, progress, attempt):
+def _update(root, store, source, region, blend_width_km, executor, progress, attempt, tolerance_m=None):
     """Fit the update and write its tile files; (history record, new manifest)."""
     manifest = store.manifest
     params = _stored_parameters(store)
+    if tolerance_m is not None:  # this update's tolerance; the levels available stay the store's
+        params = dataclasses.replace(params, tolerance_m=float(tolerance_m))
     blend_deg = blend_width_km / KM_PER_DEGREE
     zone = region.expanded(blend_deg) if blend_deg > 0 else region
 
