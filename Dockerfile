@@ -38,9 +38,15 @@ COPY grids ./grids
 # geoidspline.cli and geoidspline.grids)
 RUN pip install .
 
-# Compile the query kernels once into numba's cache so a container's first query does not
-# spend seconds in the JIT (a different CPU recompiles; the cache stays writable for any uid).
-RUN python -c "import numpy as np; from geoidspline.hierarchy.ambient import AmbientSpline; from geoidspline.bspline.level import LevelSpline; AmbientSpline([LevelSpline.from_indices(0, 0.1, 4, np.zeros((1, 3), dtype=np.int64), np.ones(1))]).undulation([0.0], [0.0])" \
+# Compile every numba kernel into the image's cache (NUMBA_CACHE_DIR), the README's set-up
+# step: a container's first fit or query loads them instead of compiling for a minute or
+# more. The second run checks, in a fresh process, that every kernel now loads from the
+# cache. A host whose CPU model differs from the build machine's recompiles once (numba
+# keys its cache on the CPU); the cache stays writable for any uid. (The console script,
+# not `python -m` here: that would import the sources in this directory instead of the
+# installed package, and numba keys its cache on the source file's path.)
+RUN geoid-warmup -q \
+ && geoid-warmup --check -q \
  && chmod -R a+rwX /var/cache/numba
 
 USER geoid

@@ -6,10 +6,11 @@
 # Reads the Dockerfile (default: the repository's), follows its WORKDIR and COPY
 # instructions into a scratch "image root" and replays every `RUN pip install ...` line
 # there with a fresh venv's pip (python3 -m venv $TMP/venv), so the COPY set and the
-# pinned requirements.lock are checked too. Then runs the image's commands
+# pinned requirements.lock are checked too, and each `geoid-warmup` step
+# (the numba kernels compiled into a scratch NUMBA_CACHE_DIR). Then runs the image's commands
 # (geoid-fit --help, geoid-query --help, geoid-info --help) from that venv.
 # Needs network access to the package index (or a local mirror in pip's configuration);
-# takes about two minutes. Exit status 0 when everything worked.
+# takes five to ten minutes (most of it compiling the kernels). Exit status 0 when everything worked.
 set -euo pipefail
 
 here="$(cd "$(dirname "$0")" && pwd)"
@@ -63,6 +64,15 @@ for line in lines:
         if words[:2] == ["pip", "install"]:
             found += 1
             print("run\t" + workdir + "\t" + "\t".join(words[2:]))
+        # the kernel warm-up: each `geoid-warmup ...` of a `a && b` chain
+        part = []
+        for w in words + ["&&"]:
+            if w != "&&":
+                part.append(w)
+                continue
+            if part[:1] == ["geoid-warmup"]:
+                print("warm\t" + workdir + "\t" + "\t".join(part[1:]))
+            part = []
 if not found:
     sys.exit(f"{sys.argv[1]}: no 'RUN pip install' line")
 PY
@@ -91,6 +101,18 @@ while IFS=$'\t' read -r kind a b rest; do
       fi
       echo "+ (cd $a) pip install ${args[*]}" >&2
       (cd "$root$a" && PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1 "$venv_bin/pip" install -q "${args[@]}")
+      ;;
+    warm)
+      # the image's NUMBA_CACHE_DIR, here a scratch directory, empty at first
+      args=()
+      [ -n "$b" ] && args+=("$b")
+      if [ -n "${rest:-}" ]; then
+        IFS=$'\t' read -r -a more <<<"$rest"
+        args+=("${more[@]}")
+      fi
+      echo "+ (cd $a) geoid-warmup ${args[*]}" >&2
+      mkdir -p "$root$a" "$TMP/numba_cache"
+      (cd "$root$a" && NUMBA_CACHE_DIR="$TMP/numba_cache" "$venv_bin/geoid-warmup" "${args[@]}")
       ;;
   esac
 done <"$steps"

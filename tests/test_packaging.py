@@ -123,6 +123,15 @@ def test_readme_setup_command_fits_and_queries_with_negative_coordinates():
     assert [float(v) for v in query[-2:]] == [-33.45, -70.66]
 
 
+def test_readme_setup_compiles_the_kernels_between_install_and_first_fit():
+    names = [Path(argv[0]).name for argv in chain(readme_commands()[0])]
+    install = max(i for i, argv in enumerate(chain(readme_commands()[0]))
+                  if (args := pip_install_args(argv)) is not None and package_install(args) is not None)
+    # the console script imports the installed package (python -m from the repository root
+    # would warm up the source tree, whose cache the installed commands never read)
+    assert install < names.index("geoid-warmup") < names.index("geoid-fit"), names
+
+
 def test_ci_run_runs_the_readme_test_command():
     ci_lines = [ln.strip() for ln in CI_RUN.read_text(encoding="utf-8").splitlines()
                 if ln.strip() and not ln.lstrip().startswith("#")]
@@ -154,6 +163,18 @@ def test_dockerfile_installs_the_lock_before_the_package():
     # everything `pip install .` needs is copied into the image
     copied = {w for c in copies for w in shlex.split(c)[:-1]}
     assert {"pyproject.toml", "README.md", "geoidspline", "cli", "grids"} <= copied, copied
+
+
+def test_dockerfile_compiles_and_checks_the_kernels_after_installing_the_package():
+    instructions = dockerfile_instructions()
+    runs = [(i, chain(rest)) for i, (instr, rest) in enumerate(instructions) if instr == "RUN"]
+    package = max(i for i, argvs in runs for argv in argvs
+                  if (args := pip_install_args(argv)) is not None and package_install(args) is not None)
+    warmups = [(i, argv) for i, argvs in runs for argv in argvs if argv[0] == "geoid-warmup"]
+    assert [argv for _, argv in warmups] == [["geoid-warmup", "-q"], ["geoid-warmup", "--check", "-q"]], warmups
+    assert all(i > package for i, _ in warmups)
+    env = " ".join(rest for instr, rest in instructions[:warmups[0][0]] if instr == "ENV")
+    assert "NUMBA_CACHE_DIR=" in env  # the cache the container's user reads
 
 
 def test_dockerfile_base_image_is_pinned():
@@ -258,7 +279,8 @@ def test_every_package_directory_is_installed():
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(os.environ.get("GEOIDSPLINE_SLOW") != "1", reason="set GEOIDSPLINE_SLOW=1 (needs network, ~2 min)")
+@pytest.mark.skipif(os.environ.get("GEOIDSPLINE_SLOW") != "1",
+                    reason="set GEOIDSPLINE_SLOW=1 (needs network; installs, compiles the kernels: ~5-10 min)")
 def test_replay_docker(tmp_path):
     """The Dockerfile's pip install steps work in a fresh venv and give working commands."""
     env = dict(os.environ, TMPDIR=str(tmp_path))
