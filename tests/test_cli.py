@@ -108,7 +108,7 @@ def test_module_help_lists_the_commands():
     result = run_module("--help")
     assert result.returncode == 0
     commands = re.findall(r"^\s{2}(\w+)\s", result.stdout.split("Commands:")[1], flags=re.M)
-    assert sorted(commands) == ["export", "fit", "info", "query", "update"]
+    assert sorted(commands) == ["export", "fit", "info", "plot", "query", "update"]
 
 
 def test_nonexistent_source_in_a_subprocess(tmp_path):
