@@ -201,8 +201,17 @@ class Coverage:
         return cls((CoveragePart(region, lattice, source),))
 
     def union(self, other: Coverage) -> Coverage:
-        """Covered where either is (a regional update adds its source's data)."""
-        return Coverage(tuple(self.parts) + tuple(other.parts))
+        """Covered where either is (a regional update adds its source's data). A part
+        inside the region of a part without holes adds nothing and is left out, so a
+        store updated many times inside its region keeps one part."""
+        parts = list(self.parts)
+        for part in other.parts:
+            if any(old.lattice is None and _within(part.region, old.region) for old in parts):
+                continue
+            if part.lattice is None:
+                parts = [old for old in parts if not _within(old.region, part.region)]
+            parts.append(part)
+        return Coverage(tuple(parts))
 
     def covers(self, latitude, longitude):
         """Boolean mask (bool for scalars): points where the store has data."""
@@ -225,6 +234,18 @@ class Coverage:
             in_region |= part.region.contains(lat, lon)
         out = np.where(covered, INSIDE, np.where(in_region, NO_DATA, OUTSIDE)).astype(object)
         return str(out[()]) if out.ndim == 0 else out
+
+
+def _within(inner: Region, outer: Region, tol: float = 1e-9) -> bool:
+    """Whether ``inner`` lies inside ``outer`` (degrees; longitudes modulo 360)."""
+    if inner.south < outer.south - tol or inner.north > outer.north + tol:
+        return False
+    if outer.longitude_span >= 360.0:
+        return True
+    offset = (inner.west - outer.west) % 360.0
+    if offset > 360.0 - tol:
+        offset -= 360.0
+    return offset >= -tol and offset + inner.longitude_span <= outer.longitude_span + tol
 
 
 def _spacing(axis, name):
