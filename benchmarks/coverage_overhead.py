@@ -22,13 +22,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from conftest import make_synthetic_grid  # noqa: E402
+from conftest import make_synthetic_grid
 
-import geoidspline  # noqa: E402
-from geoidspline.api import build_store  # noqa: E402
-from geoidspline.fitting.parameters import FitParameters  # noqa: E402
-from geoidspline.sources.grid import GeoidGrid  # noqa: E402
-from geoidspline.sphere.region import Region  # noqa: E402
+import geoidspline
+from geoidspline.api import build_store
+from geoidspline.fitting.parameters import FitParameters
+from geoidspline.sources.grid import GeoidGrid
+from geoidspline.sphere.region import Region
 
 
 def main(points=1_000_000, repeats=7):

@@ -113,7 +113,7 @@ def test_covers_scalar_array_and_broadcast(andes):
 def test_no_data_holes_are_recorded_and_answer_nan(holed):
     """Seen: a 2°×2° block of no-data nodes was fitted as data; a query inside it
     answered 26.996 m (5 m off) with an error bound of 0.349 m."""
-    path, result, grid = holed
+    path, result, _ = holed
     manifest = json.loads((path / "manifest.json").read_text())
     (part,) = manifest["coverage"]["parts"]
     assert part["region"] == list(HOLED_REGION.as_tuple()) and part["source"] == "holed.gtx"

@@ -558,7 +558,7 @@ def validate_manifest(path, manifest: dict):
     s.region(manifest["region"], "region")
 
     spline = s.mapping(manifest["spline"], "spline")
-    order = s.integer(s.get(spline, "order", "spline"), "spline.order", 2, 8)
+    s.integer(s.get(spline, "order", "spline"), "spline.order", 2, 8)
     h0 = s.number(s.get(spline, "h0", "spline"), "spline.h0", 0.0, 1.0, open_lo=True)
     tile_size = s.number(s.get(spline, "tile_size", "spline"), "spline.tile_size", h0, 2.0)
     levels = s.array(s.get(spline, "levels", "spline"), "spline.levels", 1, 32)

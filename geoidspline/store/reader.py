@@ -65,6 +65,10 @@ class StoreSpline:
     (keep one area only) is not offered, since a tile is read in a few ms and every
     tile of the global 0.5 m store in 0.3 s.
 
+    Coverage: :meth:`undulation` answers NaN where the store has no data
+    (:attr:`coverage`); :meth:`evaluate_points`, the spline on R³, and :attr:`full`
+    answer everywhere, as the ambient spline does.
+
     Thread safety: tiles are read and the partial spline rebuilt under a lock; the
     splines handed to evaluation are immutable snapshots, so concurrent queries from
     any number of threads are safe and see the same values. A reader keeps using the
