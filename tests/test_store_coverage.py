@@ -91,7 +91,7 @@ def test_batches_mix_answers_and_nan(andes):
         lat[0], lon[0] = np.nan, -70.0
         inside = ANDES.contains(lat, lon)
         values = store.undulation(lat, lon)
-        np.testing.assert_array_equal(values[inside], result.spline.undulation(lat[inside], lon[inside]))
+        np.testing.assert_array_equal(values[inside], result.spline.undulation(lat, lon)[inside])
         assert np.isnan(values[~inside]).all() and inside.any() and (~inside).any()
         np.testing.assert_array_equal(store.covers(lat, lon), inside)
         reasons = store.coverage_reason(lat, lon)
@@ -113,7 +113,7 @@ def test_covers_scalar_array_and_broadcast(andes):
 def test_no_data_holes_are_recorded_and_answer_nan(holed):
     """Seen: a 2°×2° block of no-data nodes was fitted as data; a query inside it
     answered 26.996 m (5 m off) with an error bound of 0.349 m."""
-    path, result, grid = holed
+    path, result, _ = holed
     manifest = json.loads((path / "manifest.json").read_text())
     (part,) = manifest["coverage"]["parts"]
     assert part["region"] == list(HOLED_REGION.as_tuple()) and part["source"] == "holed.gtx"
@@ -213,8 +213,9 @@ def test_a_national_grid_with_no_data_at_sea_keeps_the_store_there(andes, synthe
     record = update_store(path, national, Region(-32.0, -74.0, -20.0, -66.0), blend_width_km=100.0)
     store = geoidspline.open_store(path)
     manifest = store.manifest
-    assert [p["source"] for p in manifest["coverage"]["parts"]] == ["synthetic", "national"]
-    assert record["store_version"] == 2
+    # inside a region the store covered whole, the update adds no coverage part
+    assert [p["source"] for p in manifest["coverage"]["parts"]] == ["synthetic"]
+    assert record["store_version"] == 2 and manifest["history"][-1]["source"] == "national"
     sea = (-26.0, -73.0)
     land = (-26.0, -67.0)
     assert store.covers(*sea) and store.covers(*land)
@@ -222,6 +223,33 @@ def test_a_national_grid_with_no_data_at_sea_keeps_the_store_there(andes, synthe
     assert abs(store.undulation(*land) - (old.undulation(*land) + 1.0)) < 0.1
     # outside the store's region the update adds nothing where the source has no data
     assert store.coverage_reason(-40.0, -73.0) == OUTSIDE
+
+
+def test_an_update_beyond_the_region_adds_only_where_its_source_has_data(andes, synthetic_grid, tmp_path):
+    """An update region reaching beyond the store's region (its centre inside) covers
+    there only where the new source has data."""
+    path = Path(shutil.copytree(andes[0], tmp_path / "store"))
+    g = synthetic_grid
+    values = g.values + 1.0
+    values[np.ix_(g.latitude < -38.0, g.longitude < 360)] = np.nan  # no data south of -38°
+    update_store(path, _grid(values, "beyond", g.latitude, g.longitude), Region(-42.0, -72.0, -30.0, -66.0),
+                 blend_width_km=100.0)
+    store = geoidspline.open_store(path)
+    assert [p["source"] for p in store.manifest["coverage"]["parts"]] == ["synthetic", "beyond"]
+    assert store.coverage_reason(-37.0, -69.0) == INSIDE  # beyond the old region, new data
+    assert store.coverage_reason(-41.0, -69.0) == NO_DATA  # in the update's region, no data
+    assert store.coverage_reason(-37.0, -75.0) == OUTSIDE  # beyond both regions
+    assert np.isfinite(store.undulation(-37.0, -69.0)) and math.isnan(store.undulation(-41.0, -69.0))
+
+
+def test_union_keeps_one_part_for_updates_inside_a_whole_region():
+    whole = Coverage.of_region(Region(-40, -80, 0, -60), "fit")
+    inner = Coverage.of_region(Region(-30, -75, -20, -65), "update")
+    assert whole.union(inner).parts == whole.parts
+    bigger = Coverage.of_region(Region(-50, -90, 10, -50), "bigger")
+    assert bigger.union(whole).parts == bigger.parts and whole.union(bigger).parts == bigger.parts
+    across = Coverage.of_region(Region(-10, 170, 10, -170), "across")  # the antimeridian
+    assert across.union(Coverage.of_region(Region(-5, 175, 5, 185))).parts == across.parts
 
 
 # -- the coverage rule itself (property-based) -------------------------------------------

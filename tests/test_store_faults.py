@@ -197,9 +197,8 @@ def test_a_killed_holder_releases_the_lock(race_store, how):
     try:
         want = rf"another writer \(pid {holder.pid}\)" if how == "lock" else "another writer is writing"
         for _ in range(3):  # refused every time, and the lock file is never taken over
-            with pytest.raises(StoreError, match=want):
-                with StoreLock(race_store):
-                    pass
+            with pytest.raises(StoreError, match=want), StoreLock(race_store):
+                pass
         assert (race_store / ".lock").exists()
     finally:
         holder.send_signal(signal.SIGKILL)

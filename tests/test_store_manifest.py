@@ -199,7 +199,7 @@ def test_tile_files_must_be_regular_files(tiny, copy, kind, words):
     _special(kind, copy / entry["file"], tiny[0])
     for lazy in (True, False):
         with pytest.raises(StoreCorruptError, match=words) as err:
-            _no_hang(lambda: TileStore.open(copy, lazy=lazy))
+            _no_hang(lambda lazy=lazy: TileStore.open(copy, lazy=lazy))
         assert Path(entry["file"]).name in str(err.value)
     problems = _no_hang(lambda: verify_store(copy))
     assert len(problems) == 1 and words in problems[0] and Path(entry["file"]).name in problems[0]
@@ -454,7 +454,7 @@ def test_deliberately_mutated_manifests_never_give_a_wrong_value(mutation_target
     """A mutation whose integrity digest was recomputed: the schema, the containment
     rules and the tiles' own records must still refuse it, or it changes no value."""
     root, manifest, spline_values = mutation_target
-    what, path, doc = data.draw(mutations(manifest))
+    _, path, doc = data.draw(mutations(manifest))
     (root / "manifest.json").write_bytes(_dump(doc, hostile=True))
     _exercise(root, spline_values, path)
 

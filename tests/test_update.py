@@ -249,8 +249,11 @@ UPDATE_SCRIPT = textwrap.dedent("""
 """)
 
 
-@pytest.mark.parametrize("point", ["before-tiles", "during-tiles", "after-tiles", "before-manifest",
-                                   "manifest-written", "after-manifest"])
+UPDATE_POINTS = ["after-lock", "before-tiles", "during-tiles", "after-tiles", "before-manifest", "manifest-written",
+                 "after-manifest"]
+
+
+@pytest.mark.parametrize("point", UPDATE_POINTS)
 def test_an_update_killed_anywhere_leaves_the_old_or_the_new_store(small, point):
     old = geoidspline.open_store(small)
     old_version = old.manifest["store_version"]
@@ -271,7 +274,9 @@ def test_an_update_killed_anywhere_leaves_the_old_or_the_new_store(small, point)
     assert (small / ".lock").exists()  # the lock file is never removed
 
 
-@pytest.mark.parametrize("point", ["after-lock", "during-tiles", "manifest-written"])
+@pytest.mark.parametrize("point", [p if p in ("after-lock", "during-tiles", "manifest-written") else pytest.param(
+    p, marks=pytest.mark.skipif(os.environ.get("GEOIDSPLINE_SLOW") != "1", reason="GEOIDSPLINE_SLOW=1: every point"))
+    for p in UPDATE_POINTS if p != "after-manifest"])
 def test_sigkill_during_an_update(small, point):
     """A real SIGKILL at a commit point (the writer stops itself there first): the store
     is the old version, opens and verifies, and the kernel has released the lock."""

@@ -11,6 +11,7 @@ data everywhere: its part is its region alone.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -68,39 +69,49 @@ class NodataLattice:
     def periodic(self) -> bool:
         return abs(self.dlon * self.nlon - 360.0) <= 1e-9 * max(1.0, self.nlon)
 
+    @functools.cached_property
+    def _cell_ok(self) -> np.ndarray:
+        """Flat mask of the cells whose four nodes all have data, row-major over
+        (nlat - 1) rows and nlon (periodic) or nlon - 1 columns: one lookup per point."""
+        mask = self.nodata
+        east = np.roll(mask, -1, axis=1) if self.periodic else mask[:, 1:]
+        west = mask if self.periodic else mask[:, :-1]
+        holes = west[:-1] | west[1:] | east[:-1] | east[1:]
+        return np.ascontiguousarray(~holes).ravel()
+
     def cells_have_data(self, latitude, longitude):
         """Boolean mask: the lattice cell holding each point has data at all four nodes.
 
         Points beyond the lattice (and NaN) give False.
         """
-        lat = np.asarray(latitude, dtype=float)
-        lon = np.asarray(longitude, dtype=float)
+        lat, lon = np.broadcast_arrays(np.asarray(latitude, dtype=float), np.asarray(longitude, dtype=float))
+        shape = lat.shape
+        lat, lon = lat.ravel(), lon.ravel()
         nlat, nlon = self.nodata.shape
         if nlat < 2 or nlon < 2:
-            return np.zeros(np.broadcast(lat, lon).shape, dtype=bool)
+            return np.zeros(shape, dtype=bool)
         with np.errstate(invalid="ignore"):
             fi = (lat - self.lat0) / self.dlat
-            ok = (fi >= -_EDGE_TOL) & (fi <= nlat - 1 + _EDGE_TOL)
+            ok = (fi >= -_EDGE_TOL) & (fi <= nlat - 1 + _EDGE_TOL)  # False for NaN
             offset = np.mod(lon - self.lon0, 360.0)
             fj = offset / self.dlon
             if self.periodic:
-                ok = ok & np.isfinite(fj)
+                columns = nlon
+                ok &= fj <= nlon  # False for NaN
             else:
-                # just west of lon0 (round-off of a point on the first column)
-                fj = np.where(offset > 360.0 - _EDGE_TOL * self.dlon, 0.0, fj)
-                ok = ok & (fj <= nlon - 1 + _EDGE_TOL)
-        ok = ok & np.isfinite(fi)
-        i = np.clip(np.floor(np.where(ok, fi, 0.0)), 0, nlat - 2).astype(np.int64)
-        j_raw = np.floor(np.where(ok, fj, 0.0)).astype(np.int64)
+                columns = nlon - 1
+                near = offset > 360.0 - _EDGE_TOL * self.dlon  # just west of lon0: round-off
+                if near.any():
+                    fj[near] = 0.0
+                ok &= fj <= nlon - 1 + _EDGE_TOL
+            # indices of the cell (garbage where not ok, kept in range by the clips)
+            i = np.clip(np.where(ok, fi, 0.0), 0, nlat - 2).astype(np.int64)
+            j = np.where(ok, fj, 0.0).astype(np.int64)
         if self.periodic:
-            j = j_raw % nlon
-            j2 = (j + 1) % nlon
+            j %= nlon
         else:
-            j = np.clip(j_raw, 0, nlon - 2)
-            j2 = j + 1
-        mask = self.nodata
-        holes = mask[i, j] | mask[i + 1, j] | mask[i, j2] | mask[i + 1, j2]
-        return ok & ~holes
+            np.clip(j, 0, columns - 1, out=j)
+        return (ok & self._cell_ok[i * columns + j]).reshape(shape)
 
     def spans(self, region: Region) -> bool:
         """Whether every point of ``region`` lies within the lattice's cells."""
@@ -128,9 +139,16 @@ class CoveragePart:
 
     def covers(self, latitude, longitude):
         inside = self.region.contains(latitude, longitude)
-        if self.lattice is None or not np.any(inside):
+        if self.lattice is None:
             return inside
-        return inside & self.lattice.cells_have_data(latitude, longitude)
+        count = int(np.count_nonzero(inside))
+        if count == 0:
+            return inside
+        if count > inside.size // 2:  # mostly inside: no gather
+            return inside & self.lattice.cells_have_data(latitude, longitude)
+        out = inside.copy()
+        out[inside] = self.lattice.cells_have_data(np.asarray(latitude)[inside], np.asarray(longitude)[inside])
+        return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -183,18 +201,26 @@ class Coverage:
         return cls((CoveragePart(region, lattice, source),))
 
     def union(self, other: Coverage) -> Coverage:
-        """Covered where either is (a regional update adds its source's data)."""
-        return Coverage(tuple(self.parts) + tuple(other.parts))
+        """Covered where either is (a regional update adds its source's data). A part
+        inside the region of a part without holes adds nothing and is left out, so a
+        store updated many times inside its region keeps one part."""
+        parts = list(self.parts)
+        for part in other.parts:
+            if any(old.lattice is None and _within(part.region, old.region) for old in parts):
+                continue
+            if part.lattice is None:
+                parts = [old for old in parts if not _within(old.region, part.region)]
+            parts.append(part)
+        return Coverage(tuple(parts))
 
     def covers(self, latitude, longitude):
         """Boolean mask (bool for scalars): points where the store has data."""
         lat, lon = np.broadcast_arrays(np.asarray(latitude, dtype=float), np.asarray(longitude, dtype=float))
-        covered = np.zeros(lat.shape, dtype=bool)
-        for part in self.parts:
-            todo = ~covered
-            if not todo.any():
-                break
-            covered[todo] = part.covers(lat[todo], lon[todo])
+        covered = np.asarray(self.parts[0].covers(lat, lon))
+        for part in self.parts[1:]:
+            covered = covered | part.covers(lat, lon)
+        if covered.any():  # a NaN longitude is in every band spanning 360°: never covered
+            covered = covered & ~np.isnan(lon)
         return covered[()] if covered.ndim == 0 else covered
 
     def reasons(self, latitude, longitude):
@@ -208,6 +234,18 @@ class Coverage:
             in_region |= part.region.contains(lat, lon)
         out = np.where(covered, INSIDE, np.where(in_region, NO_DATA, OUTSIDE)).astype(object)
         return str(out[()]) if out.ndim == 0 else out
+
+
+def _within(inner: Region, outer: Region, tol: float = 1e-9) -> bool:
+    """Whether ``inner`` lies inside ``outer`` (degrees; longitudes modulo 360)."""
+    if inner.south < outer.south - tol or inner.north > outer.north + tol:
+        return False
+    if outer.longitude_span >= 360.0:
+        return True
+    offset = (inner.west - outer.west) % 360.0
+    if offset > 360.0 - tol:
+        offset -= 360.0
+    return offset >= -tol and offset + inner.longitude_span <= outer.longitude_span + tol
 
 
 def _spacing(axis, name):

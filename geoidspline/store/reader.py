@@ -65,6 +65,10 @@ class StoreSpline:
     (keep one area only) is not offered, since a tile is read in a few ms and every
     tile of the global 0.5 m store in 0.3 s.
 
+    Coverage: :meth:`undulation` answers NaN where the store has no data
+    (:attr:`coverage`); :meth:`evaluate_points`, the spline on R³, and :attr:`full`
+    answer everywhere, as the ambient spline does.
+
     Thread safety: tiles are read and the partial spline rebuilt under a lock; the
     splines handed to evaluation are immutable snapshots, so concurrent queries from
     any number of threads are safe and see the same values. A reader keeps using the
@@ -234,12 +238,16 @@ class StoreSpline:
         latitude, longitude = check_coordinates(latitude, longitude)
         shape = latitude.shape
         covered = np.asarray(self.coverage.covers(latitude, longitude))
-        values = np.full(shape, np.nan)
-        if covered.all():
-            values = self._spline_undulation(latitude, longitude)
-        elif covered.any():
-            values[covered] = self._spline_undulation(latitude[covered], longitude[covered])
-        values = np.asarray(values, dtype=np.float64)
+        if latitude.size >= FOLDED_FROM_POINTS or covered.all():
+            # the whole spline evaluates every point at once: cheaper than gathering
+            values = np.asarray(self._spline_undulation(latitude, longitude), dtype=np.float64)
+            if not covered.all():
+                values = np.where(covered, values, np.nan)
+        else:
+            # only the covered points: their tiles, none for the points outside
+            values = np.full(shape, np.nan)
+            if covered.any():
+                values[covered] = self._spline_undulation(latitude[covered], longitude[covered])
         return values[()] if shape == () else values
 
     def _spline_undulation(self, latitude, longitude):

@@ -273,8 +273,6 @@ def _previous_store(root: Path, overwrite: bool) -> dict | None:
     """
     if not root.exists():
         return None
-    if root.is_symlink() and not root.is_dir():
-        raise StoreError(f"{root}: exists and is not a directory")
     if not root.is_dir():
         raise StoreError(f"{root}: exists and is not a directory")
     try:
