@@ -528,7 +528,8 @@ def test_geotiff_rotated_or_not_a_tiff_or_without_rasterio(tmp_path, monkeypatch
 @needs_rasterio
 def test_read_grid_picks_the_format_by_content_not_by_name(tmp_path):
     grid = make_grid(np.arange(30, 32.01, 0.5), np.arange(130, 133.01, 0.5))
-    as_isg = write_isg(tmp_path / "egm96_15.gtx", grid)  # an ISG file under a GTX name
+    # an ISG file under a GTX name (not a catalogue file's name: that one must be a known copy)
+    as_isg = write_isg(tmp_path / "geoid_15.gtx", grid)
     as_tif = write_geotiff(tmp_path / "model.dat", grid)
     as_gsi = write_gsi(tmp_path / "model.isg", grid)  # GSI text under an ISG name
     for path in (as_isg, as_tif, as_gsi):

@@ -582,8 +582,25 @@ def test_resolve_by_name_and_path(monkeypatch):
 
 def test_resolve_nga_dac_by_name(monkeypatch):
     need_dac()
-    monkeypatch.delenv("GEOIDSPLINE_DATA", raising=False)
+    monkeypatch.setenv("GEOIDSPLINE_DATA", str(DAC.parent))
     assert resolve_source("egm96-15-nga").undulation(0.0, 0.0) == pytest.approx(17.16, abs=1e-9)
+
+
+def test_catalogue_never_searches_the_working_directory(monkeypatch, tmp_path, caplog):
+    """Seen: the catalogue searched ../shared/data/egm96 relative to the working
+    directory, so a WW15MGH.DAC planted there was used. Now only absolute directories
+    are searched; a relative one in an environment variable is skipped with a warning."""
+    planted = tmp_path / "work" / "data"
+    planted.mkdir(parents=True)
+    (planted / "WW15MGH.DAC").write_bytes(b"\0" * (721 * 1440 * 2))
+    monkeypatch.chdir(tmp_path / "work")
+    monkeypatch.setenv("GEOIDSPLINE_DATA", "data")  # relative: skipped
+    with caplog.at_level(logging.WARNING), pytest.raises(InputFileError, match="searched \\(no directories\\)"):
+        resolve_source("egm96-15-nga")
+    assert "relative to the working directory; skipped" in caplog.text
+    for entry in list_catalogue():
+        for spec in entry.search:
+            assert spec.startswith(("$", "pyproj:", "/")), f"{entry.name}: relative search entry {spec!r}"
 
 
 def test_unknown_name_lists_known_names():
@@ -595,7 +612,6 @@ def test_unknown_name_lists_known_names():
 
 def test_missing_catalogue_file_says_where_and_how(monkeypatch, tmp_path):
     monkeypatch.setenv("GEOIDSPLINE_DATA", str(tmp_path))
-    monkeypatch.chdir(tmp_path)  # so ../shared/data/egm96 is not found either
     with pytest.raises(InputFileError) as info:
         resolve_source("egm96-15-nga")
     message = str(info.value)
@@ -606,7 +622,15 @@ def test_proj_data_env_var_is_searched_first(monkeypatch, tmp_path):
     grid = make_grid(np.arange(-90, 90.1, 10.0), np.arange(-180, 180, 10.0))
     write_gtx(tmp_path / "egm96_15.gtx", grid)
     monkeypatch.setenv("PROJ_DATA", str(tmp_path))
-    found = resolve_source("egm96-15")
+    # another file under the catalogue's name: refused, naming both digests and the way out
+    with pytest.raises(InputFileError) as info:
+        resolve_source("egm96-15")
+    message = str(info.value)
+    digest = hashlib.sha256((tmp_path / "egm96_15.gtx").read_bytes()).hexdigest()
+    assert str(tmp_path / "egm96_15.gtx") in message and digest in message
+    assert "c02a6eb70a7a78efebe5adf3ade626eb75390e170bb8b3f36136a2c28f5326a0" in message
+    assert "allow_unknown_copy=True" in message
+    found = resolve_source("egm96-15", allow_unknown_copy=True)
     assert found.shape == (19, 36)
     np.testing.assert_array_equal(found.values, grid.values)
     assert found.provenance.model == "EGM96"

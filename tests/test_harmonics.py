@@ -330,7 +330,8 @@ def test_f477_scales_by_wgs84_and_hsynth_by_the_model():
 
 
 def test_correction_is_summed_without_radial_factor_in_its_unit():
-    model = small_model(2, {}, gm=WGS84.gm, radius=WGS84.a)
+    # C̄20 of the normal field itself, so that N stays within the geoid's physical range
+    model = small_model(2, {(2, 0): (WGS84.zonal_cbar(2), 0.0)}, gm=WGS84.gm, radius=WGS84.a)
     C = np.zeros((3, 3))
     S = np.zeros((3, 3))
     C[0, 0], C[1, 1], S[2, 1] = 12.0, -3.0, 5.0  # centimetres
@@ -647,18 +648,23 @@ def test_icgem_reader_rejects_bad_headers(tmp_path):
 
 def test_nga_readers_reject_malformed_files(tmp_path):
     good = "\n".join(
-        f"{n:4d}{m:4d} {0.1 * (n + m):.12E} {0.0 if m == 0 else 0.2:.12E} 1.0E-10 1.0E-10" for n in range(2, 4) for m in range(n + 1)
+        f"{n:4d}{m:4d} {1e-7 * (n + m):.12E} {0.0 if m == 0 else 2e-7:.12E} 1.0E-10 1.0E-10" for n in range(2, 4) for m in range(n + 1)
     )
     path = write(tmp_path / "egm96_to360.ascii", good + "\n")
-    model = read_nga(path)
+    # the name declares degree 360: a file that stops at 3 is a truncated copy ...
+    with pytest.raises(InputFileError, match=r"egm96_to360\.ascii: the file name declares degree 360 but the model "
+                       r"stops at degree 3: a truncated copy.*max_degree=3"):
+        read_nga(path)
+    model = read_nga(path, max_degree=3)  # ... unless truncated on purpose
     assert model.max_degree == 3 and model.name == "EGM96" and model.gm == 3.986004415e14
     assert any("none of the known EGM96 values" in note for note in model.notes)
-    bad_cols = good.replace("   3   1 4.000000000000E-01 2.000000000000E-01 1.0E-10 1.0E-10", "   3   1 4.0E-01 2.0E-01")
+    bad_cols = good.replace("   3   1 4.000000000000E-07 2.000000000000E-07 1.0E-10 1.0E-10", "   3   1 4.0E-07 2.0E-07")
+    assert bad_cols != good
     path = write(tmp_path / "egm96_to360.ascii", bad_cols + "\n")
     with pytest.raises(InputFileError, match=r"egm96_to360\.ascii: line 5: expected 6 columns \(n m C S sigmaC sigmaS\), found 4"):
         read_nga(path)
-    path = write(tmp_path / "egm96_to360.ascii", good.replace("4.000000000000E-01", "4.0000Q0E-01") + "\n")
-    with pytest.raises(InputFileError, match=r"line 3: C '4.0000Q0E-01' is not a number"):
+    path = write(tmp_path / "egm96_to360.ascii", good.replace("4.000000000000E-07", "4.0000Q0E-07") + "\n")
+    with pytest.raises(InputFileError, match=r"line 3: C '4.0000Q0E-07' is not a number"):
         read_nga(path)
     path = write(tmp_path / "mystery.txt", good + "\n")
     with pytest.raises(InputFileError, match="not one of NGA's standard file names"):

@@ -1,7 +1,8 @@
 """Checks and text-lattice helpers shared by the exchange-format readers (ISG, GSI, GeoTIFF).
 
-- :func:`check_plausible`: refuse undulations outside a physical range (a unit mistake,
-  a corrupt file), as every reader must;
+(The plausibility of the values, ±150 m, is checked for every reader by
+:func:`geoidspline.sources.files.finish_grid`.)
+
 - :func:`parse_values`: the whitespace-separated numbers of a text grid, with an error
   naming the line of the first one that is not a number;
 - :func:`snap_spacing` / :func:`snap_origin`: the lattice a header *means* when it
@@ -19,40 +20,18 @@ import numpy as np
 from ..errors import InputFileError
 
 __all__ = [
-    "MAX_ABS_UNDULATION_M",
     "MAX_TEXT_NODES",
-    "check_plausible",
     "decimals_tolerance",
     "parse_values",
     "snap_spacing",
     "snap_origin",
 ]
 
-#: Largest |N| (metres) accepted from a file. The Earth's geoid spans about -107 m
-#: (Indian Ocean) to +86 m (New Guinea); anything beyond 150 m is a unit mistake
-#: (centimetres labelled metres) or a corrupt file, never a geoid.
-MAX_ABS_UNDULATION_M = 150.0
-
 #: Largest number of nodes a text grid may declare (1e8 nodes: a 0.5' global grid
 #: holds 9.3e8, no published text grid comes near 1e8). Checked before allocating.
 MAX_TEXT_NODES = 100_000_000
 
 _NUMBER = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$")
-
-
-def check_plausible(path, values, what="undulation") -> None:
-    """Raise :class:`InputFileError` when a finite value lies beyond ±MAX_ABS_UNDULATION_M."""
-    finite = values[np.isfinite(values)]
-    if finite.size == 0:
-        return
-    low, high = float(finite.min()), float(finite.max())
-    if max(-low, high) > MAX_ABS_UNDULATION_M:
-        raise InputFileError(
-            path,
-            f"{what} values range from {low:.6g} to {high:.6g} m, beyond the physical range "
-            f"±{MAX_ABS_UNDULATION_M:g} m of geoid undulations (the geoid spans about -107 to +86 m): "
-            "are the values in centimetres or millimetres, or is the no-data value not declared?",
-        )
 
 
 def decimals_tolerance(text: str) -> float:

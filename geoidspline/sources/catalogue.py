@@ -1,14 +1,29 @@
 """Geoid grids known by name: the catalogue's entries and where their files are.
 
 The entries live in ``grids/catalogue.toml`` (package data ``geoidspline.grids``). Each
-names a file, the directories to look for it in (in order), how to get it, and what the
-values are: model, tide system and the zero-degree term N0 (metres) they contain.
-Resolving a command's SOURCE to a grid or model is :mod:`geoidspline.sources.resolve`.
+names a file, the directories to look for it in (in order), how to get it, what the
+values are (model, tide system and the zero-degree term N0, metres, they contain) and
+the sha256 of its known copies. Resolving a command's SOURCE to a grid or model is
+:mod:`geoidspline.sources.resolve`.
+
+Search order for an entry's file: its ``search`` list, in order, each item one of
+
+1. ``$NAME``: the directories in environment variable NAME (``os.pathsep``-separated),
+   e.g. ``$PROJ_DATA``, ``$PROJ_LIB``, ``$GEOIDSPLINE_DATA``;
+2. ``pyproj:data_dir`` / ``pyproj:user_data_dir``: pyproj's data directories;
+3. an absolute directory (``/usr/share/proj``).
+
+Only absolute directories are searched: a relative one (in the catalogue or in an
+environment variable) would depend on the working directory, where anyone can plant a
+file of the right name, and is skipped with a warning. The first directory holding the
+file wins, and its sha256 must be one of the entry's known copies
+(:func:`geoidspline.sources.files.check_catalogue_copy`).
 """
 
 from __future__ import annotations
 
 import functools
+import logging
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,6 +33,8 @@ try:
 except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 from ..errors import InputFileError
+
+log = logging.getLogger(__name__)
 
 __all__ = ["CatalogueEntry", "list_catalogue", "get_entry", "entry_for_file", "search_directories", "find_catalogue_file"]
 
@@ -86,7 +103,8 @@ def entry_for_file(file_name: str) -> CatalogueEntry | None:
 
 
 def search_directories(entry: CatalogueEntry) -> list[Path]:
-    """The directories searched for ``entry.file``, in order, without duplicates."""
+    """The absolute directories searched for ``entry.file``, in order, without duplicates
+    (relative ones are skipped: see the module documentation)."""
     dirs: list[Path] = []
     for spec in entry.search:
         if spec.startswith("$"):
@@ -100,7 +118,10 @@ def search_directories(entry: CatalogueEntry) -> list[Path]:
             found = [spec]
         for item in found:
             path = Path(item).expanduser()
-            path = path if path.is_absolute() else Path.cwd() / path
+            if not path.is_absolute():
+                log.warning("catalogue entry %s: search directory %r (from %s) is relative to the working "
+                            "directory; skipped", entry.name, item, spec)
+                continue
             if path not in dirs:
                 dirs.append(path)
     return dirs

@@ -26,7 +26,6 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputFileError
-from ._common import check_plausible
 from .files import finish_grid, provenance_of
 from .grid import GeoidGrid
 
@@ -146,7 +145,6 @@ def read_geotiff(path, sha256: str, complete: bool = False) -> GeoidGrid:
         raise InputFileError(path, f"GeoTIFF band 1 has {int(np.isinf(values).sum())} infinite values")
     values = offset + scale * values
     values[missing] = np.nan
-    check_plausible(path, values)
     # GDAL's transform is area-based for both conventions: node (i, j) is the centre of pixel (i, j).
     lon = _axis(transform.c + transform.a / 2.0, transform.a, cols, 360.0)
     if transform.e > 0:  # south row first

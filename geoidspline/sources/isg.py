@@ -37,7 +37,7 @@ import numpy as np
 
 from .._files import atomic_write
 from ..errors import InputFileError
-from ._common import MAX_TEXT_NODES, check_plausible, decimals_tolerance, parse_values, snap_origin, snap_spacing
+from ._common import MAX_TEXT_NODES, decimals_tolerance, parse_values, snap_origin, snap_spacing
 from .files import finish_grid, provenance_of
 from .grid import GeoidGrid
 
@@ -304,7 +304,6 @@ def read_isg(path, data: bytes, sha256: str, complete: bool = False) -> GeoidGri
     grid = values.reshape(lat.count, lon.count)[::-1].copy()  # file rows run north to south
     if header.nodata is not None:
         grid[grid == header.nodata] = np.nan
-    check_plausible(path, grid)
     fields = header.fields
     tide = _optional(fields, "tide system")
     notes = [f"ISG format {header.version}, {lat.registration}-registered"

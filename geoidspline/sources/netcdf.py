@@ -1,4 +1,11 @@
-"""CF netCDF grids: read (axes and the geoid variable found by CF attributes) and write."""
+"""CF netCDF grids: read (axes and the geoid variable found by CF attributes) and write.
+
+No data: a node is NaN when its stored value is NaN, the variable's ``_FillValue`` or
+one of its ``missing_value`` values, outside its ``valid_range`` / ``valid_min`` /
+``valid_max`` (compared in the stored, packed values, as the NetCDF User Guide and CF §2.5.1
+say), or, when the variable declares no ``_FillValue``, netCDF's default fill value for
+its type (what the library writes where nothing was written, 9.96921e36 for floats).
+"""
 
 from __future__ import annotations
 
@@ -10,6 +17,7 @@ import numpy as np
 from .._files import atomic_path
 from ..errors import InputFileError
 from ..geodesy.ellipsoids import TIDE_SYSTEMS
+from ..geodesy.limits import MAX_GRID_NODES
 from .files import finish_grid, provenance_of, regular_axis
 from .grid import GeoidGrid
 
@@ -18,10 +26,137 @@ log = logging.getLogger(__name__)
 
 NETCDF_MAGIC = (b"CDF\x01", b"CDF\x02", b"CDF\x05", b"\x89HDF\r\n\x1a\n")
 
+#: netCDF-C's own limits (netcdf.h): NC_MAX_DIMS, NC_MAX_ATTRS, NC_MAX_VARS, NC_MAX_NAME,
+#: NC_MAX_VAR_DIMS.
+_NC_MAX = dict(dims=1024, attrs=8192, vars=8192, name=256, var_dims=1024)
+
+#: Bytes per value of each nc_type (classic 1..6, CDF-5 adds 7..11).
+_NC_TYPE_BYTES = {1: 1, 2: 1, 3: 2, 4: 4, 5: 4, 6: 8, 7: 1, 8: 2, 9: 4, 10: 8, 11: 8}
+
+_NC_DIMENSION, _NC_VARIABLE, _NC_ATTRIBUTE = 10, 11, 12
+
+#: Largest classic header read for the check (bytes); a grid's header is a few kB.
+_MAX_CLASSIC_HEADER = 16 << 20
+
 
 NETCDF_SUFFIXES = {".nc", ".nc4", ".cdf", ".netcdf"}
 
 
+
+
+class _ClassicHeader:
+    """A bounds-checked walk through a classic (CDF-1/2/5) netCDF header.
+
+    netCDF-C trusts the counts and sizes of a classic header: a mutated count (say
+    2.3e9 dimensions) makes it crash, hang or exhaust memory. This walk follows the
+    format specification (NetCDF Users Guide, "File Format Specifications") and raises
+    InputFileError at the first count, name, type, id or offset that the file cannot
+    hold, before the library opens it.
+    """
+
+    def __init__(self, path, data: bytes, size: int):
+        self.path, self.data, self.size, self.pos = path, data, size, 4
+        version = data[3]
+        self.count_bytes = 8 if version == 5 else 4  # NON_NEG
+        self.offset_bytes = 4 if version == 1 else 8  # OFFSET (begin)
+        self.types = 11 if version == 5 else 6
+
+    def fail(self, rule: str):
+        raise InputFileError(self.path, f"netCDF classic header: {rule} (at byte {self.pos})")
+
+    def uint(self, nbytes: int) -> int:
+        if self.pos + nbytes > len(self.data):
+            self.fail("ends before its end (truncated or corrupt header)")
+        value = int.from_bytes(self.data[self.pos:self.pos + nbytes], "big")
+        self.pos += nbytes
+        return value
+
+    def count(self, what: str, limit: int, min_bytes: int) -> int:
+        value = self.uint(self.count_bytes)
+        room = (len(self.data) - self.pos) // max(min_bytes, 1)
+        if value > limit or value > room:
+            self.fail(f"{value} {what}, more than the file can hold")
+        return value
+
+    def skip(self, nbytes: int):
+        padded = (nbytes + 3) // 4 * 4
+        if self.pos + padded > len(self.data):
+            self.fail("ends before its end (truncated or corrupt header)")
+        self.pos += padded
+
+    def name(self):
+        length = self.count("name bytes", _NC_MAX["name"], 1)
+        self.skip(length)
+
+    def tagged_list(self, tag: int, what: str, limit: int, min_bytes: int) -> int:
+        found = self.uint(4)
+        if found not in (0, tag):
+            self.fail(f"expected the {what} list tag {tag} or 0, found {found}")
+        n = self.count(what, limit, min_bytes)
+        if found == 0 and n:
+            self.fail(f"an absent {what} list with {n} elements")
+        return n
+
+    def nc_type(self) -> int:
+        value = self.uint(4)
+        if not 1 <= value <= self.types:
+            self.fail(f"unknown nc_type {value}")
+        return value
+
+    def attributes(self):
+        for _ in range(self.tagged_list(_NC_ATTRIBUTE, "attributes", _NC_MAX["attrs"], 12)):
+            self.name()
+            nbytes = _NC_TYPE_BYTES[self.nc_type()]
+            self.skip(self.count("attribute values", 1 << 40, nbytes) * nbytes)
+
+    def check(self):
+        numrecs = self.uint(self.count_bytes)
+        streaming = numrecs == (1 << 8 * self.count_bytes) - 1
+        dims = []
+        for _ in range(self.tagged_list(_NC_DIMENSION, "dimensions", _NC_MAX["dims"], 8)):
+            self.name()
+            dims.append(self.uint(self.count_bytes))
+        self.attributes()
+        record_bytes = 0
+        record_vars = []
+        for _ in range(self.tagged_list(_NC_VARIABLE, "variables", _NC_MAX["vars"], 16)):
+            self.name()
+            ids = [self.uint(self.count_bytes) for _ in range(self.count("dimension ids", _NC_MAX["var_dims"], 4))]
+            if any(i >= len(dims) for i in ids):
+                self.fail(f"a variable uses dimension id {max(ids)} of {len(dims)} dimensions")
+            self.attributes()
+            nbytes = _NC_TYPE_BYTES[self.nc_type()]
+            self.uint(self.count_bytes)  # vsize: redundant (and wrong for large variables)
+            begin = self.uint(self.offset_bytes)
+            record = bool(ids) and dims[ids[0]] == 0
+            shape = [dims[i] for i in (ids[1:] if record else ids)]
+            if any(d == 0 for d in shape):
+                self.fail("a variable uses the record dimension other than first")
+            nvalues = 1
+            for d in shape:
+                nvalues *= d
+            if begin > self.size or (not record and begin + nvalues * nbytes > self.size):
+                self.fail(f"a variable's data ({nvalues:,} values from byte {begin:,}) lie beyond the "
+                          f"{self.size:,}-byte file")
+            if record:
+                record_bytes += nvalues * nbytes
+                record_vars.append(begin)
+        if record_vars and not streaming and min(record_vars) + numrecs * record_bytes > self.size:
+            self.fail(f"{numrecs:,} records of {record_bytes:,} bytes lie beyond the {self.size:,}-byte file")
+
+
+def check_netcdf_header(path, head: bytes, size: int) -> None:
+    """Refuse, before netCDF-C opens it, a file that is not netCDF or whose classic
+    header contradicts itself or the file size (see :class:`_ClassicHeader`). HDF5-based
+    netCDF-4 files are checked by the HDF5 library itself."""
+    if not head.startswith(NETCDF_MAGIC):
+        raise InputFileError(path, f"not a netCDF file: starts with {head[:4]!r}, not CDF or HDF5 magic bytes")
+    if head.startswith(b"CDF"):
+        data = head
+        if len(head) < size:
+            with open(path, "rb") as fh:
+                data = fh.read(min(size, _MAX_CLASSIC_HEADER))
+        _ClassicHeader(path, data, size).check()
 
 
 # -- CF netCDF -----------------------------------------------------------------------
@@ -125,17 +260,47 @@ def _sorted_longitudes(path, lon, values):
     return lon, values
 
 
+def _undeclared_nodata(raw_var) -> np.ndarray:
+    """Mask of the stored values that mean no data but that xarray's CF decoding keeps:
+    outside valid_range/valid_min/valid_max, and netCDF's default fill value when the
+    variable declares no _FillValue."""
+    import netCDF4
+
+    raw = np.asarray(raw_var.values)
+    attrs = raw_var.attrs
+    mask = np.zeros(raw.shape, dtype=bool)
+    if "valid_range" in attrs:
+        low, high = np.ravel(attrs["valid_range"])[:2]
+        mask |= (raw < low) | (raw > high)
+    if "valid_min" in attrs:
+        mask |= raw < np.ravel(attrs["valid_min"])[0]
+    if "valid_max" in attrs:
+        mask |= raw > np.ravel(attrs["valid_max"])[0]
+    if "_FillValue" not in attrs and raw.dtype.kind in "iuf":
+        default = netCDF4.default_fillvals.get(raw.dtype.str[1:])
+        if default is not None:
+            mask |= raw == np.array(default).astype(raw.dtype)
+    return mask
+
+
 def read_netcdf(path: Path, sha256: str, complete: bool) -> GeoidGrid:
     import xarray as xr
 
     try:
         ds = xr.open_dataset(path, engine="netcdf4", decode_times=False, mask_and_scale=True)
+        raw_ds = xr.open_dataset(path, engine="netcdf4", decode_times=False, mask_and_scale=False)
     except Exception as exc:  # the netCDF library's own message says what is wrong
         raise InputFileError(path, f"cannot be read as netCDF: {exc}") from None
-    with ds:
+    with ds, raw_ds:
         lat_name, lat_dim, lon_name, lon_dim = _netcdf_axes(path, ds)
         var_name = _netcdf_variable(path, ds, lat_dim, lon_dim, {lat_name, lon_name})
         var = ds[var_name]
+        nodes = ds.sizes[lat_dim] * ds.sizes[lon_dim]
+        if nodes > MAX_GRID_NODES:
+            raise InputFileError(
+                path, f"'{var_name}' has {ds.sizes[lat_dim]} x {ds.sizes[lon_dim]} = {nodes:,} nodes, more than "
+                f"the {MAX_GRID_NODES:,} geoidspline reads (a global 1' grid has 233 million)",
+            )
         units = str(var.attrs.get("units", "")).strip()
         if not units:
             log.warning("%s: variable '%s' has no units attribute; assuming metres", path, var_name)
@@ -147,8 +312,9 @@ def read_netcdf(path: Path, sha256: str, complete: bool) -> GeoidGrid:
                 path, f"variable '{var_name}' has units '{units}'; known units are m, cm, mm (and spelled-out forms)"
             )
         extra = [d for d in var.dims if d not in (lat_dim, lon_dim)]
-        data = var.isel({d: 0 for d in extra}) if extra else var  # size-1 dims (time, band)
-        values = np.asarray(data.transpose(lat_dim, lon_dim).values, dtype=np.float64) * factor
+        first = {d: 0 for d in extra}  # size-1 dims (time, band)
+        values = np.asarray(var.isel(first).transpose(lat_dim, lon_dim).values, dtype=np.float64) * factor
+        values[_undeclared_nodata(raw_ds[var_name].isel(first).transpose(lat_dim, lon_dim))] = np.nan
         lat = np.asarray(ds[lat_name].values, dtype=np.float64)
         lon = np.asarray(ds[lon_name].values, dtype=np.float64)
         attrs = dict(ds.attrs)

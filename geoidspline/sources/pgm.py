@@ -1,4 +1,9 @@
-"""GeographicLib's geoid PGM files: 16-bit pixels with an offset and a scale."""
+"""GeographicLib's geoid PGM files: 16-bit pixels with an offset and a scale.
+
+GeographicLib's geoid files are global and complete: the format has no no-data pixel
+value, so every pixel is a value (a corrupt one is caught by the plausibility check of
+:func:`~.files.finish_grid`).
+"""
 
 from __future__ import annotations
 
@@ -8,8 +13,17 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputFileError
-from .files import finish_grid, provenance_of
+from ..geodesy.limits import MAX_GRID_NODES
+from .files import finish_grid, provenance_of, reader_faults
 from .grid import GeoidGrid
+
+
+_MAX_FIELD_DIGITS = 12
+
+
+def looks_like_pgm(head: bytes, size: int) -> bool:
+    """Whether a file starts like a binary PGM (``P5`` and a whitespace byte)."""
+    return head[:2] == b"P5" and head[2:3].isspace()
 
 
 # -- GeographicLib PGM ---------------------------------------------------------------
@@ -21,9 +35,12 @@ def pgm_header(path) -> dict:
     ``description``.
     """
     path = Path(path)
-    with open(path, "rb") as fh:
-        head = fh.read(1 << 16)
-    return _parse_pgm_header(path, head)
+    with reader_faults(path):
+        if not path.is_file():
+            raise InputFileError(path, "no such file" if not path.exists() else "not a regular file")
+        with open(path, "rb") as fh:
+            head = fh.read(1 << 16)
+        return _parse_pgm_header(path, head)
 
 
 def _parse_pgm_header(path: Path, data: bytes) -> dict:
@@ -44,9 +61,12 @@ def _parse_pgm_header(path: Path, data: bytes) -> dict:
             comments.setdefault(key, value.strip())
             pos = end + 1
         else:
-            match = re.match(rb"\d+", data[pos:])
+            window = data[pos:pos + _MAX_FIELD_DIGITS + 1]  # not data[pos:]: that copies the file
+            match = re.match(rb"\d+", window)
             if match is None:
                 raise InputFileError(path, f"PGM header has a non-numeric field at byte {pos}")
+            if match.end() > _MAX_FIELD_DIGITS:
+                raise InputFileError(path, f"PGM header has a field of more than {_MAX_FIELD_DIGITS} digits at byte {pos}")
             tokens.append(int(match.group()))
             pos += match.end()
     if pos >= len(data) or not data[pos:pos + 1].isspace():
@@ -67,6 +87,10 @@ def _parse_pgm_header(path: Path, data: bytes) -> dict:
         raise InputFileError(path, f"PGM maxval is {maxval}; GeographicLib geoid files use 65535 (16-bit pixels)")
     if width <= 0 or height < 2:
         raise InputFileError(path, f"PGM raster {width} x {height} is too small")
+    if width * height > MAX_GRID_NODES:
+        raise InputFileError(
+            path, f"PGM raster {width} x {height} has more than the {MAX_GRID_NODES:,} nodes geoidspline reads"
+        )
     if width != 2 * (height - 1):
         # Same rule as GeographicLib's "Raster size mismatch": equal spacing 180/(height-1) = 360/width.
         raise InputFileError(
@@ -78,16 +102,24 @@ def _parse_pgm_header(path: Path, data: bytes) -> dict:
     return header
 
 
-def read_pgm(path: Path, data: bytes, sha256: str, complete: bool) -> GeoidGrid:
-    head = _parse_pgm_header(path, data)
-    width, height, start = head["width"], head["height"], head["data_offset"]
+def check_pgm_header(path, head: bytes, size: int) -> dict:
+    """The header of a PGM file of ``size`` bytes starting with ``head``, checked against
+    the size before the pixels are read."""
+    header = _parse_pgm_header(path, head)
+    width, height, start = header["width"], header["height"], header["data_offset"]
     expected = width * height * 2
-    if len(data) - start != expected:
+    if size - start != expected:
         raise InputFileError(
             path,
-            f"PGM data is {len(data) - start} bytes after the header (byte {start}), "
+            f"PGM data is {size - start} bytes after the header (byte {start}), "
             f"but {width} x {height} uint16 pixels need {expected}",
         )
+    return header
+
+
+def read_pgm(path: Path, data: bytes, sha256: str, complete: bool) -> GeoidGrid:
+    head = check_pgm_header(path, data[:1 << 16], len(data))
+    width, height, start = head["width"], head["height"], head["data_offset"]
     pixels = np.frombuffer(data, ">u2", offset=start).reshape(height, width)
     values = head["offset"] + head["scale"] * pixels[::-1].astype(np.float64)  # rows 90N->90S
     step = 180.0 / (height - 1)

@@ -3,6 +3,10 @@
 >>> grid = resolve_source("egm96-15")          # PROJ's egm96_15.gtx, wherever PROJ keeps it
 >>> grid = resolve_source("my/grid.nc")        # any file read_grid understands
 >>> source = open_source("egm96_to360.ascii.gz", correction="CORRCOEF.gz")   # a model
+
+Whether a file is a grid or a model is decided by its content (:func:`is_model_file`),
+never by its name: PROJ's ``egm96_15.gtx`` is a grid although its name starts like NGA's
+``egm96_to360``.
 """
 
 from __future__ import annotations
@@ -13,26 +17,28 @@ from pathlib import Path
 
 from ..errors import GeoidSplineError, InputFileError
 from .catalogue import find_catalogue_file, get_entry
-from .formats import read_grid
+from .files import reader_faults
+from .formats import HEAD_BYTES, grid_format_of, read_grid
 from .grid import GeoidGrid
 from .harmonics.presets import PRESETS, default_preset, store_preset
 
 __all__ = ["resolve_source", "is_model_file", "open_source", "load_synthesis"]
 
 
-def resolve_source(name_or_path) -> GeoidGrid:
+def resolve_source(name_or_path, *, allow_unknown_copy: bool = False) -> GeoidGrid:
     """A grid from an existing file path, or else from a catalogue name.
 
-    A catalogue grid must be complete (no NaN nodes) and gets the catalogue's model,
-    tide system and zero-degree term in its provenance.
+    A catalogue grid must be complete (no NaN nodes), must be one of the catalogue's
+    known copies (sha256; ``allow_unknown_copy=True`` accepts another) and gets the
+    catalogue's model, tide system and zero-degree term in its provenance.
     """
     path = Path(name_or_path).expanduser()
     if path.exists():
-        return read_grid(path)
+        return read_grid(path, allow_unknown_copy=allow_unknown_copy)
     if isinstance(name_or_path, os.PathLike):
         raise InputFileError(path, "no such file")
     entry = get_entry(str(name_or_path))
-    grid = read_grid(find_catalogue_file(entry), complete=True)
+    grid = read_grid(find_catalogue_file(entry), complete=True, allow_unknown_copy=allow_unknown_copy)
     grid.provenance = dataclasses.replace(
         grid.provenance,
         model=entry.model,
@@ -43,37 +49,55 @@ def resolve_source(name_or_path) -> GeoidGrid:
 
 
 def is_model_file(path) -> bool:
-    """Whether ``path`` names a spherical-harmonic model rather than a grid.
+    """Whether ``path`` holds a spherical-harmonic model rather than a grid, by content:
+    an ICGEM header with ``gfc`` lines, or NGA's ``n m C S sigmaC sigmaS`` lines (plain
+    or gzip-compressed). A missing file is not a model."""
+    from .harmonics.models import model_file_kind
 
-    ICGEM files end in ``.gfc`` (optionally compressed); NGA's coefficient files have
-    no header and are recognised by their standard names (``egm96_to360.ascii``,
-    ``EGM2008_to2190_*``), see :data:`geoidspline.sources.harmonics.NGA_CATALOGUE`.
-    """
-    name = Path(path).name.lower()
-    if name.endswith((".gfc", ".gfc.gz")):
-        return True
-    from .harmonics.models import _nga_lookup
-
-    return _nga_lookup(path) is not None
+    return Path(path).is_file() and model_file_kind(path) in ("icgem", "nga")
 
 
-def open_source(name_or_path, correction=None, preset=None):
+def open_source(name_or_path, correction=None, preset=None, *, allow_unknown_copy: bool = False, max_degree=None):
     """The source behind a command-line SOURCE: a model (with its optional ζ-to-N
     correction file and NGA preset) or a grid file / catalogue name."""
-    if correction is not None or (Path(name_or_path).exists() and is_model_file(name_or_path)):
-        
-        return load_synthesis(name_or_path, correction, preset)
+    if correction is not None or max_degree is not None or is_model_file(name_or_path):
+        return load_synthesis(name_or_path, correction, preset, max_degree=max_degree)
     if preset is not None:
         raise InputFileError(name_or_path, "a preset applies to spherical-harmonic models only")
-    return resolve_source(name_or_path)
+    return resolve_source(name_or_path, allow_unknown_copy=allow_unknown_copy)
 
 
-def load_synthesis(model_path, correction_path=None, preset=None, like_store=None):
+def _check_is_model(path, label: str) -> None:
+    """Refuse, by content, a grid or a correction given as a model (or a model as a correction)."""
+    from .harmonics.models import model_file_kind
+
+    with reader_faults(path):
+        kind = model_file_kind(path)
+        if kind is not None and kind.startswith("corrupt"):
+            raise InputFileError(path, kind)
+        wanted = ("nga-correction",) if label == "correction" else ("icgem", "nga")
+        if kind in wanted or kind is None and not _is_grid(path):
+            return  # the reader gives the precise rule for anything else
+        if kind is None:
+            raise InputFileError(path, f"is a geoid grid, not a {label} file: a grid is a SOURCE of its own")
+        what = "a zeta-to-N correction (n m C S)" if kind == "nga-correction" else "a spherical-harmonic model"
+        raise InputFileError(path, f"is {what}, not a {label} file")
+
+
+def _is_grid(path) -> bool:
+    with open(path, "rb") as fh:
+        head = fh.read(HEAD_BYTES)
+    return grid_format_of(head, Path(path).stat().st_size) is not None
+
+
+def load_synthesis(model_path, correction_path=None, preset=None, like_store=None, *, max_degree=None):
     """Read a model (ICGEM .gfc or NGA ASCII) and optional CORRCOEF-style correction
     and return the :class:`~geoidspline.sources.harmonics.GeoidSynthesis`.
 
     ``preset`` None means: the preset ``like_store`` was fitted with when that store was
     fitted from this same model file (:func:`store_preset`), else :func:`default_preset`.
+    ``max_degree`` truncates the model and the correction on purpose; without it a
+    correction that stops below the model's degree is refused.
     """
     from .harmonics.models import read_model, read_nga_correction
     from .harmonics.synthesis import GeoidSynthesis
@@ -83,6 +107,8 @@ def load_synthesis(model_path, correction_path=None, preset=None, like_store=Non
     for label, value in (("model", model_path), ("correction", correction_path)):
         if value is not None and not Path(value).is_file():
             raise InputFileError(value, f"{label} file not found" if not Path(value).exists() else "not a regular file")
+        if value is not None:
+            _check_is_model(value, label)
     model = read_model(model_path)
     correction = read_nga_correction(correction_path) if correction_path is not None else None
     chosen = preset
@@ -91,6 +117,10 @@ def load_synthesis(model_path, correction_path=None, preset=None, like_store=Non
     if chosen is None:
         chosen = default_preset(model, correction)
     try:
-        return GeoidSynthesis(model, correction, preset=chosen)
+        return GeoidSynthesis(model, correction, preset=chosen, max_degree=max_degree)
+    except InputFileError:
+        raise
     except ValueError as exc:
         raise GeoidSplineError(f"{model_path}: {exc}") from None
+    except MemoryError:
+        raise InputFileError(model_path, f"not enough memory for a degree-{model.max_degree} synthesis") from None

@@ -9,15 +9,25 @@ directly (recognised by their magic bytes, whatever their name).
 Coefficients are returned as fully normalised (4π, no Condon-Shortley phase) 2-D arrays
 ``C[n, m]``, ``S[n, m]`` of shape (nmax+1, nmax+1), zero where m > n or where the file
 has no entry (degrees 0 and 1 may be absent).
+
+Before anything is allocated, a degree is checked against
+:data:`~geoidspline.geodesy.limits.MAX_MODEL_DEGREE` and the number of coefficient lines
+it needs against the lines the file has; afterwards every coefficient is checked
+against its physical bound (:mod:`geoidspline.geodesy.limits`). A model must reach the
+degree its header or its name declares (``egm96_to360`` ends at degree 360). Every
+failure, including a broken gzip stream and out of memory, is an InputFileError.
 """
 
 from __future__ import annotations
 
+import functools
 import gzip
 import hashlib
+import io
 import math
 import re
 import warnings
+import zlib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -25,6 +35,8 @@ import numpy as np
 
 from ...errors import InputFileError
 from ...geodesy.ellipsoids import PERMANENT_TIDE, TIDE_SYSTEMS
+from ...geodesy.limits import MAX_ABS_C20, MAX_ABS_COEFFICIENT, MAX_ABS_UNDULATION_M, MAX_MODEL_DEGREE
+from ..files import reader_faults
 
 __all__ = [
     "HarmonicModel",
@@ -36,6 +48,8 @@ __all__ = [
     "read_model",
     "NGA_CATALOGUE",
     "KNOWN_C20",
+    "model_file_kind",
+    "MAX_MODEL_TEXT_BYTES",
 ]
 
 
@@ -201,32 +215,154 @@ def _check_tide_system(path, name, c20, declared, source_label, enabled):
 # File access and line parsing
 
 
+#: Largest decompressed text read (bytes): the reader holds the text in memory.
+MAX_MODEL_TEXT_BYTES = 4 << 30
+
+_GZIP_MAGIC = b"\x1f\x8b"
+
+
+def _file_faults(reader):
+    """Every fault while reading a model file ends as an InputFileError naming it."""
+
+    @functools.wraps(reader)
+    def wrapped(path, *args, **kwargs):
+        with reader_faults(path):
+            return reader(path, *args, **kwargs)
+
+    return wrapped
+
+
 def _read_text(path) -> tuple[str, str]:
-    """(decompressed text, sha256 of the file's bytes as stored)."""
+    """(decompressed text, sha256 of the file's bytes as stored).
+
+    A gzip file (by its magic bytes) is decompressed in blocks: a NUL byte or more than
+    :data:`MAX_MODEL_TEXT_BYTES` stops it at once (a binary file or a compression bomb).
+    """
     path = Path(path)
+    if not path.is_file():
+        raise InputFileError(path, "file not found" if not path.exists() else "not a regular file")
     try:
         raw = path.read_bytes()
-    except FileNotFoundError:
-        raise InputFileError(path, "file not found") from None
     except OSError as exc:
         raise InputFileError(path, f"cannot read file: {exc.strerror or exc}") from None
     digest = hashlib.sha256(raw).hexdigest()
-    if raw[:2] == b"\x1f\x8b":
-        try:
-            raw = gzip.decompress(raw)
-        except (OSError, EOFError) as exc:
-            raise InputFileError(path, f"corrupt or truncated gzip data: {exc}") from None
-    try:
-        text = raw.decode("ascii")
-    except UnicodeDecodeError as exc:
-        # latin-1 only in header comments is tolerated; data lines are checked anyway
-        try:
-            text = raw.decode("latin-1")
-        except UnicodeDecodeError:  # pragma: no cover - latin-1 decodes everything
-            raise InputFileError(path, f"not a text file ({exc})") from None
-    if "\x00" in text:
+    if raw[:2] == _GZIP_MAGIC:
+        raw = _gunzip(path, raw)
+    elif b"\x00" in raw:
         raise InputFileError(path, "not a text file (contains NUL bytes)")
-    return text, digest
+    # ASCII in practice; latin-1 decodes any byte (a stray one in a header comment),
+    # and data lines are checked number by number anyway.
+    return raw.decode("latin-1"), digest
+
+
+def _gunzip(path, raw: bytes, limit: int = MAX_MODEL_TEXT_BYTES) -> bytes:
+    """The decompressed bytes of a gzip file's content ``raw`` (all members), text only."""
+    blocks, total = [], 0
+    try:
+        with gzip.GzipFile(fileobj=io.BytesIO(raw)) as fh:
+            while block := fh.read(1 << 20):
+                if b"\x00" in block:
+                    raise InputFileError(path, "not a text file: its gzip content contains NUL bytes")
+                total += len(block)
+                if total > limit:
+                    raise InputFileError(path, f"decompresses to more than {limit:,} bytes of text, "
+                                         "more than this reader holds in memory")
+                blocks.append(block)
+    except (OSError, EOFError, zlib.error) as exc:  # BadGzipFile is an OSError
+        raise InputFileError(path, f"corrupt or truncated gzip data: {exc}") from None
+    return b"".join(blocks)
+
+
+_NUMBER = r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eEdD][+-]?\d+)?"
+_NGA_LINE = {6: re.compile(rf"^\s*\d+\s+\d+(?:\s+{_NUMBER}){{4}}\s*$"),
+             4: re.compile(rf"^\s*\d+\s+\d+(?:\s+{_NUMBER}){{2}}\s*$")}
+_ICGEM_HEAD = re.compile(r"^\s*(begin_of_head|end_of_head)\b", re.MULTILINE | re.IGNORECASE)
+_ICGEM_KEY = re.compile(r"^\s*(earth_gravity_constant|gfc)\s", re.MULTILINE | re.IGNORECASE)
+
+
+def model_file_kind(path, head_bytes: int = 1 << 16) -> str | None:
+    """What a file holds, from its first ``head_bytes`` (decompressed when gzip):
+
+    ``"icgem"`` (a ``begin_of_head``/``end_of_head`` header and ``gfc`` lines or the
+    ``earth_gravity_constant`` key), ``"nga"`` (lines of ``n m C S sigmaC sigmaS``),
+    ``"nga-correction"`` (lines of ``n m C S``), ``"corrupt gzip data: ..."`` when a gzip
+    stream cannot be read, or None (not a model: a grid, or anything else).
+    """
+    path = Path(path)
+    if not path.is_file():  # a FIFO would block, a device never end
+        return None
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(head_bytes)
+            if head[:2] == _GZIP_MAGIC:
+                fh.seek(0)
+                with gzip.GzipFile(fileobj=fh) as gz:
+                    head = gz.read(head_bytes)
+    except (EOFError, zlib.error, gzip.BadGzipFile) as exc:
+        return f"corrupt or truncated gzip data: {exc}"
+    except OSError:
+        return None
+    if b"\x00" in head:
+        return None
+    text = head.decode("latin-1")
+    if _ICGEM_HEAD.search(text) and _ICGEM_KEY.search(text):
+        return "icgem"
+    lines = text.splitlines()
+    if len(head) == head_bytes and lines:
+        lines = lines[:-1]  # the last line may be cut
+    lines = [line for line in lines if line.strip()][:5]
+    for columns, kind in ((6, "nga"), (4, "nga-correction")):
+        if lines and all(_NGA_LINE[columns].match(line) for line in lines):
+            return kind
+    return None
+
+
+def _coefficient_count(nmax: int, first_degree: int) -> int:
+    """How many (n, m) with first_degree <= n <= nmax, 0 <= m <= n."""
+    return (nmax + 1) * (nmax + 2) // 2 - first_degree * (first_degree + 1) // 2
+
+
+def _check_degree(path, nmax: int, where: str) -> None:
+    if nmax > MAX_MODEL_DEGREE:
+        raise InputFileError(
+            path, f"{where} {nmax} is beyond {MAX_MODEL_DEGREE:,}, the largest geoidspline reads "
+            "(1 arc-minute; no published gravity model comes near): a corrupt header or line"
+        )
+
+
+#: Below this the coefficient arrays are allocated anyway, so that the collector names
+#: each missing coefficient; above it a file too short for its degree is refused first.
+_CHEAP_ALLOCATION_BYTES = 64 << 20
+
+
+def _check_line_count(path, nmax: int, first_degree: int, lines: int, nbytes: int, what: str, last=None) -> None:
+    """Refuse, before allocating, a file with fewer lines than degree nmax needs (when the
+    arrays for nmax would be large: small ones are allocated and the missing named)."""
+    needed = _coefficient_count(nmax, first_degree)
+    if lines < needed and 5 * 8 * (nmax + 1) ** 2 > _CHEAP_ALLOCATION_BYTES:
+        tail = f"; its last line is of degree {last}" if last is not None else ""
+        raise InputFileError(
+            path, f"{what} {nmax} needs {needed:,} coefficient lines (n = {first_degree}..{nmax}), but the file "
+            f"has {lines:,} lines in {nbytes:,} bytes{tail}: a truncated file, or a wrong degree",
+        )
+
+
+def _check_coefficients(path, C, S, line_of) -> None:
+    """Refuse fully normalised coefficients beyond their physical bound (degree >= 2)."""
+    n = np.arange(C.shape[0])[:, None]
+    bound = np.where(n >= 2, MAX_ABS_COEFFICIENT, np.inf) * np.ones_like(C)
+    bound[2:3, 0] = MAX_ABS_C20
+    for label, values in (("C", C), ("S", S)):
+        excess = np.abs(values) / bound
+        worst = np.unravel_index(int(np.argmax(excess)), excess.shape)
+        if excess[worst] > 1.0:
+            nn, mm = (int(v) for v in worst)
+            raise InputFileError(
+                path, f"line {int(line_of[nn, mm])}: {label}̄ of n={nn} m={mm} is {float(values[worst])!r}, beyond "
+                f"{bound[worst]:.3g}, the physical bound of a fully normalised coefficient (one such "
+                f"coefficient alone would make the geoid exceed ±{MAX_ABS_UNDULATION_M:g} m): a corrupt value, "
+                "or coefficients that are not fully normalised",
+            )
 
 
 def _parse_float(path, lineno, token, what):
@@ -289,10 +425,14 @@ class _Collector:
         if n_idx.size:
             shown = ", ".join(f"(n={n}, m={m})" for n, m in zip(n_idx[:5], m_idx[:5]))
             more = f" and {n_idx.size - 5} more" if n_idx.size > 5 else ""
+            found = np.nonzero(self.line_of.any(axis=1))[0]
+            stops = ""
+            if found.size and n_idx.min() > found.max():
+                stops = f"; the file stops at degree {found.max()}, below the declared {self.nmax}"
             raise InputFileError(
                 self.path,
                 f"{n_idx.size} coefficient(s) missing for {first_degree} <= n <= {self.nmax} "
-                f"({where}): {shown}{more}",
+                f"({where}): {shown}{more}{stops}",
             )
 
 
@@ -311,6 +451,7 @@ _ICGEM_TIDE = {
 }
 
 
+@_file_faults
 def read_icgem(path, *, max_degree: int | None = None, check_tide_system: bool = True) -> HarmonicModel:
     """Read an ICGEM ``.gfc`` file (static field only).
 
@@ -397,9 +538,16 @@ def read_icgem(path, *, max_degree: int | None = None, check_tide_system: bool =
     errors_kind = header.get("errors", "no").lower()
     with_sigma = errors_kind not in ("no",)
 
+    _check_degree(path, file_nmax, f"line {header_line['max_degree']}: max_degree")
     nmax = file_nmax if max_degree is None else int(max_degree)
     if not 2 <= nmax <= file_nmax:
         raise InputFileError(path, f"requested max_degree {max_degree} outside 2..{file_nmax} (the file's max_degree)")
+    data_lines = [idx for idx in range(end + 1, len(lines)) if lines[idx].strip()]
+    last = lines[data_lines[-1]].split() if data_lines else []
+    _check_line_count(
+        path, file_nmax, 2, len(data_lines), len(text), f"line {header_line['max_degree']}: max_degree",
+        last=last[1] if len(last) > 1 and last[1].isdigit() else None,
+    )
     coll = _Collector(path, nmax, with_sigma)
     for idx in range(end + 1, len(lines)):
         line = lines[idx]
@@ -437,6 +585,7 @@ def read_icgem(path, *, max_degree: int | None = None, check_tide_system: bool =
             continue
         coll.add(lineno, n, m, c, s, sc, ss)
     coll.check_complete(2, "truncated file or incomplete model")
+    _check_coefficients(path, coll.C, coll.S, coll.line_of)
     tide, notes = _check_tide_system(path, name, coll.C[2, 0], declared, "the header's tide_system", check_tide_system)
     if declared is None and tide is None:
         notes = notes + ("tide_system not stated in the header",)
@@ -476,6 +625,35 @@ def _nga_lookup(path):
     return None
 
 
+#: A degree a file name declares, NGA style: "egm96_to360", "Zeta-to-N_to2160_egm2008".
+_NAMED_DEGREE = re.compile(r"(?:^|[_.-])to(\d+)(?=$|[_.-])")
+#: Names that say the file is a part of the model ("..._TideFree_first30").
+_EXCERPT_NAME = re.compile(r"first\d*|excerpt|trunc|subset|sample")
+#: Degrees of catalogued names that do not spell it ("egm96": NGA's EGM96 to 360).
+_CATALOGUE_DEGREE = {"egm96": 360}
+
+
+def _named_degree(path) -> int | None:
+    """The degree the file's name declares, or None (no degree, or an excerpt by name)."""
+    stem = _nga_stem(path)
+    if _EXCERPT_NAME.search(stem):
+        return None
+    found = _NAMED_DEGREE.search(stem)
+    return int(found.group(1)) if found else _CATALOGUE_DEGREE.get(stem)
+
+
+def _check_named_degree(path, nmax: int, max_degree, what: str) -> None:
+    """Refuse a file that stops below the degree its name declares (a truncated copy),
+    unless the caller truncates explicitly with ``max_degree``."""
+    declared = _named_degree(path)
+    if declared is None or max_degree is not None or nmax >= declared:
+        return
+    raise InputFileError(
+        path, f"the file name declares degree {declared} but the {what} stops at degree {nmax}: a truncated "
+        f"copy. To use it as a degree-{nmax} {what} on purpose, pass max_degree={nmax}",
+    )
+
+
 def _parse_columns(path, text, ncols, max_degree, what):
     """Yield (lineno, n, m, values...) from whitespace-separated NGA lines."""
     for idx, line in enumerate(text.splitlines()):
@@ -495,6 +673,7 @@ def _parse_columns(path, text, ncols, max_degree, what):
         yield lineno, n, m, values
 
 
+@_file_faults
 def read_nga(
     path,
     *,
@@ -534,15 +713,19 @@ def read_nga(
     rows = list(_parse_columns(path, text, 6, max_degree, "n m C S sigmaC sigmaS"))
     if not rows:
         raise InputFileError(path, "no coefficient lines")
-    nmax = max(r[1] for r in rows)
+    last_line, nmax = max(((r[0], r[1]) for r in rows), key=lambda r: r[1])
+    _check_degree(path, nmax, f"line {last_line}: degree")
     if max_degree is not None and nmax < max_degree:
         raise InputFileError(path, f"requested max_degree {max_degree} but the file stops at degree {nmax}")
     if nmax < 2:
         raise InputFileError(path, f"the file stops at degree {nmax}; need at least degree 2")
+    _check_named_degree(path, nmax, max_degree, "model")
+    _check_line_count(path, nmax, 2, len(rows), len(text), f"line {last_line}: degree")
     coll = _Collector(path, nmax, True)
     for lineno, n, m, (c, s, sc, ss) in rows:
         coll.add(lineno, n, m, c, s, sc, ss)
     coll.check_complete(2, "truncated file or incomplete model")
+    _check_coefficients(path, coll.C, coll.S, coll.line_of)
     tide, notes = _check_tide_system(path, name, coll.C[2, 0], tide_system, source_label, check_tide_system)
     return coll.model(name, gm, radius, tide, notes, digest)
 
@@ -550,6 +733,7 @@ def read_nga(
 _UNITS = {"cm": 0.01, "m": 1.0, "mm": 0.001}
 
 
+@_file_faults
 def read_nga_correction(path, *, unit: str = "cm", name: str | None = None, max_degree: int | None = None) -> CorrectionModel:
     """Read NGA's ζ-to-N correction coefficients (CORRCOEF: ``n m C S`` per line, n from
     0, in centimetres; ``unit`` = "cm", "mm" or "m"). Every (n, m) with 0 ≤ n ≤ nmax must
@@ -560,13 +744,24 @@ def read_nga_correction(path, *, unit: str = "cm", name: str | None = None, max_
     rows = list(_parse_columns(path, text, 4, max_degree, "n m C S"))
     if not rows:
         raise InputFileError(path, "no coefficient lines")
-    nmax = max(r[1] for r in rows)
+    last_line, nmax = max(((r[0], r[1]) for r in rows), key=lambda r: r[1])
+    _check_degree(path, nmax, f"line {last_line}: degree")
     if max_degree is not None and nmax < max_degree:
         raise InputFileError(path, f"requested max_degree {max_degree} but the file stops at degree {nmax}")
+    _check_named_degree(path, nmax, max_degree, "correction")
+    _check_line_count(path, nmax, 0, len(rows), len(text), f"line {last_line}: degree")
     coll = _Collector(path, nmax, False)
     for lineno, n, m, (c, s) in rows:
         coll.add(lineno, n, m, c, s)
     coll.check_complete(0, "truncated file or incomplete correction model")
+    limit = MAX_ABS_UNDULATION_M / _UNITS[unit]
+    worst = np.unravel_index(int(np.argmax(np.maximum(np.abs(coll.C), np.abs(coll.S)))), coll.C.shape)
+    if max(abs(coll.C[worst]), abs(coll.S[worst])) > limit:
+        n, m = (int(v) for v in worst)
+        raise InputFileError(
+            path, f"line {int(coll.line_of[n, m])}: the coefficient of n={n} m={m} is beyond {limit:g} {unit}: "
+            f"no part of N exceeds ±{MAX_ABS_UNDULATION_M:g} m (a corrupt value, or a wrong unit)",
+        )
     return CorrectionModel(
         name=name or Path(path).name,
         max_degree=nmax,
@@ -581,9 +776,16 @@ def read_nga_correction(path, *, unit: str = "cm", name: str | None = None, max_
 _GFC_HINT = re.compile(r"^\s*end_of_head\b", re.MULTILINE | re.IGNORECASE)
 
 
+@_file_faults
 def read_model(path, **kwargs) -> HarmonicModel:
-    """Read a model file, ICGEM or NGA, telling them apart by the ``end_of_head`` line."""
-    text, _ = _read_text(path)
+    """Read a model file, ICGEM or NGA, telling them apart by content (:func:`model_file_kind`,
+    else an ``end_of_head`` line anywhere in the text)."""
+    kind = model_file_kind(path)
+    if kind == "icgem":
+        return read_icgem(path, **kwargs)
+    if kind == "nga":
+        return read_nga(path, **kwargs)
+    text, _ = _read_text(path)  # the reader's own rule for anything else
     if _GFC_HINT.search(text):
         return read_icgem(path, **kwargs)
     return read_nga(path, **kwargs)

@@ -38,8 +38,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..._kernels import legendre
-from ...errors import CoordinateError
+from ...errors import CoordinateError, InputFileError
 from ...geodesy.ellipsoids import WGS84, Ellipsoid
+from ...geodesy.limits import MAX_ABS_UNDULATION_M
 from ...sphere.region import GLOBAL, Region
 from ..base import NodeSample, Provenance
 from .models import CorrectionModel, HarmonicModel
@@ -117,6 +118,47 @@ def _conventions(preset: str, model: HarmonicModel, ellipsoid: Ellipsoid, nmax: 
     )
 
 
+#: NGA publishes EGM2008's zeta-to-N correction to degree 2160 only
+#: (Zeta-to-N_to2160_egm2008), and its hsynth_WGS84 sums it beside the degree-2190
+#: model: that correction is accepted for a synthesis up to degree 2190.
+NGA_EGM2008_CORRECTION_DEGREE = 2160
+NGA_EGM2008_DEGREE = 2190
+
+
+def _check_correction_degree(correction: CorrectionModel | None, nmax: int, explicit: bool) -> None:
+    """Refuse a correction that stops below the synthesis degree (its missing degrees
+    would silently be zero): a degree-60 CORRCOEF beside a degree-360 model."""
+    if correction is None or correction.max_degree >= nmax:
+        return
+    if correction.max_degree == NGA_EGM2008_CORRECTION_DEGREE and nmax <= NGA_EGM2008_DEGREE:
+        return
+    where = "asked for" if explicit else "the model's degree"
+    raise InputFileError(
+        correction.source_path or correction.name,
+        f"the zeta-to-N correction stops at degree {correction.max_degree}, but the synthesis goes to degree "
+        f"{nmax} ({where}): its degrees {correction.max_degree + 1}..{nmax} would be missing. Use the "
+        f"correction that belongs to the model, or truncate both on purpose with max_degree="
+        f"{correction.max_degree}",
+    )
+
+
+def _check_range(values, latitude, longitude, source: str, quantity: str) -> None:
+    """Refuse a synthesis whose N (or ζ) leaves the geoid's physical range: the model's
+    coefficients are not a geoid model's (or the preset or units are wrong)."""
+    magnitude = np.abs(np.where(np.isnan(values), 0.0, values))
+    if magnitude.size == 0 or not magnitude.max() > MAX_ABS_UNDULATION_M:
+        return
+    k = int(np.argmax(magnitude))
+    lat = np.broadcast_to(latitude, values.shape).flat[k]
+    lon = np.broadcast_to(longitude, values.shape).flat[k]
+    raise InputFileError(
+        source,
+        f"the synthesis gives {quantity} = {values.flat[k]:.6g} m at latitude {lat:.6g}, longitude {lon:.6g}, "
+        f"beyond ±{MAX_ABS_UNDULATION_M:g} m, the physical range of the geoid: the coefficients are not "
+        "those of a geoid model (a corrupt value, a wrong unit or a wrong normalisation)",
+    )
+
+
 @functools.lru_cache(maxsize=2)
 def _tables(nmax: int):
     """Recursion tables shared by syntheses of the same degree (read-only)."""
@@ -164,7 +206,10 @@ class GeoidSynthesis:
     zero_degree_term_m : float, optional
         N0 in metres; default per preset (−0.53, −0.41, 0).
     max_degree : int, optional
-        Truncation degree N (default: the model's).
+        Truncation degree N (default: the model's). A correction that stops below N is
+        refused (its missing degrees would silently be zero), except NGA's EGM2008
+        correction to 2160 beside a model of degree up to 2190; pass its degree as
+        ``max_degree`` to truncate both on purpose.
 
     Implements the :class:`geoidspline.sources.base.GeoidSource` protocol.
     """
@@ -191,6 +236,7 @@ class GeoidSynthesis:
             raise ValueError(f"max_degree must be in 2..{model.max_degree}, got {max_degree}")
         if zero_degree_term_m is not None and not math.isfinite(zero_degree_term_m):
             raise ValueError(f"zero_degree_term_m must be finite, got {zero_degree_term_m}")
+        _check_correction_degree(correction, nmax, max_degree is not None)
 
         self.model = model.truncated(nmax)
         self.max_degree = nmax
@@ -302,6 +348,8 @@ class GeoidSynthesis:
         )
         if quantity == "N":
             out += self.zero_degree_term_m
+        if quantity != "T":
+            _check_range(out, lat, lon, self.provenance.source, "N" if quantity == "N" else "zeta")
         out = out.reshape(shape)
         return float(out) if scalar else out
 
@@ -310,7 +358,10 @@ class GeoidSynthesis:
         """Geoid undulation N (metres) at geodetic latitude/longitude (degrees, WGS84).
 
         Vectorised with NumPy broadcasting; scalars give a float; NaN in gives NaN out;
-        |latitude| > 90 raises :class:`~geoidspline.errors.CoordinateError`.
+        |latitude| > 90 raises :class:`~geoidspline.errors.CoordinateError`. A result
+        beyond the geoid's physical range (±150 m, :mod:`geoidspline.geodesy.limits`)
+        raises :class:`~geoidspline.errors.InputFileError` naming the model: its
+        coefficients are not a geoid model's.
         """
         return self._points(latitude, longitude, "N")
 
@@ -393,4 +444,6 @@ class GeoidSynthesis:
             else:
                 out[sl] = A @ cos_ml + B @ sin_ml
         out += self.zero_degree_term_m
+        lon = cols * (360.0 / L)
+        _check_range(out, latitude[:, None], lon[None, :], self.provenance.source, "N")
         return out
