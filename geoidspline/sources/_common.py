@@ -1,5 +1,8 @@
 """Checks and text-lattice helpers shared by the exchange-format readers (ISG, GSI, GeoTIFF).
 
+(The plausibility of the values, ±150 m, is checked for every reader by
+:func:`geoidspline.sources.files.finish_grid`.)
+
 - :func:`parse_values`: the whitespace-separated numbers of a text grid, with an error
   naming the line of the first one that is not a number;
 - :func:`snap_spacing` / :func:`snap_origin`: the lattice a header *means* when it

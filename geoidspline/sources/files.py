@@ -177,7 +177,7 @@ def check_plausible(path, lat, lon, values) -> None:
                 "(declare it as the format's no-data value)")
     raise InputFileError(
         path,
-        f"{count} of {finite} nodes lie beyond ±{MAX_ABS_UNDULATION_M:g} m, the physical range of geoid "
-        f"undulations (the Earth's geoid spans about {low:g} to +{high:g} m); the largest, {value:.6g} m, "
+        f"{count} of {finite} nodes lie beyond the physical range of geoid undulations, ±{MAX_ABS_UNDULATION_M:g} m "
+        f"(the Earth's geoid spans about {low:g} to +{high:g} m); the largest, {value:.6g} m, "
         f"is at latitude {float(lat[i]):.6g}, longitude {float(lon[j]):.6g}: {hint}",
     )

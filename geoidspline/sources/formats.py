@@ -1,15 +1,15 @@
 """Readers and writers of geoid grid files.
 
-:func:`read_grid` reads PROJ GTX, CF netCDF, NGA ``WW15MGH.DAC`` and GeographicLib PGM
-files into a :class:`~geoidspline.sources.grid.GeoidGrid` (latitude ascending, longitude
-ascending, metres). Every check is strict, and a failure raises
+:func:`read_grid` reads PROJ GTX, CF netCDF, NGA ``WW15MGH.DAC``, GeographicLib PGM, ISG,
+PROJ GeoTIFF and GSI ASCII files into a :class:`~geoidspline.sources.grid.GeoidGrid`
+(latitude ascending, longitude ascending, metres). Every check is strict, and a failure raises
 :class:`~geoidspline.errors.InputFileError` whose message names the file and the rule
 it breaks, e.g. ``"egm.gtx: GTX file is 4152000 bytes, header says 721 x 1440 float32
 nodes need 4153000"``.
 
 The format is decided by the content, never by the name: magic bytes (netCDF/HDF5,
-PGM), then structure (a GTX header that agrees with the file size), then size (NGA's
-DAC). The extension only chooses which format's rule to quote when the content matches
+TIFF, PGM), then a header (ISG keys, a GSI header line, a GTX header that agrees with
+the file size), then size (NGA's DAC). The extension only chooses which format's rule to quote when the content matches
 none. A spherical-harmonic model given as a grid is named as such.
 
 :func:`write_gtx` and :func:`write_netcdf` write a grid back (tests, fixtures, export).
@@ -69,13 +69,13 @@ class GridFormat:
 GRID_FORMATS = (
     GridFormat("netcdf", "CF netCDF", tuple(sorted(NETCDF_SUFFIXES)), lambda head, size: head.startswith(NETCDF_MAGIC),
                read_netcdf, check_netcdf_header, by_path=True),
-    GridFormat("pgm", "GeographicLib PGM", (".pgm",), looks_like_pgm, read_pgm, check_pgm_header),
-    GridFormat("gtx", "PROJ GTX", (".gtx",), looks_like_gtx, read_gtx, gtx_header),
-    GridFormat("dac", "NGA WW15MGH.DAC", (".dac",), looks_like_dac, read_dac, check_dac_size),
     GridFormat("geotiff", "PROJ GeoTIFF", (".tif", ".tiff"), lambda head, size: looks_like_geotiff(head),
                read_geotiff, by_path=True),
+    GridFormat("pgm", "GeographicLib PGM", (".pgm",), looks_like_pgm, read_pgm, check_pgm_header),
     GridFormat("isg", "ISG", (".isg",), lambda head, size: looks_like_isg(head), read_isg),
     GridFormat("gsi", "GSI ASCII", (".asc",), lambda head, size: looks_like_gsi(head), read_gsi),
+    GridFormat("gtx", "PROJ GTX", (".gtx",), looks_like_gtx, read_gtx, gtx_header),
+    GridFormat("dac", "NGA WW15MGH.DAC", (".dac",), looks_like_dac, read_dac, check_dac_size),
 )
 
 
@@ -105,15 +105,15 @@ def _unrecognised(path: Path) -> InputFileError:
     formats = "; ".join(f"{fmt.label} ({', '.join(fmt.suffixes)})" for fmt in GRID_FORMATS)
     return InputFileError(
         path, f"unrecognised grid format: the content matches none of {formats} "
-        "(recognised by content: netCDF/HDF5 and PGM magic bytes, a GTX header that agrees with the file "
-        "size, the exact size of WW15MGH.DAC, TIFF magic bytes, an ISG header, a GSI header line)",
+        "(recognised by content: netCDF/HDF5, TIFF and PGM magic bytes, an ISG header, a GSI header line, "
+        "a GTX header that agrees with the file size, the exact size of WW15MGH.DAC)",
     )
 
 
 # -- dispatch ------------------------------------------------------------------------
 def read_grid(path, *, complete: bool = False, allow_unknown_copy: bool = False) -> GeoidGrid:
-    """Read a geoid grid file (PROJ .gtx, CF netCDF, NGA .DAC, GeographicLib .pgm, PROJ
-    GeoTIFF, ISG, GSI ASCII).
+    """Read a geoid grid file (PROJ .gtx, CF netCDF, NGA .DAC, GeographicLib .pgm, ISG,
+    PROJ GeoTIFF, GSI ASCII).
 
     The format is taken from the content (see the module documentation); the extension
     only picks the rule quoted when the content matches no format. Nodes without data
