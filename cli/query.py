@@ -26,6 +26,9 @@ BATCH_BYTES = 1 << 16
 #: The UTF-8 byte-order mark some editors put at the start of a CSV file.
 _BOM = b"\xef\xbb\xbf"
 
+#: The longest input line read (bytes): a longer one is a bad row, and is not kept.
+MAX_LINE_BYTES = 1 << 24
+
 DEFLECTION_COLUMNS = ("xi_arcsec", "eta_arcsec", "dNdn_m_per_m", "dNde_m_per_m")
 HEIGHT_OUTPUT = {"ellipsoidal": "orthometric_height_m", "orthometric": "ellipsoidal_height_m"}
 
@@ -64,28 +67,60 @@ def _byte_chunks(stream):
             yield text.encode("utf-8", "surrogatepass")
 
 
+class _TooLong(str):
+    """A line longer than :data:`MAX_LINE_BYTES`: only its beginning, for the message."""
+
+
+def _decoded(line: bytes) -> str:
+    return line.decode("utf-8", "replace").rstrip("\r")
+
+
 def _line_batches(stream):
     """Yield lists of complete lines (str, without LF or a final CR) as they arrive.
 
     Bytes that are not UTF-8 become U+FFFD (the row is then reported as bad); a UTF-8
-    byte-order mark at the start of the stream is dropped.
+    byte-order mark at the start of the stream is dropped. A line longer than
+    :data:`MAX_LINE_BYTES` is not kept: it comes as a :class:`_TooLong` holding its
+    first bytes, and memory stays bounded whatever the input (``--input /dev/zero``).
     """
-    pending = b""
-    bom_checked = False
+    parts, size = [], 0  # the line being read, in pieces (no quadratic joining)
+    too_long = None  # the head of a line beyond MAX_LINE_BYTES whose rest is skipped
+    start = b""  # the first bytes, until a BOM can be told apart
+
+    def feed(chunk):
+        nonlocal parts, size, too_long
+        pieces = chunk.split(b"\n")
+        batch = []
+        if len(pieces) > 1:  # the line being read ends here; the others are whole
+            if too_long is not None:
+                batch.append(_TooLong(_decoded(too_long) + "..."))
+                too_long = None
+            else:
+                parts.append(pieces[0])
+                batch.append(_decoded(b"".join(parts)))
+            parts, size = [], 0
+            batch += [ln.decode("utf-8", "replace").rstrip("\r") for ln in pieces[1:-1]]
+        tail = pieces[-1]
+        if too_long is None and tail:
+            parts.append(tail)
+            size += len(tail)
+            if size > MAX_LINE_BYTES:
+                too_long = b"".join(parts)[:40]
+                parts, size = [], 0
+        return batch
+
     for chunk in _byte_chunks(stream):
-        pending += chunk
-        if not bom_checked:
-            if len(pending) < len(_BOM) and b"\n" not in pending:
+        if start is not None:
+            start += chunk
+            if len(start) < len(_BOM) and b"\n" not in start:
                 continue  # the bytes of a BOM may still be arriving
-            pending = pending.removeprefix(_BOM)
-            bom_checked = True
-        *lines, pending = pending.split(b"\n")
-        if lines:
-            yield [ln.decode("utf-8", "replace").rstrip("\r") for ln in lines]
-    if not bom_checked:
-        pending = pending.removeprefix(_BOM)
-    if pending:
-        yield [pending.decode("utf-8", "replace").rstrip("\r")]
+            chunk, start = start.removeprefix(_BOM), None
+        batch = feed(chunk)
+        if batch:
+            yield batch
+    last = feed((start or b"").removeprefix(_BOM) + b"\n") if (start or parts or too_long is not None) else []
+    if last:
+        yield last
 
 
 def _unquoted(field):
@@ -250,6 +285,9 @@ class Query:
             parts = [p.strip() for p in row.split(",")]
             fields.append(parts)
             n = line_numbers[i]
+            if isinstance(row, _TooLong):
+                problems[i] = f"line {n}: longer than {MAX_LINE_BYTES:,} bytes, not read ({row[:40]!r})"
+                continue
             if len(parts) < self.width:
                 what = self._layout()
                 problems[i] = f"line {n}: expected at least {self.width} columns ({what}), got {len(parts)}"
@@ -289,6 +327,8 @@ class Query:
         height column, and every row valid. Anything else (or any bad row) returns None
         and the row-by-row parser gives the per-line messages."""
         if self.fmt != "csv" or self.crs is not None or self.height_column is not None or len(rows) < 64:
+            return None
+        if any(isinstance(row, _TooLong) for row in rows):
             return None
         import io
 

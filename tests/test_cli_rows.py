@@ -228,6 +228,22 @@ def test_what_is_not_a_header(line):
     assert not _looks_like_header(line, (0, 1))
 
 
+def test_a_line_longer_than_the_limit_is_a_bad_row_and_is_not_kept(small_store, api, tmp_path, monkeypatch):
+    """Memory stays bounded whatever the input (a file without newlines, /dev/zero)."""
+    import geoidspline.cli.query as query_module
+
+    monkeypatch.setattr(query_module, "MAX_LINE_BYTES", 100_000)
+    path = tmp_path / "long.csv"
+    path.write_bytes(b"20,30\n21,31," + b"x" * 1_000_000 + b"\n22,32\n" + b"y" * 300_000)
+    result = query(small_store, "--input", path)
+    assert result.exit_code == 1
+    lines = result.stdout.splitlines()
+    assert lines[0] == f"20,30,{fmt(api.undulation(20.0, 30.0))}"
+    assert lines[1].startswith("ERROR: line 2: longer than 100,000 bytes, not read ('21,31,xxx")
+    assert lines[2] == f"22,32,{fmt(api.undulation(22.0, 32.0))}"
+    assert lines[3].startswith("ERROR: line 4: longer than 100,000 bytes") and len(lines) == 4
+
+
 def test_quoted_numbers_are_numbers(small_store, api):
     result = query(small_store, "--input", "-", input='"20", "30",x\n')
     assert result.exit_code == 0
