@@ -41,7 +41,7 @@ from geoidspline.fitting.check_points import check_points
 from geoidspline.fitting.sites import DataNodes
 from geoidspline.geodesy.limits import MAX_ABS_COEFFICIENT, MAX_ABS_UNDULATION_M, MAX_MODEL_DEGREE
 from geoidspline.sources.base import Provenance
-from geoidspline.sources.formats import read_grid, write_gtx, write_netcdf
+from geoidspline.sources.formats import read_grid, write_netcdf
 from geoidspline.sources.grid import GeoidGrid
 from geoidspline.sources.harmonics.models import (
     CorrectionModel,
