@@ -98,12 +98,14 @@ def _no_hang(fn, seconds=20.0):
     (lambda m: m.__setitem__("region", [10, 20, 30]), r"'region' must have 4\.\.4 items"),
     (lambda m: m["provenance"].__setitem__("notes", [[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]),
      r"'provenance\.notes.*nested more than 32 deep"),
+    (lambda m: m["tiles"][3].__setitem__("note", json.loads("[" * 40 + "]" * 40)),
+     r"'tiles\[3\]\.note.*nested more than 32 deep"),
     (lambda m: m.__setitem__("store_version", 10**40), r"'store_version' must be within 1\.\.2147483648"),
     (lambda m: m["spline"]["levels"][0].__setitem__("h", 0.2000001), r"'spline\.levels\[0\]\.h' must be h0 / 2\*\*level"),
     (lambda m: m["tiles"].append(dict(m["tiles"][0])), r"'tiles\[\d+\]\.tile' repeats tile"),
     (lambda m: m["coverage"]["parts"][0].__setitem__("region", "everywhere"), r"'coverage\.parts\[0\]\.region' must be a list"),
 ], ids=["missing-key", "wrong-type", "null", "short-tile", "empty-tile-list", "short-region", "deep-nesting",
-        "huge-number", "h-not-h0-over-2-to-level", "duplicate-tile", "coverage-region"])
+        "deep-nesting-in-a-tile", "huge-number", "h-not-h0-over-2-to-level", "duplicate-tile", "coverage-region"])
 def test_schema_names_the_key_and_the_rule(copy, edit, words):
     m = _manifest(copy)
     edit(m)

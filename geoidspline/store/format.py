@@ -513,9 +513,14 @@ class _Schema:
         return region
 
 
-def _check_depth(path, manifest):
+#: The keys of a tile entry; their values are checked one by one (other keys for depth).
+TILE_KEYS = frozenset(("tile", "file", "bytes", "sha256", "coefficients", "levels", "max_error_m", "rms_error_m",
+                       "check_points", "node_max_error_m", "node_rms_error_m", "nodes"))
+
+
+def _check_depth(path, value, key="", depth=1):
     """Refuse containers nested deeper than :data:`MAX_MANIFEST_DEPTH` (iteratively)."""
-    stack = [(manifest, 1, "")]
+    stack = [(value, depth, key)]
     while stack:
         value, depth, key = stack.pop()
         if depth > MAX_MANIFEST_DEPTH:
@@ -545,7 +550,8 @@ def validate_manifest(path, manifest: dict):
         shown = version if version < 10**9 else "a huge number"
         raise StoreError(f"{path}: store format {shown} is newer than this geoidspline reads ({FORMAT_VERSION})")
     s.integer(version, "format_version", 1, FORMAT_VERSION)
-    _check_depth(path, manifest)
+    # the tile entries' own keys are checked one by one below: no need to walk them
+    _check_depth(path, {k: v for k, v in manifest.items() if k != "tiles"})
     missing = [key for key in MANIFEST_KEYS if key not in manifest]
     if missing:
         raise StoreCorruptError(f"{path}: manifest lacks {', '.join(missing)}")
@@ -630,6 +636,8 @@ def validate_manifest(path, manifest: dict):
             s.number(entry.get(stat_key), f"{key}.{stat_key}", 0.0, 1e9, nullable=True)
         for stat_key in ("check_points", "nodes"):
             s.integer(entry.get(stat_key, 0), f"{key}.{stat_key}", 0, 2**50)
+        for extra in entry.keys() - TILE_KEYS:
+            _check_depth(path, entry[extra], f"{key}.{extra}", 3)
     if counted != total:
         s.fail("tiles", f"hold {counted} coefficients, the spline has {total}")
 
