@@ -42,7 +42,10 @@ from geoidspline.fitting.sites import DataNodes
 from geoidspline.geodesy.limits import MAX_ABS_COEFFICIENT, MAX_ABS_UNDULATION_M, MAX_MODEL_DEGREE
 from geoidspline.sources.base import Provenance
 from geoidspline.sources.formats import read_grid, write_netcdf
+from geoidspline.sources.geotiff import write_geotiff
 from geoidspline.sources.grid import GeoidGrid
+from geoidspline.sources.gsi import write_gsi
+from geoidspline.sources.isg import write_isg
 from geoidspline.sources.harmonics.models import (
     CorrectionModel,
     HarmonicModel,
@@ -267,7 +270,7 @@ def test_unit_mistakes_are_named(tmp_path, scale, hint):
     """Seen: centimetre values labelled metres (N ~ 2600 m) fitted with exit 0."""
     values = field(LAT, LON) * scale
     message = refused(hint, read_grid, write(tmp_path / "cm.gtx", gtx_bytes(values)))
-    assert "1681 of 1681 nodes lie beyond ±150 m" in message and "cm.gtx: " in message
+    assert "1681 of 1681 nodes lie beyond the physical range of geoid undulations, ±150 m" in message and "cm.gtx: " in message
     # the same through netCDF, PGM and the generic writer path
     nc = tmp_path / "cm.nc"
     xr.Dataset({"N": (("lat", "lon"), values, {"units": "m"})},
@@ -282,7 +285,7 @@ def test_isolated_spikes_name_their_node(tmp_path, spike):
     were fitted, the advice printed being 'raise --max-level'."""
     values = field(LAT, LON)
     values[7, 33] = spike
-    message = refused(r"1 of 1681 nodes lie beyond ±150 m", read_grid,
+    message = refused(r"1 of 1681 nodes lie beyond the physical range of geoid undulations, ±150 m", read_grid,
                       write(tmp_path / "spike.gtx", gtx_bytes(values)))
     assert f"the largest, {spike:.6g} m, is at latitude {LAT[7]:.6g}, longitude {LON[33]:.6g}" in message
     assert "no-data marker the file does not declare" in message and "max-level" not in message
@@ -294,11 +297,11 @@ def test_pgm_and_dac_values_are_checked_too(tmp_path):
     width, height = 8, 5
     pixels = np.full((height, width), 60000, dtype=">u2")
     header = f"P5\n# Offset -108\n# Scale 0.03\n{width} {height}\n65535\n".encode()
-    refused(r"beyond ±150 m.*the values look like centimetres", read_grid,
+    refused(r"beyond the physical range.*the values look like centimetres", read_grid,
             write(tmp_path / "s.pgm", header + pixels.tobytes()))
     cm = np.full((721, 1440), 2000, dtype=">i2")
     cm[100, 200] = 30000  # 300 m
-    message = refused(r"1 of 1038240 nodes lie beyond ±150 m", read_grid, write(tmp_path / "flip.dac", cm.tobytes()))
+    message = refused(r"1 of 1038240 nodes lie beyond the physical range", read_grid, write(tmp_path / "flip.dac", cm.tobytes()))
     assert "the largest, 300 m, is at latitude 65, longitude 50" in message
 
 
@@ -673,6 +676,10 @@ def _seeds(tmp: Path) -> dict[str, bytes]:
     files["g3.nc"] = nc3.read_bytes()
     nc4 = write_netcdf(tmp / "seed4.nc", GeoidGrid(LAT, LON, values, Provenance(source="x")))
     files["g4.nc"] = nc4.read_bytes()
+    grid = GeoidGrid(LAT, LON, values, Provenance(source="x"))
+    files["g.isg"] = write_isg(tmp / "seed.isg", grid).read_bytes()
+    files["g.asc"] = write_gsi(tmp / "seed.asc", grid).read_bytes()
+    files["g.tif"] = write_geotiff(tmp / "seed.tif", grid).read_bytes()
     width, height = 8, 5
     pixels = np.full((height, width), 40000, dtype=">u2")
     files["g.pgm"] = f"P5\n# Offset -108\n# Scale 0.003\n{width} {height}\n65535\n".encode() + pixels.tobytes()
@@ -708,7 +715,7 @@ def _only_input_errors(func, path, **kwargs):
         assert finite.size and np.abs(finite).max() <= MAX_ABS_UNDULATION_M
 
 
-_SUFFIXES = ["", ".gtx", ".nc", ".pgm", ".dac", ".gfc", ".gz", ".ascii"]
+_SUFFIXES = ["", ".gtx", ".nc", ".pgm", ".dac", ".isg", ".asc", ".tif", ".gfc", ".gz", ".ascii"]
 
 
 @FUZZ
@@ -739,7 +746,7 @@ def _mutate(data: bytes, draw) -> bytes:
     return bytes(data)
 
 
-@pytest.mark.parametrize("name", ["g.gtx", "g3.nc", "g4.nc", "g.pgm"])
+@pytest.mark.parametrize("name", ["g.gtx", "g3.nc", "g4.nc", "g.pgm", "g.isg", "g.asc", "g.tif"])
 @FUZZ
 @given(data=st.data())
 def test_mutated_grids_are_refused_cleanly(tmp_path, name, data):

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputFileError
+from ..errors import GeoidSplineError, InputFileError
 from .files import finish_grid, provenance_of
 from .grid import GeoidGrid
 
@@ -84,7 +84,15 @@ def read_geotiff(path, sha256: str, complete: bool = False) -> GeoidGrid:
     to the nodata value, or NaN, become NaN. Errors are :class:`InputFileError`
     naming ``path`` and the rule broken.
     """
-    path = Path(path)
+    try:
+        return _read_geotiff(Path(path), sha256, complete)
+    except (GeoidSplineError, MemoryError, OSError):
+        raise
+    except Exception as exc:  # rasterio/GDAL on a damaged file, e.g. UnicodeDecodeError in a tag
+        raise InputFileError(path, f"cannot be read as GeoTIFF: {type(exc).__name__}: {exc}") from None
+
+
+def _read_geotiff(path: Path, sha256: str, complete: bool) -> GeoidGrid:
     rasterio = _rasterio(path, "reading")
     from rasterio.errors import RasterioError
 
