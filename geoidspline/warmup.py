@@ -9,7 +9,7 @@ tree instead of the installed package; numba keys its cache on the source file's
 
 The kernels (:data:`KERNEL_MODULES`) are compiled on first use and kept by numba's
 cache (``cache=True``): in ``__pycache__`` beside the installed sources, or in
-``$NUMBA_CACHE_DIR`` when that is set. An empty cache costs tens of seconds of
+``$NUMBA_CACHE_DIR`` when that is set. An empty cache costs minutes of
 compilation on the first fit or large query of a process; this module pays it once, at
 install time (the README's set-up command, the Dockerfile), by running the package's own
 code paths on tiny synthetic inputs: a least-squares grid fit with one overlay level, a
