@@ -119,7 +119,7 @@ class Install:
             self.env["NUMBA_CACHE_DIR"] = str(cache)
 
     def fit(self, out: Path):
-        cmd = [str(self.bin_dir / "geoid-fit"), *FIT_ARGS, "--out", str(out), "--overwrite", "--json", "-q"]
+        cmd = [str(self.bin_dir / "geoid-fit"), *FIT_ARGS, "--store", str(out), "--overwrite", "--json", "-q"]
         wall, stdout = _run(cmd, self.env, "geoid-fit", self.scratch)
         info = json.loads(stdout)
         return {"wall_s": round(wall, 3), "fit_wall_s": info["wall_seconds"], "coefficients": info["coefficients"],
