@@ -95,3 +95,15 @@ def test_library_messages_name_options_on_the_command_line(small_store, syntheti
     result = invoke(fit_main, [synthetic_gtx, "--store", small_store.path, *QUICK_FIT, "-q"])
     assert_user_error(result)
     assert "--overwrite" in result.stderr and "overwrite=True" not in result.stderr
+
+
+def test_the_api_refuses_longitudes_no_coordinate_has(small_store):
+    """Wrapping 1e308 degrees would give a plausible number: refused, small and large batches."""
+    from geoidspline.errors import CoordinateError
+
+    store = geoidspline.open_store(small_store.path)
+    with pytest.raises(CoordinateError, match="longitude"):
+        store.undulation(20.0, 1e308)
+    with pytest.raises(CoordinateError, match="longitude"):
+        store.undulation([20.0] * 5000, [30.0] * 4999 + [-2e6])
+    assert store.undulation(20.0, 30.0 + 720.0) == pytest.approx(store.undulation(20.0, 30.0), abs=1e-9)
