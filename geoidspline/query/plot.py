@@ -342,7 +342,7 @@ def _block_axis(axis, factor):
 def error_map(store, source, region=None, spacing=None) -> MapField:
     """store − source (metres) at the nodes of a lattice over ``region``.
 
-    ``source`` is a grid (:class:`~geoidspline.grid.GeoidGrid`: its own nodes inside the
+    ``source`` is a grid (:class:`~geoidspline.sources.grid.GeoidGrid`: its own nodes inside the
     region, no interpolation) or a spherical-harmonic synthesis
     (:class:`~geoidspline.harmonics.GeoidSynthesis`: its lattice of about ``spacing``
     degrees, default 720 pixels along the longer side). The statistics cover every
