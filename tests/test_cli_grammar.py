@@ -67,7 +67,7 @@ def test_fit_writes_with_store_and_with_the_old_out(synthetic_gtx, tmp_path):
         assert (out / "manifest.json").is_file()
 
 
-@pytest.mark.parametrize("option", [["--tolerance", "0.1"], ["--h0", "0.05"], ["--max-level", "3"], ["--order", "6"],
+@pytest.mark.parametrize("option", [["--h0", "0.05"], ["--max-level", "3"], ["--order", "6"],
                                     ["--method", "interpolation"], ["--sample-spacing", "0.1"], ["--overwrite"],
                                     ["--scheduler", "local"]])
 def test_fit_update_refuses_the_options_it_cannot_honour(store_copy, synthetic_gtx, option):
