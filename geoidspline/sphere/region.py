@@ -112,5 +112,10 @@ class Region:
     def as_tuple(self):
         return (self.south, self.west, self.north, self.east)
 
+    def bounds_text(self) -> str:
+        """``"S -42 W -77 N -18 E -53"``: the bounds in degrees for messages, without the
+        float noise of bounds computed from a grid's nodes."""
+        return " ".join(f"{name} {round(value, 9):g}" for name, value in zip("SWNE", self.as_tuple()))
+
 
 GLOBAL = Region(-90.0, -180.0, 90.0, 180.0)

@@ -152,17 +152,17 @@ def _check_compatible(store: TileStore, source, region: Region, blend_width_km: 
     extent = source.extent
     if not _inside(region, extent):
         raise CoordinateError(
-            f"update region {region.as_tuple()} is not inside the extent of {new.source} {extent.as_tuple()}"
+            f"update region {region.bounds_text()} is not inside the extent of {new.source} ({extent.bounds_text()})"
         )
     zone = region.expanded(blend_deg) if blend_deg > 0 else region
     if not _inside(zone, extent):
         inner = _shrunk(extent, blend_deg)
-        hint = (f"give a region at least {blend_width_km:g} km inside it (at most "
-                f"{' '.join(f'{v:g}' for v in inner.as_tuple())}) or a smaller --blend-width"
+        hint = (f"give a region at least {blend_width_km:g} km inside it (the largest is "
+                f"{inner.bounds_text()}) or a smaller --blend-width"
                 if inner is not None else "give a smaller --blend-width")
         raise CoordinateError(
-            f"update region {region.as_tuple()} with its {blend_width_km:g} km blend zone reaches beyond the "
-            f"extent of {new.source} {extent.as_tuple()}: there is no new data there to blend from; {hint}"
+            f"update region {region.bounds_text()} with its {blend_width_km:g} km blend zone reaches beyond the "
+            f"extent of {new.source} ({extent.bounds_text()}): there is no new data there to blend from; {hint}"
         )
     store_region = Region(*store.manifest["region"])
     if not store_region.is_global:
