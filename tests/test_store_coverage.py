@@ -324,3 +324,34 @@ def test_covered_exactly_where_a_cell_of_the_region_has_data(case, seed):
     assert set(reasons[got]) <= {INSIDE}
     assert set(reasons[~got & region.contains(plat, plon)]) <= {NO_DATA}
     assert set(reasons[~region.contains(plat, plon)]) <= {OUTSIDE}
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=list(HealthCheck))
+@given(case=lattices_and_regions(), seed=st.integers(0, 2**32 - 1))
+def test_large_batches_take_the_compiled_lookup_with_the_same_answers(case, seed):
+    """A batch of COMPILED_FROM_POINTS points or more is looked up by the compiled kernel:
+    the same answer as numpy's at every point, nodes, lattice edges, a hair beyond them,
+    far longitudes, NaN and infinities included."""
+    from geoidspline.sphere.coordinates import COMPILED_FROM_POINTS
+    from geoidspline.sphere.coverage import NodataLattice
+
+    lat0, dlat, nlat, lon0, dlon, nlon, nodata, region = case
+    lattice = NodataLattice(lat0, dlat, lon0, dlon, nodata)
+    rng = np.random.default_rng(seed)
+    n = COMPILED_FROM_POINTS
+    lat = np.concatenate([
+        rng.uniform(lat0 - dlat, lat0 + nlat * dlat, n),
+        lat0 + dlat * rng.integers(-1, nlat + 1, n),  # on nodes and lattice edges
+        lat0 + dlat * rng.integers(0, nlat, n) + rng.choice([-1e-12, 1e-12, -1e-8, 1e-8], n),
+    ])
+    lon = np.concatenate([
+        rng.uniform(lon0 - 400, lon0 + 400, n),
+        lon0 + dlon * rng.integers(-1, nlon + 1, n),
+        lon0 + dlon * rng.integers(0, nlon, n) + rng.choice([-1e-12, 1e-12, -1e-8, 1e-8], n),
+    ])
+    lat[::97], lon[1::89], lon[2::83] = np.nan, np.nan, np.inf
+    compiled = lattice.cells_have_data(lat, lon)
+    np.testing.assert_array_equal(compiled, lattice._numpy_cells_have_data(lat, lon))
+    # with the region test in the same pass: the region's and the lattice's answers
+    np.testing.assert_array_equal(lattice.cells_have_data(lat, lon, region=region),
+                                  region.contains(lat, lon) & lattice._numpy_cells_have_data(lat, lon))

@@ -86,7 +86,8 @@ class Region:
         """Boolean mask (or bool) of the points inside the region, edges included."""
         latitude = np.asarray(latitude, dtype=float)
         longitude = np.asarray(longitude, dtype=float)
-        offset = (longitude - self.west) % 360.0
+        with np.errstate(invalid="ignore"):  # an infinite longitude: NaN offset, not inside
+            offset = (longitude - self.west) % 360.0
         inside = (latitude >= self.south) & (latitude <= self.north)
         if self.longitude_span < 360.0:
             inside &= offset <= self.longitude_span
