@@ -361,6 +361,32 @@ def test_read_only_and_locked_stores_are_refused(store, monkeypatch):
     assert snapshot(store) == before
 
 
+def test_a_second_writer_waits_for_the_first_with_wait(store, monkeypatch):
+    """--wait: an update finding the lock taken tries again until it is free (here the
+    holder lets go at the first retry), or gives up once the time is spent, naming the
+    holder and the wait, with nothing changed."""
+    import geoidspline.store.writer as writer
+    from geoidspline.store.writer import StoreLock
+
+    holder = StoreLock(store)  # another open file description holds the lock
+    holder.__enter__()
+    before = snapshot(store)
+    with pytest.raises(StoreError, match=rf"another writer \(pid {os.getpid()}\) is writing this store \(waited 0.3 s\)"):
+        update_store(store, new_grid(), REGION, blend_width_km=BLEND_KM, wait_seconds=0.3)
+    assert snapshot(store) == before
+    pauses = []
+
+    def pause(seconds):
+        pauses.append(seconds)
+        if len(pauses) == 1:
+            holder.__exit__(None, None, None)  # the first writer finishes
+
+    monkeypatch.setattr(writer, "_pause", pause)
+    record = update_store(store, new_grid(), REGION, blend_width_km=BLEND_KM, wait_seconds=600)
+    assert len(pauses) == 1 and 0 < pauses[0] <= writer.LOCK_POLL_SECONDS
+    assert record["store_version"] == 2 and verify_store(store) == []
+
+
 UPDATE_SCRIPT = textwrap.dedent("""
     import sys
     sys.path.insert(0, {tests!r})

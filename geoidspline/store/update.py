@@ -226,15 +226,15 @@ def _check_writable(root: Path):
 
 
 def update_store(path, source, region: Region, blend_width_km: float = 100.0, executor: Executor | None = None,
-                 tolerance_m: float | None = None,
-                 progress=None) -> dict:
+                 tolerance_m: float | None = None, progress=None, wait_seconds: float = 0.0) -> dict:
     """Replace the store's geoid inside ``region`` by ``source``; return the update report.
 
     Refused before anything is written when the store is read-only or locked by another
     writer, when the source's ellipsoid or tide system differs from the store's, or when
     the region lies outside the source's extent or the store's region. The manifest is
     read once the writer lock is held, so concurrent updates apply one after the other
-    (a second one started meanwhile is refused, never lost).
+    (a second one started meanwhile waits up to ``wait_seconds`` for the first, then is
+    refused; it is never lost).
 
     Coverage: the store answers where it did before and, inside ``region``, wherever
     ``source`` has data; where the source has no data (a national grid's sea, say) the
@@ -248,7 +248,7 @@ def update_store(path, source, region: Region, blend_width_km: float = 100.0, ex
         raise StoreError(f"blend width must be a non-negative number of km, got {blend_width_km}")
     load_manifest(root)  # a store, before a lock file is created in it
     _check_writable(root)
-    with StoreLock(root):
+    with StoreLock(root, wait_seconds):
         crash_point("after-lock")
         store = TileStore.open(root)  # the manifest as it is now that the lock is held
         state = _manifest_state(root)

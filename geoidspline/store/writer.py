@@ -25,6 +25,7 @@ import logging
 import os
 import signal
 import stat
+import time
 import uuid
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -162,21 +163,33 @@ def _write_tile(path: Path, tile, levels, indices, values, attrs):
 # -- the lock -------------------------------------------------------------------------
 
 
+#: How often a writer waiting for the lock tries it again (seconds).
+LOCK_POLL_SECONDS = 0.2
+
+
+def _pause(seconds: float) -> None:
+    """Sleep between tries of the lock (a seam for tests)."""
+    time.sleep(seconds)
+
+
 class StoreLock:
     """Exclusive writer lock of a store: ``fcntl.flock`` on ``STORE/.lock``.
 
-    Taken without waiting: a store another process is writing is refused with a
-    :class:`StoreError` naming that process. The kernel releases the lock when its
-    holder exits or is killed, so a dead writer never blocks the next one; the file
+    A store another process is writing is refused with a :class:`StoreError` naming
+    that process, at once or, with ``wait_seconds`` > 0, once the lock has stayed taken
+    that long (the lock is tried every :data:`LOCK_POLL_SECONDS` meanwhile; whoever
+    tries first after the holder is done gets it). The kernel releases the lock when
+    its holder exits or is killed, so a dead writer never blocks the next one; the file
     itself is never removed (removing it would let two writers lock two different
     files) and holds the holder's pid for messages only. Worker processes forked while
     the lock is held share it until they exit.
     """
 
-    def __init__(self, root: Path):
+    def __init__(self, root: Path, wait_seconds: float = 0.0):
         self.root = Path(root)
         self.path = self.root / LOCK
         self.fd: int | None = None
+        self.wait_seconds = float(wait_seconds)
 
     def __enter__(self):
         import fcntl
@@ -191,16 +204,23 @@ class StoreLock:
             mode = os.fstat(fd).st_mode
             if not stat.S_ISREG(mode):
                 raise StoreCorruptError(f"{self.path}: is not a regular file, not the store's lock file")
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                holder = _read_pid(fd)
-                raise StoreError(
-                    f"{self.root}: another writer{f' (pid {holder})' if holder else ''} is writing this store; "
-                    f"try again when it has finished"
-                ) from None
-            except OSError as exc:
-                raise StoreError(f"{self.root}: cannot take the writer lock {LOCK}: {fault_cause(exc)}") from None
+            deadline = time.monotonic() + self.wait_seconds
+            while True:
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    break
+                except BlockingIOError:
+                    left = deadline - time.monotonic()
+                    if left <= 0.0:
+                        holder = _read_pid(fd)
+                        waited = f" (waited {self.wait_seconds:g} s)" if self.wait_seconds > 0 else ""
+                        raise StoreError(
+                            f"{self.root}: another writer{f' (pid {holder})' if holder else ''} is writing this "
+                            f"store{waited}; try again when it has finished, or wait longer"
+                        ) from None
+                    _pause(min(LOCK_POLL_SECONDS, left))
+                except OSError as exc:
+                    raise StoreError(f"{self.root}: cannot take the writer lock {LOCK}: {fault_cause(exc)}") from None
         except BaseException:
             os.close(fd)
             raise
