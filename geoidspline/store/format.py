@@ -3,11 +3,14 @@
 Layout of a store directory::
 
     STORE/manifest.json                      the commit point: lists the live tile files
-    STORE/tiles/t+0001-0002+0000.v1.nc       one file per tile and store version
+    STORE/tiles/t+0001-0002+0000.v1.gst      one file per tile and store version
 
 A tile file holds every coefficient, of every level, whose B-spline support centre
-lies in the tile's cube: variables ``index`` (coefficient, axis: the B-spline's
-integer position on its level's grid), ``level`` and ``value`` (metres).
+lies in the tile's cube. Format 2 (``.gst``, written now): runs of keys and quantised
+values, see :mod:`geoidspline.store.codec`. Format 1 (``.nc``, still read, and written
+by :func:`write_tile_file` with ``format_version=1``): netCDF4 variables ``index``
+(coefficient, axis: the B-spline's integer position on its level's grid), ``level``
+and ``value`` (metres). Readers tell them apart by the file's first bytes.
 """
 
 from __future__ import annotations
@@ -18,14 +21,16 @@ from pathlib import Path
 
 import numpy as np
 
-from .._files import atomic_path
+from .._files import atomic_path, atomic_write
 from .._version import __version__  # noqa: F401 (recorded in manifests)
+from ..bspline.keys import pack_keys, unpack_keys
 from ..errors import StoreCorruptError, StoreError
 
 FORMAT_NAME = "geoidspline-tile-store"
 
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+"""The format written; every version from 1 up to it is read."""
 
 
 MANIFEST = "manifest.json"
@@ -37,9 +42,9 @@ TILE_DIR = "tiles"
 LOCK = ".lock"
 
 
-def tile_name(tile, version):
+def tile_name(tile, version, format_version=FORMAT_VERSION):
     i, j, k = (int(v) for v in tile)
-    return f"t{i:+05d}{j:+05d}{k:+05d}.v{version}.nc"
+    return f"t{i:+05d}{j:+05d}{k:+05d}.v{version}.{'nc' if format_version == 1 else 'gst'}"
 
 
 def utc_now():
@@ -59,17 +64,23 @@ def error_stats(errors):
     }
 
 
-def write_tile_file(path, tile, levels, indices, values, attrs):
+def write_tile_file(path, tile, levels, indices, values, attrs, format_version=FORMAT_VERSION):
+    """Write one tile file; format 2 quantises with ``attrs["value_step_m"]``."""
+    if format_version >= 2:
+        from . import codec
+
+        atomic_write(path, codec.encode_tile(tile, levels, indices, values, attrs["value_step_m"]))
+        return
     import netCDF4
 
     with atomic_path(path) as tmp, netCDF4.Dataset(tmp, "w", format="NETCDF4") as ds:
         ds.setncattr("Conventions", "CF-1.8")
         ds.setncattr("title", "geoidspline ambient B-spline tile")
         ds.setncattr("format", FORMAT_NAME)
-        ds.setncattr("format_version", FORMAT_VERSION)
+        ds.setncattr("format_version", 1)
         ds.setncattr("tile", np.asarray(tile, dtype=np.int32))
         for key, value in attrs.items():
-            if value is not None:
+            if value is not None and key != "value_step_m":
                 ds.setncattr(key, value)
         ds.createDimension("coefficient", len(values))
         ds.createDimension("axis", 3)
@@ -87,16 +98,49 @@ def write_tile_file(path, tile, levels, indices, values, attrs):
         var[:] = values
 
 
+def read_tile_levels(path, entry, data):
+    """{level: (sorted packed keys, values in metres)} of a tile file's bytes ``data``
+    (either format; format 2 decodes straight to keys, without index triples)."""
+    from . import codec
+
+    if not codec.is_tile_v2(data):
+        indices, levels, values = read_tile_file(path, entry, data)
+        out = {}
+        for level in np.unique(levels):
+            sel = levels == level
+            keys = pack_keys(indices[sel])
+            order = np.argsort(keys)
+            out[int(level)] = (keys[order], values[sel][order])
+        return out
+    try:
+        _, out = codec.decode_tile(data)
+    except ValueError as exc:
+        raise StoreCorruptError(f"{path}: tile {entry['tile']} {exc}") from None
+    count = sum(v[0].size for v in out.values())
+    if count != entry["coefficients"]:
+        raise StoreCorruptError(
+            f"{path}: tile {entry['tile']} holds {count} coefficients, the manifest says {entry['coefficients']}")
+    return out
+
+
 def read_tile_file(path, entry, data=None):
     """(indices (M, 3), levels (M,), values (M,)) of a tile file, or of its bytes ``data``."""
+    if data is None:
+        data = Path(path).read_bytes()
+    from . import codec
+
+    if codec.is_tile_v2(data):
+        out = read_tile_levels(path, entry, data)
+        if not out:
+            return np.zeros((0, 3), np.int64), np.zeros(0, np.int64), np.zeros(0)
+        indices = np.concatenate([unpack_keys(k) for k, _ in out.values()])
+        levels = np.concatenate([np.full(k.size, lv, np.int64) for lv, (k, _) in out.items()])
+        values = np.concatenate([v for _, v in out.values()])
+        return indices, levels, values
     import netCDF4
 
     try:
-        if data is None:
-            ds = netCDF4.Dataset(path, "r")
-        else:
-            ds = netCDF4.Dataset(str(path), "r", memory=data)
-        with ds:
+        with netCDF4.Dataset(str(path), "r", memory=data) as ds:
             ds.set_auto_mask(False)
             indices = np.asarray(ds["index"][:], dtype=np.int64)
             levels = np.asarray(ds["level"][:], dtype=np.int64)

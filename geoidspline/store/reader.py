@@ -21,7 +21,7 @@ from ..errors import StoreCorruptError, StoreError
 from ..hierarchy.ambient import FOLDED_FROM_POINTS, AmbientSpline
 from ..sphere.coordinates import check_coordinates, directions
 from ..sphere.region import Region
-from .format import MANIFEST, load_manifest, read_tile_file
+from .format import MANIFEST, load_manifest, read_tile_levels
 
 #: Fraction of a store's tiles from which a small batch that needs them loads them all
 #: (one full read instead of many partial rebuilds).
@@ -86,7 +86,7 @@ class StoreSpline:
         self.reach = self.order * coarsest / 2.0
         self._entries = {tuple(int(v) for v in e["tile"]): e for e in manifest["tiles"]}
         self._lock = threading.RLock()
-        self._tiles: dict = {}  # tile -> (levels, indices, values) as read
+        self._tiles: dict = {}  # tile -> {level: (sorted keys, values)} as read
         self._partial = AmbientSpline([])  # the spline of the tiles read so far
         self._full: AmbientSpline | None = None
 
@@ -111,8 +111,7 @@ class StoreSpline:
                 f"(truncated or altered)")
         if self.verify and hashlib.sha256(data).hexdigest() != entry["sha256"]:
             raise StoreCorruptError(f"{path}: tile {entry['tile']} does not match its sha256 in the manifest")
-        indices, levels, values = read_tile_file(path, entry, data)
-        return levels, indices, values
+        return read_tile_levels(path, entry, data)
 
     def _missing(self, path, entry):
         try:
@@ -125,18 +124,26 @@ class StoreSpline:
                 f"store has been rewritten since it was opened (now version {now}); open it again")
         return StoreCorruptError(f"{path}: tile {entry['tile']} is missing")
 
-    def _build(self, tiles):
+    def _build(self, tiles, consume=False):
+        # per level: the tiles' sorted keys joined and sorted once; only keys and values
+        # are held (16 bytes a coefficient), never index triples; ``consume`` lets go of
+        # the tiles as they are joined (the complete spline)
         by_level: dict[int, list] = {}
         for tile in tiles:
-            levels, indices, values = self._tiles[tile]
-            for level in np.unique(levels):
-                sel = levels == level
-                by_level.setdefault(int(level), []).append((indices[sel], values[sel]))
+            for level, part in (self._tiles.pop(tile) if consume else self._tiles[tile]).items():
+                by_level.setdefault(level, []).append(part)
         out = []
         for level in sorted(by_level):
-            idx = np.concatenate([p[0] for p in by_level[level]])
-            val = np.concatenate([p[1] for p in by_level[level]])
-            out.append(LevelSpline.from_indices(level, self.h0 / 2.0**level, self.order, idx, val))
+            parts = by_level.pop(level)
+            keys = np.concatenate([p[0] for p in parts])
+            val = np.concatenate([p[1] for p in parts])
+            del parts
+            if len(tiles) > 1:
+                order = np.argsort(keys, kind="stable")
+                keys = keys[order]
+                val = val[order]
+                del order
+            out.append(LevelSpline(level, self.h0 / 2.0**level, self.order, keys, val))
         return AmbientSpline(out)
 
     @property
@@ -148,7 +155,7 @@ class StoreSpline:
                     for tile in self._entries:  # manifest order
                         if tile not in self._tiles:
                             self._tiles[tile] = self._read(tile)
-                    self._full = self._build(list(self._entries))
+                    self._full = self._build(list(self._entries), consume=True)
                     self._tiles = {}
                     self._partial = None
         return self._full

@@ -36,7 +36,17 @@ from ..sphere.coordinates import directions, latlon_of
 from ..sphere.region import Region
 from .format import TILE_DIR, error_stats, utc_now
 from .reader import TileStore
-from .writer import StoreLock, commit, crash_point, group_by_tile, tile_groups, tile_stats, write_tile_entry
+from .writer import (
+    StoreLock,
+    commit,
+    crash_point,
+    group_by_tile,
+    quantisation_meta,
+    tile_encoding,
+    tile_groups,
+    tile_stats,
+    write_tile_entry,
+)
 
 __all__ = ["update_store", "blend_weight"]
 
@@ -141,7 +151,8 @@ def update_store(path, source, region: Region, blend_width_km: float = 100.0, ex
         errors = sample.undulation[inside] - merged.undulation(lat2[inside], lon2[inside])
 
         version = manifest["store_version"] + 1
-        spline_meta = {"order": params.order, "h0": params.h0, "tile_size": params.tile_size}
+        format_version, encoding = tile_encoding(manifest)  # the store's own format and step
+        spline_meta = {"order": params.order, "h0": params.h0, "tile_size": params.tile_size, **encoding}
         changed = set(tile_groups(delta.spline, params.tile_size))
         groups = tile_groups(merged, params.tile_size)
         node_tile = group_by_tile(directions(lat2[inside], lon2[inside]), params.tile_size)
@@ -155,7 +166,7 @@ def update_store(path, source, region: Region, blend_width_km: float = 100.0, ex
                 kept = {k: entries[tile][k] for k in ("max_error_m", "rms_error_m", "check_points",
                                                       "node_max_error_m", "node_rms_error_m", "nodes")}
                 stats = kept
-            entries[tile] = write_tile_entry(root, key, groups[key], version, spline_meta, stats)
+            entries[tile] = write_tile_entry(root, key, groups[key], version, spline_meta, stats, format_version)
             crash_point("during-tiles")
         crash_point("after-tiles")
         region_stats = error_stats(errors)
@@ -184,7 +195,8 @@ def update_store(path, source, region: Region, blend_width_km: float = 100.0, ex
             "updated": record["time"],
             "spline": dict(manifest["spline"], levels=[
                 {"level": lv.level, "h": lv.h, "coefficients": len(lv)} for lv in merged.levels
-            ], coefficients=merged.coefficient_count),
+            ], coefficients=merged.coefficient_count,
+               **(quantisation_meta(encoding["value_step_m"], len(merged.levels)) if encoding else {})),
             "tiles": [entries[k] for k in sorted(entries)],
             "history": manifest.get("history", []) + [record],
         })

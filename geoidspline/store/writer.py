@@ -22,6 +22,7 @@ from ..bspline import keys as _keys
 from ..bspline.level import cube_of_support_centres
 from ..errors import StoreCorruptError, StoreError
 from ..sphere.coordinates import directions
+from .codec import value_error_bound, value_step
 from .format import (
     FORMAT_NAME,
     FORMAT_VERSION,
@@ -125,12 +126,12 @@ def tile_groups(spline: AmbientSpline, tile_size: float) -> dict:
     return {int(key): (lvl[order[a:b]], idx[order[a:b]], val[order[a:b]]) for key, a, b in zip(unique, starts, stops)}
 
 
-def write_tile_entry(root, key, group, version, spline_meta, stats) -> dict:
+def write_tile_entry(root, key, group, version, spline_meta, stats, format_version=FORMAT_VERSION) -> dict:
     """Write one tile file under a new name and return its manifest entry."""
     lvl, idx, val = group
     tile = _keys.unpack_keys(np.array([key]))[0]
-    name = tile_name(tile, version)
-    write_tile_file(root / TILE_DIR / name, tile, lvl, idx, val, spline_meta)
+    name = tile_name(tile, version, format_version)
+    write_tile_file(root / TILE_DIR / name, tile, lvl, idx, val, spline_meta, format_version)
     return {
         "tile": [int(v) for v in tile],
         "file": f"{TILE_DIR}/{name}",
@@ -140,6 +141,24 @@ def write_tile_entry(root, key, group, version, spline_meta, stats) -> dict:
         "levels": [int(v) for v in np.unique(lvl)],
         **stats,
     }
+
+
+def quantisation_meta(step, levels) -> dict:
+    """The manifest's statement of a format-2 store's quantisation (``spline`` keys)."""
+    return {
+        "value_step_m": step,
+        "value_error_bound_m": value_error_bound(step, levels),
+        "value_error_rule": "each coefficient within step/2; B-splines of a level are non-negative and sum "
+                            "to at most 1, so the value moves by at most step/2 per level",
+    }
+
+
+def tile_encoding(manifest) -> tuple[int, dict]:
+    """(format version, tile attributes) with which new tiles of a store are written: its
+    own format and step, so that an update of a format-1 store stays format 1."""
+    version = int(manifest["format_version"])
+    step = manifest["spline"].get("value_step_m")
+    return version, ({"value_step_m": step} if version >= 2 else {})
 
 
 def tile_stats(node_errors, check_errors):
@@ -177,11 +196,14 @@ def commit(root: Path, manifest: dict, keep_files=()):
 
 
 def write_store(path, result, provenance, check: CheckPoints | None = None,
-                overwrite=False, extra=None) -> Path:
+                overwrite=False, extra=None, format_version=FORMAT_VERSION, value_step_m=None) -> Path:
     """Write a fit (:class:`geoidspline.fitting.driver.FitResult`) as a tile store at ``path``.
 
     An existing store is refused unless ``overwrite``; even then its files stay valid
-    until the new manifest replaces the old one.
+    until the new manifest replaces the old one. ``format_version=1`` writes the old
+    format (netCDF4 tiles, float64 values), kept for tests of older stores; format 2
+    quantises the coefficients with ``value_step_m`` (default
+    :func:`~geoidspline.store.codec.value_step` of the tolerance and level count).
     """
     root = Path(path)
     manifest_path = root / MANIFEST
@@ -211,12 +233,17 @@ def write_store(path, result, provenance, check: CheckPoints | None = None,
             check_errors = check.truth - spline.undulation(check.latitude, check.longitude)
             check_tile = group_by_tile(directions(check.latitude, check.longitude), params.tile_size)
         spline_meta = {"order": params.order, "h0": params.h0, "tile_size": params.tile_size}
+        quantisation = {}
+        if format_version >= 2:
+            step = value_step_m or value_step(params.tolerance_m, len(spline.levels))
+            quantisation = quantisation_meta(step, len(spline.levels))
+            spline_meta["value_step_m"] = step
         entries = []
         crash_point("before-tiles")
         for key, group in tile_groups(spline, params.tile_size).items():
             stats = tile_stats(result.node_errors[node_tile == key],
                                 check_errors[check_tile == key] if check is not None else [])
-            entries.append(write_tile_entry(root, key, group, version, spline_meta, stats))
+            entries.append(write_tile_entry(root, key, group, version, spline_meta, stats, format_version))
             crash_point("during-tiles")
         crash_point("after-tiles")
 
@@ -224,7 +251,7 @@ def write_store(path, result, provenance, check: CheckPoints | None = None,
         check_stats = error_stats(check_errors if check is not None else [])
         manifest = {
             "format": FORMAT_NAME,
-            "format_version": FORMAT_VERSION,
+            "format_version": format_version,
             "store_version": version,
             "created": previous["created"] if previous else utc_now(),
             "updated": utc_now(),
@@ -240,6 +267,7 @@ def write_store(path, result, provenance, check: CheckPoints | None = None,
                     {"level": lv.level, "h": lv.h, "coefficients": len(lv)} for lv in spline.levels
                 ],
                 "coefficients": spline.coefficient_count,
+                **quantisation,
             },
             "fit": {
                 "method": "hierarchical overlays (Lehmann 2013, section 5.2)",
