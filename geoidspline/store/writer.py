@@ -22,7 +22,7 @@ from ..bspline import keys as _keys
 from ..bspline.level import cube_of_support_centres
 from ..errors import StoreCorruptError, StoreError
 from ..sphere.coordinates import directions
-from .codec import value_error_bound, value_step
+from .codec import quantised_spline, value_error_bound, value_step
 from .format import (
     FORMAT_NAME,
     FORMAT_VERSION,
@@ -203,7 +203,9 @@ def write_store(path, result, provenance, check: CheckPoints | None = None,
     until the new manifest replaces the old one. ``format_version=1`` writes the old
     format (netCDF4 tiles, float64 values), kept for tests of older stores; format 2
     quantises the coefficients with ``value_step_m`` (default
-    :func:`~geoidspline.store.codec.value_step` of the tolerance and level count).
+    :func:`~geoidspline.store.codec.value_step` of the tolerance and level count); the
+    check-point errors in the manifest are those of the stored (quantised) spline, the
+    node errors the fit's (quantisation adds at most ``value_error_bound_m`` to them).
     """
     root = Path(path)
     manifest_path = root / MANIFEST
@@ -227,17 +229,20 @@ def write_store(path, result, provenance, check: CheckPoints | None = None,
 
         params = result.parameters
         spline = result.spline
-        node_tile = group_by_tile(result.node_directions, params.tile_size)
-        check_errors = None
-        if check is not None:
-            check_errors = check.truth - spline.undulation(check.latitude, check.longitude)
-            check_tile = group_by_tile(directions(check.latitude, check.longitude), params.tile_size)
-        spline_meta = {"order": params.order, "h0": params.h0, "tile_size": params.tile_size}
         quantisation = {}
+        stored = spline  # what the store will give: the check errors are its own
         if format_version >= 2:
             step = value_step_m or value_step(params.tolerance_m, len(spline.levels))
             quantisation = quantisation_meta(step, len(spline.levels))
-            spline_meta["value_step_m"] = step
+            stored = quantised_spline(spline, step)
+        node_tile = group_by_tile(result.node_directions, params.tile_size)
+        check_errors = None
+        if check is not None:
+            check_errors = check.truth - stored.undulation(check.latitude, check.longitude)
+            check_tile = group_by_tile(directions(check.latitude, check.longitude), params.tile_size)
+        spline_meta = {"order": params.order, "h0": params.h0, "tile_size": params.tile_size}
+        if format_version >= 2:
+            spline_meta["value_step_m"] = quantisation["value_step_m"]
         entries = []
         crash_point("before-tiles")
         for key, group in tile_groups(spline, params.tile_size).items():
