@@ -416,7 +416,7 @@ def test_overwriting_a_store_keeps_the_users_files_in_it(race_base, race_store):
     assert (race_store / "notes.txt").read_text() == "mine"
     assert (race_store / "tiles" / "mine.txt").read_text() == "mine too"
     assert (race_store / "tiles" / "t+0000+0000+0000.v1.nc.bak").exists()
-    assert not [p for p in (race_store / "tiles").glob("*.v1.nc")]
+    assert not [p for p in (race_store / "tiles").glob("*.v1.gst")]
 
 
 def test_a_foreign_manifest_is_never_replaced(race_base, tmp_path):

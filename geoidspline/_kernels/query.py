@@ -58,8 +58,8 @@ def brick_entries(keys, order, bits):
                 m *= 2
         total += m
     brick_keys = np.empty(total, np.int64)
-    local = np.empty((total, 3), np.int64)
-    coef = np.empty(total, np.int64)
+    local = np.empty((total, 3), np.int16)  # 0 .. 2**bits + order - 2: small (memory)
+    coef = np.empty(total, np.int32)
     a3 = np.empty(3, np.int64)
     b3 = np.empty(3, np.int64)
     e = 0

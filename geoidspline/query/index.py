@@ -81,26 +81,37 @@ class _Members:
         bits = _qk.BRICK_BITS
         side = (1 << bits) + order - 1
         bkey, local, coef = _qk.brick_entries(lv.keys, order, bits)
-        flat = (local[:, 0] * side + local[:, 1]) * side + local[:, 2]
-        perm = np.lexsort((flat, bkey))
-        self.entry_keys = bkey[perm]
-        self.local = local[perm]
-        self.flat = flat[perm]
-        self.coefs = lv.coefficients[coef[perm]]
-        first = np.r_[True, self.entry_keys[1:] != self.entry_keys[:-1]]
-        self.brick_keys = self.entry_keys[first]
-        self.brick_of_entry = np.cumsum(first) - 1
+        # lv.keys are sorted, so one brick's entries come in increasing local position:
+        # a stable sort by brick alone gives the (brick, local position) order. The
+        # build's memory peak is here: the kernel's arrays are let go one by one, and
+        # entries keep int32/int16 indices, not keys or values (per brick: its start)
+        perm = np.argsort(bkey, kind="stable")
+        bkey = bkey[perm]
+        first = np.r_[True, bkey[1:] != bkey[:-1]]
+        self.brick_keys = bkey[first]
+        del bkey
+        self.brick_start = np.r_[np.flatnonzero(first), first.size]
+        self.brick_of_entry = np.cumsum(first, dtype=np.int32) - 1  # dropped with local
+        del first
+        self.local = local[perm]  # int16; dropped once the level's own table is built
+        del local
+        self.coef_index = coef[perm]  # int32 positions in coefficients
+        del coef, perm
+        self.coefficients = lv.coefficients
+        self.flat = (self.local[:, 0].astype(np.int32) * side + self.local[:, 1]) * side + self.local[:, 2]
 
     def scatter(self, keys, dense):
         """Add the coefficients into dense (len(keys), side³) blocks of bricks ``keys``."""
-        starts = np.searchsorted(self.entry_keys, keys, side="left")
-        counts = np.searchsorted(self.entry_keys, keys, side="right") - starts
+        at = np.minimum(np.searchsorted(self.brick_keys, keys), self.brick_keys.size - 1)
+        found = self.brick_keys[at] == keys
+        starts = np.where(found, self.brick_start[at], 0)
+        counts = np.where(found, self.brick_start[at + 1] - self.brick_start[at], 0)
         total = int(counts.sum())
         if total == 0:
             return
         rows = np.repeat(np.arange(keys.size), counts)
         entry = np.repeat(starts - (np.cumsum(counts) - counts), counts) + np.arange(total)
-        dense.reshape(keys.size, -1)[rows, self.flat[entry]] += self.coefs[entry]
+        dense.reshape(keys.size, -1)[rows, self.flat[entry]] += self.coefficients[self.coef_index[entry]]
 
 
 def _column_tables(nb, side, run_brick, run_cx, run_cy, run_k0, run_len):
@@ -192,17 +203,23 @@ class BrickIndex:
         for i, (lv, mem) in enumerate(zip(self.levels, members)):
             nb = mem.brick_keys.size
             # own table: runs of the level's coefficients, column by column
-            col_id = (mem.brick_of_entry * side + mem.local[:, 0]) * side + mem.local[:, 1]
-            starts = np.flatnonzero(np.r_[True, col_id[1:] != col_id[:-1]])
-            stops = np.r_[starts[1:], col_id.size]
+            col_id = (mem.brick_of_entry.astype(np.int64) * side + mem.local[:, 0]) * side + mem.local[:, 1]
+            starts = np.flatnonzero(col_id[1:] != col_id[:-1]) + 1
+            del col_id
+            starts = np.r_[0, starts] if mem.flat.size else starts
+            stops = np.r_[starts[1:], mem.flat.size]
             kz = mem.local[:, 2]
-            k0 = kz[starts]
+            k0 = kz[starts].astype(np.int64)
             length = kz[stops - 1] - k0 + 1
             base, cols, run_start = _column_tables(
-                nb, side, mem.brick_of_entry[starts], mem.local[starts, 0], mem.local[starts, 1], k0, length)
+                nb, side, mem.brick_of_entry[starts].astype(np.int64), mem.local[starts, 0].astype(np.int64),
+                mem.local[starts, 1].astype(np.int64), k0, length)
             own = np.zeros(int(length.sum()))
-            run = np.repeat(np.arange(starts.size), stops - starts)
-            own[run_start[run] + kz - k0[run]] = mem.coefs
+            position = np.repeat(run_start - k0, stops - starts)
+            position += kz
+            own[position] = mem.coefficients[mem.coef_index]
+            del position, kz
+            mem.local = mem.brick_of_entry = None  # folding needs only keys, positions and values
             own_bases.append(base + value_base)
             own_cols.append(cols)
             values.append(own)

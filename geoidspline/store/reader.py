@@ -21,7 +21,7 @@ from ..errors import StoreCorruptError, StoreError
 from ..hierarchy.ambient import FOLDED_FROM_POINTS, AmbientSpline
 from ..sphere.coordinates import check_coordinates, directions
 from .coverage import coverage_of
-from .format import LOCK, MANIFEST, MARKER, TileDirectory, load_manifest, read_tile_file
+from .format import LOCK, MANIFEST, MARKER, TileDirectory, load_manifest, read_tile_levels
 
 #: Fraction of a store's tiles from which a small batch that needs them loads them all
 #: (one full read instead of many partial rebuilds).
@@ -92,7 +92,7 @@ class StoreSpline:
         self.reach = self.order * coarsest / 2.0
         self._entries = {tuple(int(v) for v in e["tile"]): e for e in manifest["tiles"]}
         self._lock = threading.RLock()
-        self._tiles: dict = {}  # tile -> (levels, indices, values) as read
+        self._tiles: dict = {}  # tile -> {level: (sorted keys, values)} as read
         self._partial = AmbientSpline([])  # the spline of the tiles read so far
         self._full: AmbientSpline | None = None
 
@@ -112,8 +112,7 @@ class StoreSpline:
             raise self._missing(path, entry) from None
         if self.verify and hashlib.sha256(data).hexdigest() != entry["sha256"]:
             raise StoreCorruptError(f"{path}: tile {entry['tile']} does not match its sha256 in the manifest")
-        indices, levels, values = read_tile_file(path, entry, data, self.manifest)
-        return levels, indices, values
+        return read_tile_levels(path, entry, data, self.manifest)
 
     def _read_tiles(self, tiles):
         """Read ``tiles`` (not read yet) into self._tiles; the tile directory is opened once."""
@@ -141,20 +140,29 @@ class StoreSpline:
         return StoreCorruptError(f"{path}: tile {entry['tile']} is missing")
 
     def _build(self, tiles, complete=False):
+        # per level: the tiles' sorted keys joined and sorted once; only keys and values
+        # are held (16 bytes a coefficient), never index triples; ``complete`` (the whole
+        # spline) lets go of the tiles as they are joined and checks the level counts
+        consume = complete
         by_level: dict[int, list] = {}
         for tile in tiles:
-            levels, indices, values = self._tiles[tile]
-            for level in np.unique(levels):
-                sel = levels == level
-                by_level.setdefault(int(level), []).append((indices[sel], values[sel]))
+            for level, part in (self._tiles.pop(tile) if consume else self._tiles[tile]).items():
+                by_level.setdefault(level, []).append(part)
         out = []
         for level in sorted(by_level):
-            idx = np.concatenate([p[0] for p in by_level[level]])
-            val = np.concatenate([p[1] for p in by_level[level]])
-            try:
-                out.append(LevelSpline.from_indices(level, self.h0 / 2.0**level, self.order, idx, val))
-            except ValueError as exc:  # the same coefficient in two tiles, say
-                raise StoreCorruptError(f"{self.path}: the tiles of level {level} disagree ({exc})") from None
+            parts = by_level.pop(level)
+            keys = np.concatenate([p[0] for p in parts])
+            val = np.concatenate([p[1] for p in parts])
+            del parts
+            if len(tiles) > 1:
+                order = np.argsort(keys, kind="stable")
+                keys = keys[order]
+                val = val[order]
+                del order
+            if keys.size > 1 and np.any(keys[1:] == keys[:-1]):  # the same coefficient twice
+                raise StoreCorruptError(f"{self.path}: the tiles of level {level} disagree "
+                                        f"(a coefficient is stored twice)")
+            out.append(LevelSpline(level, self.h0 / 2.0**level, self.order, keys, val))
         if complete:
             counts = {lv.level: len(lv) for lv in out}
             wanted = {int(lv["level"]): int(lv["coefficients"]) for lv in self.manifest["spline"]["levels"]}
@@ -435,8 +443,7 @@ def verify_store(path) -> list[str]:
                     if hashlib.sha256(data).hexdigest() != entry["sha256"]:
                         problem = f"{root / entry['file']}: tile {entry['tile']} is altered (sha256 differs from the manifest)"
                     else:
-                        indices, levels, values = read_tile_file(root / entry["file"], entry, data, manifest)
-                        spline._tiles[tile] = (levels, indices, values)
+                        spline._tiles[tile] = read_tile_levels(root / entry["file"], entry, data, manifest)
                 except FileNotFoundError:
                     problem = f"{root / entry['file']}: tile {entry['tile']} is missing"
                 except StoreError as exc:
