@@ -10,7 +10,7 @@ Steps (every store and file goes to --out-dir, default benchmarks/out/japan/):
    15-50°N, 120-160°E window), embedded in the MIT-licensed ``japan-geoid`` package, are
    decoded node for node (its binary format, checked against the package's own
    ``get_heights`` at random nodes and cell interiors) and written as CF netCDF with
-   geoidspline's own writer (:func:`geoidspline.readers.write_netcdf`);
+   geoidspline's own writer (:func:`geoidspline.sources.netcdf.write_netcdf`);
 2. a global EGM96 store: ``geoid-fit egm96-15 --tolerance 0.1 --store BASE`` (reused when
    --base names an existing one);
 3. per national model, a copy of BASE updated with

@@ -69,10 +69,10 @@ def main(store_path, out, kind, other_path, against, correction_path, preset, re
     other = geoidspline.open_store(other_path) if other_path is not None else None
     source = None
     if against is not None:
-        from geoidspline.catalogue import is_model_file, resolve_source
+        from geoidspline.sources.resolve import is_model_file, resolve_source
 
         if correction_path is not None or (Path(against).exists() and is_model_file(against)):
-            from geoidspline.queries import load_synthesis
+            from geoidspline.sources.resolve import load_synthesis
 
             source = load_synthesis(against, correction_path, preset, like_store=store)
         else:

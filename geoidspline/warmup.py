@@ -94,9 +94,14 @@ def _model_fit():
 
     nmax = 12
     rng = np.random.default_rng(12)
-    C = np.tril(rng.normal(scale=1e-6, size=(nmax + 1, nmax + 1)))
-    S = np.tril(rng.normal(scale=1e-6, size=(nmax + 1, nmax + 1)))
+    # a geoid-like model: small random coefficients (tens of metres of N) on the normal
+    # field's zonals, which a synthesis subtracts (random zonals alone would be km of N)
+    C = np.tril(rng.normal(scale=3e-7, size=(nmax + 1, nmax + 1)))
+    S = np.tril(rng.normal(scale=3e-7, size=(nmax + 1, nmax + 1)))
     S[:, 0] = 0.0
+    C[1, :] = S[1, :] = 0.0
+    C[2, 0] += -0.484166774985e-3
+    C[4, 0] += 0.790304073e-6
     C[0, 0] = 1.0
     model = HarmonicModel(name="warmup", gm=3.986004418e14, radius=6378137.0, max_degree=nmax,
                           tide_system="tide_free", C=C, S=S)

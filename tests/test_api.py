@@ -75,12 +75,19 @@ def test_latitude_out_of_range_raises(store, lat):
         store.undulation(np.array([20.0, lat]), np.array([30.0, 30.0]))
 
 
-def test_poles_are_valid(store):
+def test_poles_are_valid_where_a_store_covers_them(store, synthetic_grid, tmp_path):
+    for lat in (90.0, -90.0):  # the session store is regional: the poles are outside its coverage
+        assert np.isnan(store.undulation(lat, 0.0))
+    from geoidspline.api import build_store
+    from geoidspline.fitting.parameters import FitParameters
+
+    build_store(synthetic_grid, tmp_path / "global", None, FitParameters(h0=0.25, max_level=0, tolerance_m=1.0))
+    whole = geoidspline.open_store(tmp_path / "global")
     for lat in (90.0, -90.0):
-        v = store.undulation(lat, 0.0)
+        v = whole.undulation(lat, 0.0)
         assert np.isfinite(v)
         # every longitude is the same point at a pole
-        assert store.undulation(lat, 123.0) == pytest.approx(v, abs=1e-9)
+        assert whole.undulation(lat, 123.0) == pytest.approx(v, abs=1e-9)
 
 
 @pytest.mark.parametrize("lon", [np.inf, -np.inf])

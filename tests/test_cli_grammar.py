@@ -67,7 +67,7 @@ def test_fit_writes_with_store_and_with_the_old_out(synthetic_gtx, tmp_path):
         assert (out / "manifest.json").is_file()
 
 
-@pytest.mark.parametrize("option", [["--tolerance", "0.1"], ["--h0", "0.05"], ["--max-level", "3"], ["--order", "6"],
+@pytest.mark.parametrize("option", [["--h0", "0.05"], ["--max-level", "3"], ["--order", "6"],
                                     ["--method", "interpolation"], ["--sample-spacing", "0.1"], ["--overwrite"],
                                     ["--scheduler", "local"]])
 def test_fit_update_refuses_the_options_it_cannot_honour(store_copy, synthetic_gtx, option):
@@ -95,3 +95,15 @@ def test_library_messages_name_options_on_the_command_line(small_store, syntheti
     result = invoke(fit_main, [synthetic_gtx, "--store", small_store.path, *QUICK_FIT, "-q"])
     assert_user_error(result)
     assert "--overwrite" in result.stderr and "overwrite=True" not in result.stderr
+
+
+def test_the_api_refuses_longitudes_no_coordinate_has(small_store):
+    """Wrapping 1e308 degrees would give a plausible number: refused, small and large batches."""
+    from geoidspline.errors import CoordinateError
+
+    store = geoidspline.open_store(small_store.path)
+    with pytest.raises(CoordinateError, match="longitude"):
+        store.undulation(20.0, 1e308)
+    with pytest.raises(CoordinateError, match="longitude"):
+        store.undulation([20.0] * 5000, [30.0] * 4999 + [-2e6])
+    assert store.undulation(20.0, 30.0 + 720.0) == pytest.approx(store.undulation(20.0, 30.0), abs=1e-9)

@@ -17,7 +17,7 @@ pytest.importorskip("japan_geoid", reason="needs japan-geoid (pip install '.[ben
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
 from japan_composite import national_grid  # noqa: E402
 
-from geoidspline.readers import read_grid, write_netcdf  # noqa: E402
+from geoidspline.sources.formats import read_grid, write_netcdf
 
 
 @pytest.fixture(scope="module")

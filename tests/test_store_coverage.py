@@ -273,7 +273,7 @@ def lattices_and_regions(draw):
     nodata = np.random.default_rng(draw(st.integers(0, 2**32 - 1))).random((nlat, nlon)) < density
     south = draw(st.floats(lat0 - 3, lat0 + (nlat - 1) * dlat, allow_nan=False))
     height = draw(st.floats(0.1, 30))
-    west = draw(st.floats(-300, 300, allow_nan=False))
+    west = draw(st.floats(-180, 180, allow_nan=False))
     width = draw(st.floats(0.1, 400 if periodic else (nlon - 1) * dlon + 5))
     assume(south + height <= 90 and south >= -90)
     region = Region(south, west, south + height, west + min(width, 360.0))

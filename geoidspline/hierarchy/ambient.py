@@ -12,6 +12,7 @@ import numpy as np
 
 from ..bspline.evaluate import evaluate_levels
 from ..sphere.coordinates import COMPILED_FROM_POINTS, check_coordinates, directions
+from ..sphere.region import MAX_ABS_POINT_LONGITUDE_DEG
 
 #: Batches from this size on use the compiled, folded index (:class:`~geoidspline.query.index.BrickIndex`).
 FOLDED_FROM_POINTS = COMPILED_FROM_POINTS
@@ -84,7 +85,7 @@ class AmbientSpline:
         if lat.size >= FOLDED_FROM_POINTS:
             values, invalid = self.index.undulation_latlon(np.ascontiguousarray(lat).ravel(),
                                                            np.ascontiguousarray(lon).ravel())
-            if invalid:
+            if invalid or np.nanmax(np.abs(lon), initial=0.0) > MAX_ABS_POINT_LONGITUDE_DEG:
                 check_coordinates(lat, lon)  # raises, naming the first bad value
             return values.reshape(shape)
         lat, lon = check_coordinates(lat, lon)

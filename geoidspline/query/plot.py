@@ -342,9 +342,9 @@ def _block_axis(axis, factor):
 def error_map(store, source, region=None, spacing=None) -> MapField:
     """store − source (metres) at the nodes of a lattice over ``region``.
 
-    ``source`` is a grid (:class:`~geoidspline.grid.GeoidGrid`: its own nodes inside the
+    ``source`` is a grid (:class:`~geoidspline.sources.grid.GeoidGrid`: its own nodes inside the
     region, no interpolation) or a spherical-harmonic synthesis
-    (:class:`~geoidspline.harmonics.GeoidSynthesis`: its lattice of about ``spacing``
+    (:class:`~geoidspline.sources.harmonics.GeoidSynthesis`: its lattice of about ``spacing``
     degrees, default 720 pixels along the longer side). The statistics cover every
     node inside the region; where there are more nodes than pixels, each pixel shows
     the node value of largest magnitude in its block (a peak is never averaged away).
@@ -562,7 +562,7 @@ def _degree_axes(ax, extent):
 
 def _blend_edge(region: Region, blend_deg: float, shift: float, count=60):
     """The outer edge of an update's blend: the points at ``blend_deg`` degrees of arc
-    from the region in :func:`geoidspline.update.blend_weight`'s metric (hypot of the
+    from the region in :func:`geoidspline.store.update.blend_weight`'s metric (hypot of the
     latitude and cos φ-scaled longitude excess), as (longitudes, latitudes)."""
     s, w, n, e = region.south, region.west + shift, region.north, region.east + shift
     t = np.linspace(0.0, 1.0, count)

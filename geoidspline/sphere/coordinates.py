@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import CoordinateError
+from .region import MAX_ABS_POINT_LONGITUDE_DEG
 
 #: Batches from this size on use compiled code (worth numba's import and compile-cache
 #: load); smaller ones are evaluated with numpy, so a one-point query stays fast.
@@ -20,8 +21,10 @@ COMPILED_FROM_POINTS = 2048
 def check_coordinates(latitude, longitude):
     """Broadcast latitude/longitude (degrees) to float arrays and check their range.
 
-    NaN is allowed (it yields NaN); a finite latitude outside [-90, 90] or an infinite
-    value is a :class:`CoordinateError`. Longitudes are any finite value (wrapped).
+    NaN is allowed (it yields NaN); a finite latitude outside [-90, 90], an infinite
+    value or a longitude beyond ±:data:`~geoidspline.sphere.region.MAX_ABS_POINT_LONGITUDE_DEG`
+    (no real coordinate; wrapping 1e308 would give a plausible number) is a
+    :class:`CoordinateError`. Other longitudes are wrapped.
     """
     latitude, longitude = np.broadcast_arrays(
         np.asarray(latitude, dtype=float), np.asarray(longitude, dtype=float)
@@ -29,13 +32,18 @@ def check_coordinates(latitude, longitude):
     with np.errstate(invalid="ignore"):
         bad_lat = np.abs(latitude) > 90.0
     if np.any(bad_lat):
-        first = latitude[bad_lat].ravel()[0]
+        first = float(latitude[bad_lat].ravel()[0])
         raise CoordinateError(
             f"latitude must be within [-90, 90] degrees; got {first!r} "
             f"({int(np.count_nonzero(bad_lat))} value(s) out of range)"
         )
     if np.any(np.isinf(longitude)):
         raise CoordinateError("longitude must be finite (degrees)")
+    with np.errstate(invalid="ignore"):
+        far = np.abs(longitude) > MAX_ABS_POINT_LONGITUDE_DEG
+    if np.any(far):
+        raise CoordinateError(
+            f"longitude must be within ±{MAX_ABS_POINT_LONGITUDE_DEG:g} degrees; got {float(longitude[far].ravel()[0])!r}")
     return latitude, longitude
 
 

@@ -673,6 +673,24 @@ def _parse_columns(path, text, ncols, max_degree, what):
         yield lineno, n, m, values
 
 
+def _rows_and_degree(path, text, ncols, what, max_degree, kind, first_degree):
+    """The coefficient rows of an NGA-style text and the degree they reach, checked once
+    for both readers: a degree within bounds, at least ``max_degree`` when asked, the
+    degree the file's name declares, and a line count that fits the degree."""
+    rows = list(_parse_columns(path, text, ncols, max_degree, what))
+    if not rows:
+        raise InputFileError(path, "no coefficient lines")
+    last_line, nmax = max(((r[0], r[1]) for r in rows), key=lambda r: r[1])
+    _check_degree(path, nmax, f"line {last_line}: degree")
+    if max_degree is not None and nmax < max_degree:
+        raise InputFileError(path, f"requested max_degree {max_degree} but the file stops at degree {nmax}")
+    if nmax < first_degree:
+        raise InputFileError(path, f"the file stops at degree {nmax}; need at least degree {first_degree}")
+    _check_named_degree(path, nmax, max_degree, kind)
+    _check_line_count(path, nmax, first_degree, len(rows), len(text), f"line {last_line}: degree")
+    return rows, nmax
+
+
 @_file_faults
 def read_nga(
     path,
@@ -710,17 +728,7 @@ def read_nga(
     if tide_system is not None and tide_system not in TIDE_SYSTEMS:
         raise ValueError(f"tide_system must be one of {TIDE_SYSTEMS} or None, got {tide_system!r}")
     text, digest = _read_text(path)
-    rows = list(_parse_columns(path, text, 6, max_degree, "n m C S sigmaC sigmaS"))
-    if not rows:
-        raise InputFileError(path, "no coefficient lines")
-    last_line, nmax = max(((r[0], r[1]) for r in rows), key=lambda r: r[1])
-    _check_degree(path, nmax, f"line {last_line}: degree")
-    if max_degree is not None and nmax < max_degree:
-        raise InputFileError(path, f"requested max_degree {max_degree} but the file stops at degree {nmax}")
-    if nmax < 2:
-        raise InputFileError(path, f"the file stops at degree {nmax}; need at least degree 2")
-    _check_named_degree(path, nmax, max_degree, "model")
-    _check_line_count(path, nmax, 2, len(rows), len(text), f"line {last_line}: degree")
+    rows, nmax = _rows_and_degree(path, text, 6, "n m C S sigmaC sigmaS", max_degree, "model", 2)
     coll = _Collector(path, nmax, True)
     for lineno, n, m, (c, s, sc, ss) in rows:
         coll.add(lineno, n, m, c, s, sc, ss)
@@ -741,15 +749,7 @@ def read_nga_correction(path, *, unit: str = "cm", name: str | None = None, max_
     if unit not in _UNITS:
         raise ValueError(f"unit must be one of {sorted(_UNITS)}, got {unit!r}")
     text, digest = _read_text(path)
-    rows = list(_parse_columns(path, text, 4, max_degree, "n m C S"))
-    if not rows:
-        raise InputFileError(path, "no coefficient lines")
-    last_line, nmax = max(((r[0], r[1]) for r in rows), key=lambda r: r[1])
-    _check_degree(path, nmax, f"line {last_line}: degree")
-    if max_degree is not None and nmax < max_degree:
-        raise InputFileError(path, f"requested max_degree {max_degree} but the file stops at degree {nmax}")
-    _check_named_degree(path, nmax, max_degree, "correction")
-    _check_line_count(path, nmax, 0, len(rows), len(text), f"line {last_line}: degree")
+    rows, nmax = _rows_and_degree(path, text, 4, "n m C S", max_degree, "correction", 0)
     coll = _Collector(path, nmax, False)
     for lineno, n, m, (c, s) in rows:
         coll.add(lineno, n, m, c, s)
