@@ -63,6 +63,51 @@ def value_step(tolerance_m: float, levels: int) -> float:
     return max(1, int(np.floor(budget / 1e-6 + 1e-6))) * 1e-6
 
 
+def node_safe_step(spline, node_directions, node_errors, tolerance_m: float):
+    """(step, node errors of the stored spline): the largest step, from :func:`value_step`
+    halving down to 1 µm, at which the quantised spline's largest |error| at the fit's
+    nodes is at most ``max(tolerance_m, the fit's own node max)``.
+
+    The proven bound :func:`value_error_bound` (``L · step / 2`` for ``L`` levels) is the
+    worst case; a fit that meets its tolerance at the nodes with no slack left (a grid fit
+    reaches 0.4999 m of 0.5 m) would get no quantisation from it at all, yet rounding
+    moves the worst nodes by a fraction of that (0.041 m of a 0.333 m bound in the 6-level
+    global 0.5 m store). So the quantised spline is evaluated at every node, where the
+    fit's errors ``node_errors`` (truth − fit, metres) are known: its errors there are
+    ``node_errors − (quantised − fit)``, exactly. More levels give a smaller start
+    (:func:`value_step` divides the share by the level count); more halvings follow where
+    the fit left no room (:func:`slack_step` when the nodes are not at hand).
+    """
+    errors = np.asarray(node_errors, dtype=np.float64)
+    target = max(float(tolerance_m), float(np.abs(errors).max()) if errors.size else 0.0)
+    step = value_step(tolerance_m, len(spline.levels))
+    while True:
+        stored_errors = errors - quantisation_change(spline, step, node_directions)
+        if step <= 1e-6 or not stored_errors.size or np.abs(stored_errors).max() <= target:
+            return step, stored_errors
+        step = max(1, int(round(step / 1e-6)) // 2) * 1e-6
+
+
+def slack_step(tolerance_m: float, node_max_error_m: float, levels: int) -> float:
+    """The step whose proven bound ``levels · step / 2`` fits in the room a fit left at its
+    nodes (``tolerance_m`` minus its node max; at least 1 µm): for a store whose nodes
+    are not at hand (``geoid-info --upgrade``)."""
+    room = max(float(tolerance_m) - float(node_max_error_m), 0.0)
+    return value_step(room / QUANTISATION_SHARE, levels)
+
+
+def quantisation_change(spline, step, directions):
+    """Quantised minus exact spline at ``directions`` (M, 3): one evaluation of the
+    spline whose coefficients are the rounding changes (the sum is linear in them)."""
+    from ..bspline.level import LevelSpline
+    from ..hierarchy.ambient import AmbientSpline
+
+    change = AmbientSpline([LevelSpline(lv.level, lv.h, lv.order, lv.keys,
+                                        quantise(lv.coefficients, step) * step - lv.coefficients)
+                            for lv in spline.levels])
+    return change.evaluate_points(directions)
+
+
 def value_error_bound(step: float, levels: int) -> float:
     """Largest change (metres) of the spline's value that quantising with ``step`` can cause
     in a store of ``levels`` levels: ``levels · step / 2`` (see the module docstring)."""

@@ -677,6 +677,7 @@ def validate_manifest(path, manifest: dict):
     for key in ("node_max_error_m", "node_rms_error_m", "max_error_m", "rms_error_m", "p99_error_m"):
         s.number(s.get(accuracy, key, "accuracy"), f"accuracy.{key}", 0.0, 1e9, nullable=True)
     s.number(accuracy.get("node_p99_error_m"), "accuracy.node_p99_error_m", 0.0, 1e9, nullable=True)
+    s.number(accuracy.get("fit_node_max_error_m"), "accuracy.fit_node_max_error_m", 0.0, 1e9, nullable=True)
     s.string(s.get(accuracy, "check_truth", "accuracy"), "accuracy.check_truth", nullable=True)
 
     # tiles: format 2 (.gst, quantised with spline.value_step_m) or format 1 (.nc, in a
@@ -684,6 +685,8 @@ def validate_manifest(path, manifest: dict):
     step = s.number(spline.get("value_step_m"), "spline.value_step_m", 0.0, 1e6, nullable=True, open_lo=True)
     if step is not None and version < 2:
         s.fail("spline.value_step_m", "is format 2's: a format-1 manifest has none")
+    if step is not None:
+        s.number(s.get(spline, "value_error_bound_m", "spline"), "spline.value_error_bound_m", 0.0, 1e6)
     tile_suffix = "gst" if step is not None else "nc"
     bound = math.ceil(1.0 / tile_size) + 1  # the unit sphere lies within ±1 on each axis
     tiles = s.array(manifest["tiles"], "tiles", 1)

@@ -3,10 +3,12 @@
 Every tile is read (sha256 checked), written again in format 2 under the next store
 version's names, and the new manifest committed in one :func:`os.replace`, as any
 write (:mod:`geoidspline.store.writer`): a crash leaves the format-1 store as it was.
-The coefficients are quantised with the step a fresh fit would get
-(:func:`~geoidspline.store.codec.value_step` of the store's tolerance and level count);
-the manifest's accuracy figures are the fit's and stay, the quantisation bound is
-stated beside them.
+The coefficients are quantised with the largest step whose proven bound (``levels ·
+step / 2``) fits in the room the fit left at its nodes (its tolerance minus its node
+max; :func:`~geoidspline.store.codec.slack_step`): the nodes themselves are not in the
+store, so a fresh fit's check at every node (:func:`~geoidspline.store.codec.node_safe_step`)
+cannot be made, and the bound alone keeps the nodes within the tolerance. The
+manifest's accuracy figures are the fit's and stay, the bound is stated beside them.
 """
 
 from __future__ import annotations
@@ -18,11 +20,12 @@ import numpy as np
 
 from ..bspline.keys import pack_keys, unpack_keys
 from ..errors import StoreError
-from .codec import value_step
+from .codec import slack_step
 from .coverage import coverage_record
 from .format import FORMAT_VERSION, load_manifest, utc_now
 from .reader import TileStore
-from .writer import StoreLock, _Attempt, _manifest_state, commit, crash_point, quantisation_meta, write_tile_entry
+from .writer import (StoreLock, _Attempt, _manifest_state, commit, crash_point, quantisation_meta, tolerance_asked,
+                     write_tile_entry)
 
 __all__ = ["upgrade_store"]
 
@@ -63,7 +66,8 @@ def _upgrade(root, store, attempt):
     manifest = store.manifest
     meta = manifest["spline"]
     levels = len(meta["levels"])
-    step = value_step(manifest["fit"]["tolerance_m"], levels)
+    # the nodes are not at hand: the step whose proven bound fits in the room the fit left
+    step = slack_step(tolerance_asked(manifest["fit"]), manifest["accuracy"]["node_max_error_m"] or 0.0, levels)
     store_id = manifest.get("store_id") or uuid.uuid4().hex  # every tile is rewritten: all will carry it
     spline_meta = {"order": meta["order"], "h0": meta["h0"], "tile_size": meta["tile_size"],
                    "value_step_m": step, "store_id": store_id}

@@ -38,7 +38,7 @@ from ..bspline.level import cube_of_support_centres
 from ..errors import StoreCorruptError, StoreError
 from ..sphere.coordinates import directions
 from ..sphere.coverage import Coverage
-from .codec import quantised_spline, value_error_bound, value_step
+from .codec import node_safe_step, quantisation_change, quantised_spline, value_error_bound
 from .coverage import coverage_record
 from .format import (
     FORMAT_NAME,
@@ -387,6 +387,14 @@ def quantisation_meta(step, levels) -> dict:
     }
 
 
+def tolerance_asked(fit: dict) -> float:
+    """The tolerance a store promises at its nodes, from its manifest's ``fit`` section:
+    the one asked for (``choices``: a model fit works to 0.8 of it at the nodes) or the
+    fit's own ``tolerance_m``."""
+    choices = fit.get("choices") or {}
+    return float(choices.get("tolerance_asked_m") or fit["tolerance_m"])
+
+
 def tile_encoding(manifest) -> tuple[int, dict]:
     """(tile format, tile attributes) with which new tiles of a store are written: its own
     tiles' format and step, so that an update of a format-1 store keeps netCDF4 tiles
@@ -469,9 +477,10 @@ def write_store(path, result, provenance, check: CheckPoints | None = None,
     names the store format owns is ever removed. ``format_version=1`` writes the old
     format (netCDF4 tiles, float64 values), kept for tests of older stores; format 2
     quantises the coefficients with ``value_step_m`` (default
-    :func:`~geoidspline.store.codec.value_step` of the tolerance and level count); the
-    check-point errors in the manifest are those of the stored (quantised) spline, the
-    node errors the fit's (quantisation adds at most ``value_error_bound_m`` to them).
+    :func:`~geoidspline.store.codec.node_safe_step`: the largest step at which the stored
+    spline still meets the tolerance asked for at every node); the node and check-point
+    errors in the manifest are those of the stored (quantised) spline (``accuracy.
+    fit_node_max_error_m`` keeps the fit's), each within ``value_error_bound_m`` of the fit's.
     """
     root = Path(path)
     _previous_store(root, overwrite)  # refuse before writing anything
@@ -496,9 +505,15 @@ def _fit_manifest(root, result, provenance, check, previous, version, extra, att
     spline = result.spline
     store_id = uuid.uuid4().hex
     quantisation = {}
-    stored = spline  # what the store will give: the check errors are its own
+    stored = spline  # what the store will give: the node and check errors are its own
+    node_errors = result.node_errors
     if format_version >= 2:
-        step = value_step_m or value_step(params.tolerance_m, len(spline.levels))
+        if value_step_m:
+            step = value_step_m
+            node_errors = node_errors - quantisation_change(spline, step, result.node_directions)
+        else:
+            step, node_errors = node_safe_step(spline, result.node_directions, node_errors,
+                                               tolerance_asked({"tolerance_m": params.tolerance_m, **(extra or {})}))
         quantisation = quantisation_meta(step, len(spline.levels))
         stored = quantised_spline(spline, step)
     node_tile = group_by_tile(result.node_directions, params.tile_size)
@@ -512,14 +527,14 @@ def _fit_manifest(root, result, provenance, check, previous, version, extra, att
     entries = []
     crash_point("before-tiles")
     for key, group in tile_groups(spline, params.tile_size).items():
-        stats = tile_stats(result.node_errors[node_tile == key],
+        stats = tile_stats(node_errors[node_tile == key],
                            check_errors[check_tile == key] if check is not None else [])
         entries.append(write_tile_entry(root, key, group, version, spline_meta, stats, attempt, format_version))
         crash_point("during-tiles")
     crash_point("after-tiles")
 
     coverage = result.coverage if result.coverage is not None else Coverage.of_region(result.region)
-    node_stats = error_stats(result.node_errors)
+    node_stats = error_stats(node_errors)
     check_stats = error_stats(check_errors if check is not None else [])
     return {
         "format": FORMAT_NAME,
@@ -557,6 +572,7 @@ def _fit_manifest(root, result, provenance, check, previous, version, extra, att
             "node_max_error_m": node_stats["max_error_m"],
             "node_rms_error_m": node_stats["rms_error_m"],
             "node_p99_error_m": node_stats["p99_error_m"],
+            "fit_node_max_error_m": result.node_max_error_m,
             "check_points": check_stats["count"],
             "check_truth": check.description if check is not None else None,
             "max_error_m": check_stats["max_error_m"],
