@@ -153,7 +153,7 @@ def test_the_half_step_bound_is_reached_where_rounding_is_one_sided(small_store)
 def test_store_values_are_within_the_stated_bound(small_store):
     m = _manifest(small_store.path)
     spline = m["spline"]
-    assert spline["value_step_m"] == codec.value_step(small_store.params.tolerance_m, len(spline["levels"]))
+    assert spline["value_step_m"] <= codec.value_step(small_store.params.tolerance_m, len(spline["levels"]))
     assert spline["value_error_bound_m"] == codec.value_error_bound(spline["value_step_m"], len(spline["levels"]))
     store = geoidspline.open_store(small_store.path)
     points = _points(3000, seed=13)
@@ -161,6 +161,57 @@ def test_store_values_are_within_the_stated_bound(small_store):
     fitted = small_store.result.spline.evaluate_points(points)
     assert np.abs(got - fitted).max() <= spline["value_error_bound_m"]
     assert np.abs(got - fitted).max() > 0  # the values are rounded: the test can fail
+
+
+# -- the tolerance still holds at the nodes -------------------------------------------
+
+
+def _grid_nodes_in(region, grid):
+    nodes = grid.nodes(region)
+    lat, lon = np.meshgrid(nodes.latitude, nodes.longitude, indexing="ij")
+    has_data = np.isfinite(nodes.undulation)
+    return lat[has_data], lon[has_data], nodes.undulation[has_data]
+
+
+def test_the_stored_store_meets_its_tolerance_at_every_node(small_store):
+    # what a user gets back from the files, at every node of the source in the region,
+    # independently of the manifest's figures
+    lat, lon, truth = _grid_nodes_in(small_store.region, small_store.grid)
+    store = geoidspline.open_store(small_store.path)
+    errors = np.abs(store.undulation(lat, lon) - truth)
+    m = _manifest(small_store.path)
+    assert m["fit"]["converged"]
+    assert errors.max() <= small_store.params.tolerance_m
+    assert m["accuracy"]["node_max_error_m"] == pytest.approx(errors.max(), rel=1e-6)
+    assert m["accuracy"]["fit_node_max_error_m"] == pytest.approx(small_store.result.node_max_error_m)
+    assert m["spline"]["value_error_bound_m"] == codec.value_error_bound(m["spline"]["value_step_m"],
+                                                                         len(m["spline"]["levels"]))
+
+
+def test_the_step_shrinks_until_the_nodes_meet_the_tolerance(small_store):
+    # a fit with no room left at its nodes (its worst node at the tolerance itself): the
+    # step of the level-count rule alone would push nodes over it, the chosen one does not
+    result = small_store.result
+    spline, dirs = result.spline, result.node_directions
+    tolerance = float(np.abs(result.node_errors).max())
+    first = codec.value_step(tolerance, len(spline.levels))
+    moved = result.node_errors - codec.quantisation_change(spline, first, dirs)
+    assert np.abs(moved).max() > tolerance  # the case the search is for
+    step, stored = codec.node_safe_step(spline, dirs, result.node_errors, tolerance)
+    assert step < first
+    truth = result.node_errors + spline.evaluate_points(dirs)
+    again = truth - codec.quantised_spline(spline, step).evaluate_points(dirs)
+    np.testing.assert_allclose(stored, again, atol=1e-12)
+    assert np.abs(again).max() <= tolerance
+
+
+def test_a_model_store_promises_the_tolerance_asked_for():
+    from geoidspline.fitting.parameters import FitParameters
+    from geoidspline.store.writer import tolerance_asked
+
+    fit = {"tolerance_m": 0.0016, "choices": {"tolerance_asked_m": 0.002}}
+    assert tolerance_asked(fit) == 0.002
+    assert tolerance_asked({"tolerance_m": FitParameters().tolerance_m}) == FitParameters().tolerance_m
 
 
 # -- format 1 stores ------------------------------------------------------------------

@@ -300,8 +300,12 @@ def read_tile_levels(path, entry, data, manifest):
     if step is not None and float(header["value_step_m"]) != float(step):
         raise refuse(f"was quantised with step {header['value_step_m']} m, the manifest says {step} m")
     if out:
-        indices = np.concatenate([unpack_keys(k) for k, _ in out.values()])
-        levels = np.concatenate([np.full(k.size, lv, np.int64) for lv, (k, _) in out.items()])
+        # the place of a run's first and last coefficient is the place of all of it: a
+        # run varies k alone, and the cube of a support centre grows with k
+        ends = {lv: k[np.flatnonzero(np.r_[True, k[1:] != k[:-1] + 1] | np.r_[k[1:] != k[:-1] + 1, True])]
+                for lv, (k, _) in out.items()}
+        indices = np.concatenate([unpack_keys(k) for k in ends.values()])
+        levels = np.concatenate([np.full(k.size, lv, np.int64) for lv, k in ends.items()])
         values = np.concatenate([v for _, v in out.values()])
         _check_contents(refuse, entry, manifest, indices, levels, values)
     return out

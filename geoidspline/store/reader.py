@@ -10,12 +10,14 @@ A :class:`TileStore`'s queries are thread-safe (see :class:`StoreSpline`).
 from __future__ import annotations
 
 import hashlib
+import itertools
 import os
 import threading
 from pathlib import Path
 
 import numpy as np
 
+from .._memory import pin_mmap_threshold
 from ..bspline.level import LevelSpline
 from ..errors import StoreCorruptError, StoreError
 from ..hierarchy.ambient import FOLDED_FROM_POINTS, AmbientSpline
@@ -140,36 +142,61 @@ class StoreSpline:
         return StoreCorruptError(f"{path}: tile {entry['tile']} is missing")
 
     def _build(self, tiles, complete=False):
-        # per level: the tiles' sorted keys joined and sorted once; only keys and values
-        # are held (16 bytes a coefficient), never index triples; ``complete`` (the whole
-        # spline) lets go of the tiles as they are joined and checks the level counts
-        consume = complete
-        by_level: dict[int, list] = {}
-        for tile in tiles:
-            for level, part in (self._tiles.pop(tile) if consume else self._tiles[tile]).items():
-                by_level.setdefault(level, []).append(part)
-        out = []
-        for level in sorted(by_level):
-            parts = by_level.pop(level)
-            keys = np.concatenate([p[0] for p in parts])
-            val = np.concatenate([p[1] for p in parts])
-            del parts
-            if len(tiles) > 1:
-                order = np.argsort(keys, kind="stable")
-                keys = keys[order]
-                val = val[order]
-                del order
-            if keys.size > 1 and np.any(keys[1:] == keys[:-1]):  # the same coefficient twice
-                raise StoreCorruptError(f"{self.path}: the tiles of level {level} disagree "
-                                        f"(a coefficient is stored twice)")
-            out.append(LevelSpline(level, self.h0 / 2.0**level, self.order, keys, val))
+        # per level: only keys and values are held (16 bytes a coefficient), never index
+        # triples. A coefficient's tile is the cube of its support centre, which grows
+        # with its index, so the tiles of one first tile index (a "slab") hold a run of
+        # keys of their own: each slab is joined and sorted on its own and copied into
+        # the level's arrays. ``complete`` (the whole spline) reads the tiles not read yet
+        # slab by slab and lets each slab's tiles go once copied, so the coefficients are
+        # never held twice over; the level sizes are then the manifest's, and checked
+        tiles = sorted(tiles)
         if complete:
-            counts = {lv.level: len(lv) for lv in out}
-            wanted = {int(lv["level"]): int(lv["coefficients"]) for lv in self.manifest["spline"]["levels"]}
-            if {k: v for k, v in counts.items() if v} != {k: v for k, v in wanted.items() if v}:
-                raise StoreCorruptError(f"{self.path / MANIFEST}: the tiles hold {counts} coefficients per level, "
-                                        f"the manifest says {wanted}")
+            sizes = {int(lv["level"]): int(lv["coefficients"]) for lv in self.manifest["spline"]["levels"]}
+        else:
+            sizes = {}
+            for tile in tiles:
+                for level, (keys, _) in self._tiles[tile].items():
+                    sizes[level] = sizes.get(level, 0) + keys.size
+        joined = {level: (np.empty(n, np.int64), np.empty(n)) for level, n in sizes.items()}
+        filled = dict.fromkeys(sizes, 0)
+        for _, slab in itertools.groupby(tiles, key=lambda tile: tile[0]):
+            slab = list(slab)
+            if complete:
+                self._read_tiles([t for t in slab if t not in self._tiles])
+            by_level: dict[int, list] = {}
+            for tile in slab:
+                for level, part in (self._tiles.pop(tile) if complete else self._tiles[tile]).items():
+                    by_level.setdefault(level, []).append(part)
+            for level, parts in by_level.items():
+                keys = np.concatenate([p[0] for p in parts])
+                val = np.concatenate([p[1] for p in parts])
+                if len(parts) > 1:
+                    order = np.argsort(keys, kind="stable")
+                    keys, val = keys[order], val[order]
+                at = filled.get(level, 0)
+                if at + keys.size > sizes.get(level, 0):
+                    raise self._count_mismatch(level, f"more than {sizes.get(level, 0)}")
+                joined[level][0][at:at + keys.size] = keys
+                joined[level][1][at:at + keys.size] = val
+                filled[level] = at + keys.size
+            del by_level, parts
+        out = []
+        for level in sorted(joined):
+            keys, val = joined.pop(level)
+            if filled[level] != keys.size:
+                raise self._count_mismatch(level, filled[level])
+            if keys.size > 1 and np.any(keys[1:] <= keys[:-1]):
+                why = ("a coefficient is stored twice" if np.any(keys[1:] == keys[:-1])
+                       else "a coefficient lies outside the order of its tile's cube")
+                raise StoreCorruptError(f"{self.path}: the tiles of level {level} disagree ({why})")
+            if keys.size:
+                out.append(LevelSpline(level, self.h0 / 2.0**level, self.order, keys, val))
         return AmbientSpline(out)
+
+    def _count_mismatch(self, level, held):
+        wanted = {int(lv["level"]): int(lv["coefficients"]) for lv in self.manifest["spline"]["levels"]}
+        return StoreCorruptError(f"{self.path / MANIFEST}: the tiles hold {held} coefficients of level {level}, "
+                                 f"the manifest says {wanted.get(level, 0)}")
 
     @property
     def full(self) -> AmbientSpline:
@@ -177,8 +204,8 @@ class StoreSpline:
         if self._full is None:
             with self._lock:
                 if self._full is None:
-                    self._read_tiles([t for t in self._entries if t not in self._tiles])  # manifest order
-                    self._full = self._build(list(self._entries), complete=True)
+                    pin_mmap_threshold()  # the many arrays read and joined go back to the system
+                    self._full = self._build(list(self._entries), complete=True)  # reads the rest
                     self._tiles = {}
                     self._partial = None
         return self._full
