@@ -283,6 +283,9 @@ def test_upgrade_rewrites_a_format_1_store_atomically(small_store, v1_store, tmp
     assert all((root / e["file"]).exists() for e in old["tiles"])  # kept for readers of version 1
     assert [e["tile"] for e in new["tiles"]] == [e["tile"] for e in old["tiles"]]
     assert new["history"][-1]["action"] == "upgrade"
+    # the nodes are not in the store: the proven bound fits in the room the fit left
+    room = old["fit"]["tolerance_m"] - old["accuracy"]["node_max_error_m"]
+    assert 0 < new["spline"]["value_error_bound_m"] <= room
     store = TileStore.open(root)
     rng = np.random.default_rng(15)
     lat, lon = rng.uniform(10, 30, 3000), rng.uniform(20, 40, 3000)
@@ -291,3 +294,36 @@ def test_upgrade_rewrites_a_format_1_store_atomically(small_store, v1_store, tmp
                           codec.quantised_spline(small_store.result.spline, step).undulation(lat, lon))
     with pytest.raises(StoreError, match="already in store format 2"):
         upgrade_store(root)
+
+
+UPGRADE_POINTS = ["after-lock", "before-tiles", "during-tiles", "after-tiles", "before-manifest", "manifest-written"]
+
+
+@pytest.mark.parametrize("point", UPGRADE_POINTS)
+def test_an_upgrade_killed_halfway_leaves_the_format_1_store(small_store, v1_store, tmp_path, point):
+    # `geoid-info --upgrade` killed (no clean-up, like SIGKILL) at each commit point
+    # before the manifest is replaced: the format-1 store is as it was, byte for byte
+    # in its manifest and tiles, opens, verifies and gives the fitted values; the next
+    # upgrade succeeds
+    import os
+    import subprocess
+    import sys
+
+    from geoidspline.store.reader import verify_store
+    from geoidspline.store.upgrade import upgrade_store
+
+    root = Path(shutil.copytree(v1_store, tmp_path / "v1"))
+    before = {p.relative_to(root): p.read_bytes() for p in root.rglob("*") if p.is_file() and p.name != ".lock"}
+    env = dict(os.environ, GEOIDSPLINE_CRASH_AT=point)
+    run = subprocess.run([sys.executable, "-m", "geoidspline", "info", "--store", str(root), "--upgrade"],
+                         env=env, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 77, run.stderr
+    for rel, data in before.items():
+        assert (root / rel).read_bytes() == data, rel
+    assert _manifest(root)["format_version"] == 1
+    assert verify_store(root) == []
+    rng = np.random.default_rng(16)
+    lat, lon = rng.uniform(10, 30, 500), rng.uniform(20, 40, 500)
+    assert np.array_equal(TileStore.open(root).undulation(lat, lon), small_store.result.spline.undulation(lat, lon))
+    assert upgrade_store(root)["to_format"] == 2
+    assert verify_store(root) == []
