@@ -74,7 +74,9 @@ def run_update(source, store, region, blend_width, workers, correction, preset, 
         echo(f"region     {record['nodes_in_region']:,} nodes: max |error| {record['max_error_m']:.4f} m, "
                    f"RMS {record['rms_error_m']:.4f} m")
     if not record["converged"]:
-        echo(f"tolerance  {record['tolerance_m']:g} m NOT reached with the store's levels")
+        echo(f"tolerance  {record['tolerance_m']:g} m NOT reached inside the region")
+        if record.get("hint"):
+            echo(f"hint       {record['hint']}")
     echo(f"time       {record['wall_seconds']:.1f} s")
     if not record["converged"]:
         sys.exit(3)

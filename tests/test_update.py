@@ -14,6 +14,7 @@ import pytest
 import geoidspline
 from geoidspline.api import build_store
 from geoidspline.errors import CoordinateError, StoreError
+from geoidspline.geodesy.ellipsoids import KM_PER_DEGREE
 from geoidspline.fitting.parameters import FitParameters
 from geoidspline.sources.base import Provenance
 from geoidspline.sources.formats import write_gtx
@@ -196,6 +197,69 @@ def test_region_outside_the_source_is_refused(store):
     with pytest.raises(CoordinateError, match="not inside the extent"):
         update_store(store, regional, Region(40, 10, 50, 30))
     assert snapshot(store) == before
+
+
+def national_grid(region, blend_km, offset_m=1.0, margin_deg=1.0, step=0.25):
+    """A national grid: the new geoid (the bump, and a datum offset) on a lattice four
+    times finer than the store's source, covering the region's blend zone and
+    ``margin_deg`` more, nothing beyond."""
+    s, w, n, e = region.expanded(blend_km / KM_PER_DEGREE).expanded(margin_deg).as_tuple()
+    lat = np.arange(np.floor(s), np.ceil(n) + 1e-9, step)
+    lon = np.arange(np.floor(w), np.ceil(e) + 1e-9, step)
+    lat2, lon2 = np.meshgrid(lat, lon, indexing="ij")
+    values = base_field(lat2, lon2) + bump(lat2, lon2) + offset_m
+    return GeoidGrid(lat, lon, values, Provenance(source="national", model="national", tide_system="tide_free"))
+
+
+def test_outside_the_blend_zone_the_store_is_unchanged(store):
+    """The update's B-splines lie inside the blend zone, so beyond it the store keeps its
+    values (to the rounding of summing the levels in another order), even where the national grid has no nodes at all (beyond its extent
+    nothing constrains a B-spline that would reach there: it used to move the store by
+    decimetres hundreds of km away)."""
+    before = geoidspline.open_store(store)
+    record = update_store(store, national_grid(REGION, BLEND_KM), REGION, blend_width_km=BLEND_KM)
+    assert record["converged"] and record["max_error_m"] <= PARAMS.tolerance_m
+    after = geoidspline.open_store(store)
+    zone = REGION.expanded(BLEND_KM / KM_PER_DEGREE)
+    rng = np.random.default_rng(5)
+    lat, lon = rng.uniform(-40, 60, 200_000), rng.uniform(-30, 70, 200_000)
+    outside = ~zone.contains(lat, lon)
+    assert outside.sum() > 150_000
+    change = after.undulation(lat[outside], lon[outside]) - before.undulation(lat[outside], lon[outside])
+    assert np.abs(change).max() <= 1e-12
+    # and inside the region the national geoid, offset included
+    inside = REGION.contains(lat, lon)
+    truth = base_field(lat[inside], lon[inside]) + bump(lat[inside], lon[inside]) + 1.0
+    assert np.abs(after.undulation(lat[inside], lon[inside]) - truth).max() < 2 * PARAMS.tolerance_m
+
+
+def test_a_source_too_coarse_for_its_blend_is_reported_and_still_local(store):
+    """A 2° source cannot fall to the store's values within 100 km: the update says so
+    (not converged, with the reason) and still changes nothing outside its blend zone."""
+    before = geoidspline.open_store(store)
+    record = update_store(store, national_grid(REGION, 100.0, step=2.0), REGION, blend_width_km=100.0)
+    assert not record["converged"] and "blend width (100 km) spans fewer than 4 node spacings" in record["hint"]
+    after = geoidspline.open_store(store)
+    zone = REGION.expanded(100.0 / KM_PER_DEGREE)
+    lat, lon = np.meshgrid(np.arange(-40, 60, 0.7), np.arange(-30, 70, 0.7), indexing="ij")
+    outside = ~zone.contains(lat, lon)
+    assert np.abs(after.undulation(lat[outside], lon[outside]) - before.undulation(lat[outside], lon[outside])).max() \
+        <= 1e-12
+
+
+def test_a_blend_zone_beyond_the_source_is_refused_with_the_region_that_fits(store):
+    before = snapshot(store)
+    source = national_grid(REGION, BLEND_KM, margin_deg=0.0)  # just the zone, rounded out to 1°
+    wide = Region(REGION.south - 1.0, REGION.west, REGION.north, REGION.east)
+    with pytest.raises(CoordinateError, match=r"blend zone reaches beyond the extent of national.*the largest is") as error:
+        update_store(store, source, wide, blend_width_km=BLEND_KM)
+    assert snapshot(store) == before
+    bounds = str(error.value).split("the largest is ")[1].split(")")[0].split()
+    assert bounds[0::2] == ["S", "W", "N", "E"]
+    suggested = Region(*map(float, bounds[1::2]))
+    assert suggested.south >= source.extent.south and suggested.north <= source.extent.north
+    record = update_store(store, source, suggested, blend_width_km=BLEND_KM)  # the region offered is accepted
+    assert record["store_version"] == 2
 
 
 def test_no_data_where_the_blend_weight_is_zero_keeps_the_store(store, monkeypatch):
