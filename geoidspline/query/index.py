@@ -118,9 +118,6 @@ class _Members:
             self._cached = (row, _Slab(self.lv, self.order, row))
         return self._cached[1]
 
-    def forget(self):
-        self._cached = None
-
     def scatter(self, keys, dense):
         """Add the coefficients into dense (len(keys), side³) blocks of bricks ``keys``
         (sorted)."""
@@ -153,8 +150,7 @@ def _own_tables(members, side):
     keys_parts, base_parts, col_parts, value_parts = [], [], [], []
     value_base = 0
     for row in members.rows:
-        slab = members.slab(row)
-        members.forget()
+        slab = _Slab(members.lv, members.order, row)  # used once: not kept
         nb = slab.brick_keys.size
         if nb == 0:
             continue

@@ -47,7 +47,7 @@ from .._version import __version__  # noqa: F401 (recorded in manifests)
 from ..bspline.keys import pack_keys, unpack_keys
 from ..bspline.level import cube_of_support_centres
 from ..errors import StoreCorruptError, StoreError
-from .codec import decode_tile, encode_tile, is_tile_v2
+from .codec import decode_tile, encode_tile, is_tile_v2, runs_of
 
 FORMAT_NAME = "geoidspline-tile-store"
 
@@ -302,8 +302,7 @@ def read_tile_levels(path, entry, data, manifest):
     if out:
         # the place of a run's first and last coefficient is the place of all of it: a
         # run varies k alone, and the cube of a support centre grows with k
-        ends = {lv: k[np.flatnonzero(np.r_[True, k[1:] != k[:-1] + 1] | np.r_[k[1:] != k[:-1] + 1, True])]
-                for lv, (k, _) in out.items()}
+        ends = {lv: _run_ends(k) for lv, (k, _) in out.items()}
         indices = np.concatenate([unpack_keys(k) for k in ends.values()])
         levels = np.concatenate([np.full(k.size, lv, np.int64) for lv, k in ends.items()])
         values = np.concatenate([v for _, v in out.values()])
@@ -358,6 +357,12 @@ def _check_record(refuse, entry, manifest, found, record):
             bad = True
         if bad:
             raise refuse(f"was written for {key} {record[key]}, the manifest says {want}")
+
+
+def _run_ends(keys):
+    """The first and last key of every run of consecutive keys (sorted keys)."""
+    starts, lengths = runs_of(keys)
+    return np.concatenate([keys[starts], keys[starts + lengths - 1]])
 
 
 def _check_contents(refuse, entry, manifest, indices, levels, values):

@@ -572,7 +572,7 @@ def _fit_manifest(root, result, provenance, check, previous, version, extra, att
             "node_max_error_m": node_stats["max_error_m"],
             "node_rms_error_m": node_stats["rms_error_m"],
             "node_p99_error_m": node_stats["p99_error_m"],
-            "fit_node_max_error_m": result.node_max_error_m,
+            "fit_node_max_error_m": error_stats(result.node_errors)["max_error_m"],
             "check_points": check_stats["count"],
             "check_truth": check.description if check is not None else None,
             "max_error_m": check_stats["max_error_m"],
