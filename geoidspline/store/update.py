@@ -5,14 +5,17 @@ An update fits one more set of overlays, Δ, to the residual
     r(u) = w(u) · (N_new(u) − S_old(u)),
 
 w = 1 inside the region, falling to 0 with a cosine taper over ``blend_width_km``
-outside it (0 where the new source has no data). Δ only takes B-splines whose whole
+outside it. Where the new source has no data but the store has (a national grid's
+sea), N_new − S_old is that of the nearest node with new data, faded out with the same
+taper over the blend width (:func:`fade_into_no_data`): the coast is no step, and
+beyond the blend width the store keeps its values. Δ only takes B-splines whose whole
 support lies inside the blend zone (the region grown by the blend width), so outside
-the zone Δ is exactly 0 and the store's values there are its old ones to the last bit;
-the result S_old + Δ is one spline on R³ (C² everywhere, no step at the region's edge)
-and only the tiles owning Δ's B-splines are rewritten: every other tile file stays
-byte-identical. The blend zone must lie inside the source's extent: beyond it there is
-no new data to fade from, and a B-spline reaching there would be unconstrained. The new tiles and manifest are committed
-the same atomic way as a fresh store (:mod:`geoidspline.store.writer`); the previous
+the zone Δ is exactly 0 and the store keeps its old values there (to the rounding of
+summing its levels); the result S_old + Δ is one spline on R³ (C² everywhere, no step
+at the region's edge) and only the tiles owning Δ's B-splines are rewritten: every
+other tile file stays byte-identical. The blend zone must lie inside the source's
+extent: beyond it there is no new data to fade from, and a B-spline reaching there
+would be unconstrained. The new tiles and manifest are committed the same atomic way as a fresh store (:mod:`geoidspline.store.writer`); the previous
 version's tile files are kept for readers that opened it, until the next write.
 """
 
@@ -56,7 +59,7 @@ from .writer import (
     write_tile_entry,
 )
 
-__all__ = ["update_store", "blend_weight"]
+__all__ = ["update_store", "blend_weight", "fade_into_no_data"]
 
 #: Node spacings of the new source a blend zone should span: Δ falls from the new
 #: values to 0 within it on B-splines the data determine.
@@ -100,6 +103,32 @@ class _ResidualRefinement(OverlayRefinement):
         if keys.size:
             keys = keys[supports_inside(keys, h, order, self.zone)]
         return keys, marked, None
+
+
+def fade_into_no_data(difference, latitude, longitude, blend_width_km: float):
+    """At each node of a latitude/longitude lattice without data (NaN in ``difference``),
+    the difference at the nearest node with data times a cosine taper from 1 there to 0
+    at ``blend_width_km`` (0 beyond, and everywhere for a width of 0 or no data at all).
+
+    Distances are measured on the lattice with the spacing of its middle latitude (a
+    taper, so a few per cent of distance do not matter); nodes with data get 0.
+    """
+    from scipy.ndimage import distance_transform_edt
+
+    difference = np.asarray(difference, dtype=float)
+    has_data = np.isfinite(difference)
+    faded = np.zeros(difference.shape)
+    if blend_width_km <= 0.0 or has_data.all() or not has_data.any() or difference.ndim != 2:
+        return faded
+    dlat = float(np.mean(np.diff(latitude))) if len(latitude) > 1 else 1.0
+    dlon = float(np.mean(np.diff(longitude))) if len(longitude) > 1 else 1.0
+    mid = math.radians(0.5 * (float(latitude[0]) + float(latitude[-1])))
+    sampling = (abs(dlat) * KM_PER_DEGREE, abs(dlon) * KM_PER_DEGREE * max(math.cos(mid), 1e-3))
+    distance, (rows, cols) = distance_transform_edt(~has_data, sampling=sampling, return_indices=True)
+    taper = np.where(distance >= blend_width_km, 0.0,
+                     0.5 * (1.0 + np.cos(np.pi * np.minimum(distance / blend_width_km, 1.0))))
+    faded[~has_data] = (taper * difference[rows, cols])[~has_data]
+    return faded
 
 
 def _inside(inner: Region, outer: Region) -> bool:
@@ -254,9 +283,13 @@ def _update(root, store, source, region, blend_width_km, executor, progress, att
     old = store.spline.full.undulation(lat2, lon2)  # the spline, covered or not
     weight = blend_weight(region, blend_deg, lat2, lon2)
     has_new = np.isfinite(sample.undulation)
-    # no new data where the store has its own: keep the store's values there (residual 0)
+    difference = np.where(has_new, sample.undulation - old, np.nan)
+    # no new data where the store has its own (a national grid's sea): the change fades
+    # out from the nearest new data over the blend width, as at the region's edge, so the
+    # coast is no step; farther out the store keeps its values (residual 0)
     keep_old = ~has_new & np.asarray(store.coverage.covers(lat2, lon2))
-    residual = np.where(has_new, weight * (sample.undulation - old), np.where(keep_old, 0.0, np.nan))
+    faded = fade_into_no_data(difference, sample.latitude, sample.longitude, blend_width_km)
+    residual = weight * np.where(has_new, difference, np.where(keep_old, faded, np.nan))
     try:
         new_coverage = Coverage.from_sample(sample, region, source.provenance.source)
     except ValueError as exc:
