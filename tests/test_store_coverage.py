@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import stored_spline
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
@@ -24,7 +25,6 @@ from geoidspline.sphere.coverage import INSIDE, NO_DATA, OUTSIDE, Coverage
 from geoidspline.sphere.region import Region
 from geoidspline.store.update import update_store
 from geoidspline.store.writer import write_store
-from conftest import stored_spline
 
 #: An "Andes" store (S W N E), as in the issue's first report.
 ANDES = Region(-36.0, -76.0, -16.0, -64.0)

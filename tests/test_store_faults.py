@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import stored_spline
 
 import geoidspline
 from geoidspline.api import build_store
@@ -36,7 +37,6 @@ from geoidspline.sphere.region import Region
 from geoidspline.store.reader import verify_store
 from geoidspline.store.update import update_store
 from geoidspline.store.writer import StoreLock, commit, write_store
-from conftest import stored_spline
 
 TESTS = str(Path(__file__).parent)
 SLOW = os.environ.get("GEOIDSPLINE_SLOW") == "1"
