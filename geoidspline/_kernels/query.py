@@ -117,6 +117,44 @@ def brick_row_entries(keys, order, bits, row):
     return brick_keys, brick_start, brick_of_entry, local, coef
 
 
+@_jit
+def own_table_row(brick_start, local, coef_index, coefficients, side):
+    """The own table of one row of bricks from its entries (:func:`brick_row_entries`):
+    ``(base (B,), columns (B, side, side) int32, values)``.
+
+    A run per (brick, column lx, ly) from its first to its last local k (gaps hold 0),
+    runs in entry order; the column entry is the run's offset from its brick's base
+    ``<< COL_SHIFT | first k << COL_KBITS | length``. Two passes: count, then fill.
+    """
+    nb = brick_start.size - 1
+    base = np.zeros(nb, np.int64)
+    cols = np.zeros((nb, side, side), np.int32)
+    total = 0
+    for sweep in range(2):
+        if sweep == 1:
+            values = np.zeros(total)
+        at = 0
+        for b in range(nb):
+            base[b] = at
+            e = brick_start[b]
+            end = brick_start[b + 1]
+            while e < end:
+                f = e
+                while f + 1 < end and local[f + 1, 0] == local[e, 0] and local[f + 1, 1] == local[e, 1]:
+                    f += 1
+                k0 = np.int64(local[e, 2])
+                length = np.int64(local[f, 2]) - k0 + 1
+                if sweep == 1:
+                    cols[b, local[e, 0], local[e, 1]] = np.int32(((at - base[b]) << COL_SHIFT) | (k0 << COL_KBITS)
+                                                                 | length)
+                    for g in range(e, f + 1):
+                        values[at + local[g, 2] - k0] = coefficients[coef_index[g]]
+                at += length
+                e = f + 1
+        total = at
+    return base, cols, values
+
+
 @_ijit
 def _hash_slot(key, mask):
     h = np.uint64(key) * _HASH_MULT

@@ -154,20 +154,8 @@ def _own_tables(members, side):
         nb = slab.brick_keys.size
         if nb == 0:
             continue
-        col_id = (slab.brick_of_entry.astype(np.int64) * side + slab.local[:, 0]) * side + slab.local[:, 1]
-        starts = np.r_[0, np.flatnonzero(col_id[1:] != col_id[:-1]) + 1]
-        del col_id
-        stops = np.r_[starts[1:], slab.local.shape[0]]
-        kz = slab.local[:, 2]
-        k0 = kz[starts].astype(np.int64)
-        length = kz[stops - 1] - k0 + 1
-        base, cols, run_start = _column_tables(
-            nb, side, slab.brick_of_entry[starts].astype(np.int64), slab.local[starts, 0].astype(np.int64),
-            slab.local[starts, 1].astype(np.int64), k0, length)
-        own = np.zeros(int(length.sum()))
-        position = np.repeat(run_start - k0, stops - starts)
-        position += kz
-        own[position] = members.coefficients[slab.coef_index]
+        base, cols, own = _qk.own_table_row(slab.brick_start, slab.local, slab.coef_index, members.coefficients,
+                                            side)
         keys_parts.append(slab.brick_keys)
         base_parts.append(base + value_base)
         col_parts.append(cols)
