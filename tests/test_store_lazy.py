@@ -91,7 +91,7 @@ def test_one_point_reads_few_tiles_and_gives_the_same_bits(small_store):
     assert lazy.spline.tiles_read < total
     # and small batches equal the fitted spline itself, bit for bit
     la, lo = _points(rng, FOLDED_FROM_POINTS - 1, small_store.region)
-    np.testing.assert_array_equal(lazy.undulation(la, lo), small_store.result.spline.undulation(la, lo))
+    np.testing.assert_array_equal(lazy.undulation(la, lo), small_store.stored.undulation(la, lo))
 
 
 def test_large_batches_and_the_levels_read_every_tile(small_store):
@@ -100,7 +100,7 @@ def test_large_batches_and_the_levels_read_every_tile(small_store):
     lat, lon = _points(np.random.default_rng(3), FOLDED_FROM_POINTS, small_store.region)
     values = store.undulation(lat, lon)
     assert store.spline.tiles_read == total
-    np.testing.assert_array_equal(values, small_store.result.spline.undulation(lat, lon))
+    np.testing.assert_array_equal(values, small_store.stored.undulation(lat, lon))
     other = geoidspline.open_store(small_store.path)
     assert sum(len(lv) for lv in other.spline.levels) == other.spline.coefficient_count
     assert other.spline.tiles_read == total
@@ -117,7 +117,7 @@ def test_scattered_small_batch_reads_the_whole_store_at_once(small_store):
     values = store.undulation(lat, lon)
     assert store.spline.tiles_read == len(store.manifest["tiles"])
     assert store.spline._full is not None
-    np.testing.assert_array_equal(values, small_store.result.spline.undulation(lat, lon))
+    np.testing.assert_array_equal(values, small_store.stored.undulation(lat, lon))
 
 
 def test_concurrent_queries_see_the_same_values(small_store):

@@ -52,6 +52,8 @@ from .writer import (
     commit,
     crash_point,
     group_by_tile,
+    quantisation_meta,
+    tile_encoding,
     tile_groups,
     tile_stats,
     write_tile_entry,
@@ -300,7 +302,8 @@ def _update(root, store, source, region, blend_width_km, executor, progress, att
     errors = sample.undulation[inside] - merged.undulation(lat2[inside], lon2[inside])
 
     version = manifest["store_version"] + 1
-    spline_meta = {"order": params.order, "h0": params.h0, "tile_size": params.tile_size}
+    format_version, encoding = tile_encoding(manifest)  # the store's own tile format and step
+    spline_meta = {"order": params.order, "h0": params.h0, "tile_size": params.tile_size, **encoding}
     if manifest.get("store_id"):
         spline_meta["store_id"] = manifest["store_id"]
     changed = set(tile_groups(delta.spline, params.tile_size))
@@ -317,7 +320,8 @@ def _update(root, store, source, region, blend_width_km, executor, progress, att
                                                   "node_max_error_m", "node_rms_error_m", "nodes")
                     if k in entries[tile]}
             stats = kept
-        entries[tile] = write_tile_entry(root, key, groups[key], version, spline_meta, stats, attempt)
+        entries[tile] = write_tile_entry(root, key, groups[key], version, spline_meta, stats, attempt,
+                                         format_version)
         crash_point("during-tiles")
     crash_point("after-tiles")
     region_stats = error_stats(errors)
@@ -354,7 +358,8 @@ def _update(root, store, source, region, blend_width_km, executor, progress, att
         "coverage": coverage_record(store.coverage.union(new_coverage)),
         "spline": dict(manifest["spline"], levels=[
             {"level": lv.level, "h": lv.h, "coefficients": len(lv)} for lv in merged.levels
-        ], coefficients=merged.coefficient_count),
+        ], coefficients=merged.coefficient_count,
+           **(quantisation_meta(encoding["value_step_m"], len(merged.levels)) if encoding else {})),
         "tiles": [entries[k] for k in sorted(entries)],
         "history": manifest.get("history", []) + [record],
     })
