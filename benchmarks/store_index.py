@@ -4,7 +4,9 @@
 
 Each run is a fresh subprocess (so the peak RSS, ``ru_maxrss``, is its own): open the
 store, read every tile and build the compiled index (``store.spline.index``), evaluate
-one batch so the kernels are loaded. The first run of a store warms the file cache and
+one batch so the kernels are loaded; ``--process command`` first pins glibc's mmap
+threshold as the geoid-* commands do, ``--process library`` leaves it as a program using
+the library does. The first run of a store warms the file cache and
 numba's on-disk cache; the median of the others is the warm figure. Prints one JSON
 line per store: bytes on disk, coefficients, bytes per coefficient, format, open and
 index seconds (median of warm runs; reading every tile and building the index apart,
@@ -27,6 +29,9 @@ t0 = time.perf_counter()
 import numpy as np
 import geoidspline
 from geoidspline.store.reader import TileStore
+if sys.argv[2] == "command":  # as a geoid-* command does when it starts
+    from geoidspline._memory import pin_mmap_threshold
+    pin_mmap_threshold()
 t1 = time.perf_counter()
 store = TileStore.open(sys.argv[1])
 store.spline.full
@@ -43,10 +48,11 @@ print(json.dumps({"import_s": t1 - t0, "open_index_s": t2 - t1, "read_s": t_read
 """
 
 
-def measure(store: Path, repeat: int) -> dict:
+def measure(store: Path, repeat: int, process: str) -> dict:
     runs = []
     for _ in range(repeat + 1):
-        out = subprocess.run([sys.executable, "-c", _CHILD, str(store)], capture_output=True, text=True, check=True)
+        out = subprocess.run([sys.executable, "-c", _CHILD, str(store), process], capture_output=True, text=True,
+                             check=True)
         runs.append(json.loads(out.stdout.strip().splitlines()[-1]))
     manifest = json.loads((store / "manifest.json").read_text())
     size = (store / "manifest.json").stat().st_size + sum(e["bytes"] for e in manifest["tiles"])
@@ -54,6 +60,7 @@ def measure(store: Path, repeat: int) -> dict:
     warm = runs[1:]
     return {
         "store": str(store),
+        "process": process,
         "format_version": manifest["format_version"],
         "tiles": len(manifest["tiles"]),
         "bytes": size,
@@ -73,9 +80,12 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("stores", nargs="+", type=Path)
     parser.add_argument("--repeat", type=int, default=3, help="warm runs per store (after one cold run)")
+    parser.add_argument("--process", choices=("library", "command"), default="command",
+                        help="a Python program using the library (the allocator left alone), or a geoid-* "
+                             "command (glibc's mmap threshold pinned, geoidspline._memory) [command]")
     args = parser.parse_args(argv)
     for store in args.stores:
-        print(json.dumps(measure(store, args.repeat)), flush=True)
+        print(json.dumps(measure(store, args.repeat, args.process)), flush=True)
 
 
 if __name__ == "__main__":

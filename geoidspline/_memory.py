@@ -10,6 +10,10 @@ index allocate and free many arrays of that size among the ones they keep: the E
 "Compact stores"). Pinning it (``mallopt(M_MMAP_THRESHOLD, 1 MiB)``, which also stops
 the raising) is what ``MALLOC_MMAP_THRESHOLD_=1048576`` in the environment does. Not
 glibc (macOS, musl): nothing is done.
+
+The command-line tools call :func:`pin_mmap_threshold` when they start (they own their
+process); the library never does, since the setting is the whole process's: a program
+using geoidspline as a library can call it, or set the environment variable.
 """
 
 from __future__ import annotations

@@ -178,3 +178,22 @@ finally:
     assert float(value) == pytest.approx(want, abs=5e-5)
     manifest = json.loads((small_store.path / "manifest.json").read_text())
     assert abs(want) > 1.0 and manifest["spline"]["coefficients"] > 0
+
+
+def test_only_the_command_line_pins_the_allocator(small_store):
+    """glibc's mmap threshold is the whole process's: a program reading a store and
+    building its index through the library keeps its own, a geoid-* command (which owns
+    its process) pins it so that the index build's temporaries go back to the system."""
+    code = f"""
+import numpy as np
+import geoidspline
+from geoidspline import _memory
+store = geoidspline.open_store({str(small_store.path)!r})
+store.undulation(np.linspace(20, 21, 5000), np.linspace(30, 31, 5000))  # every tile, the index
+library = _memory._pinned
+from geoidspline.cli.info import main
+main([{str(small_store.path)!r}], standalone_mode=False)
+print(library, _memory._pinned)
+"""
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert run.stdout.strip().splitlines()[-1] == "False True"

@@ -11,7 +11,6 @@ import math
 import numpy as np
 
 from .._kernels import query as _qk
-from .._memory import pin_mmap_threshold
 from .._kernels._jit import numba_threads
 from ..bspline.basis import refinement_weights
 from ..bspline.keys import KEY_BITS, KEY_OFFSET, pack_keys, unpack_keys
@@ -253,7 +252,6 @@ class BrickIndex:
         side = cells + order - 1
         if side > (1 << _qk.COL_KBITS) - 1:
             raise ValueError(f"spline order {order} too high for the query tables")
-        pin_mmap_threshold()  # the build's temporaries go back to the system
         self.order = order
         self.levels = tuple(_merge_levels(levels))
         self.depths = tuple(_fold_depths(self.levels)) if self.levels else ()

@@ -17,7 +17,6 @@ from pathlib import Path
 
 import numpy as np
 
-from .._memory import pin_mmap_threshold
 from ..bspline.level import LevelSpline
 from ..errors import StoreCorruptError, StoreError
 from ..hierarchy.ambient import FOLDED_FROM_POINTS, AmbientSpline
@@ -204,7 +203,6 @@ class StoreSpline:
         if self._full is None:
             with self._lock:
                 if self._full is None:
-                    pin_mmap_threshold()  # the many arrays read and joined go back to the system
                     self._full = self._build(list(self._entries), complete=True)  # reads the rest
                     self._tiles = {}
                     self._partial = None
