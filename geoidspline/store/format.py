@@ -297,8 +297,9 @@ def read_tile_levels(path, entry, data, manifest):
     if count != entry["coefficients"]:
         raise refuse(f"holds {count} coefficients, the manifest says {entry['coefficients']}")
     step = manifest["spline"].get("value_step_m")
-    if step is not None and float(header["value_step_m"]) != float(step):
-        raise refuse(f"was quantised with step {header['value_step_m']} m, the manifest says {step} m")
+    if step is not None and not steps_nest(float(header["value_step_m"]), float(step)):
+        raise refuse(f"was quantised with step {header['value_step_m']} m, not the manifest's {step} m "
+                     f"or a power-of-two fraction of it")
     if out:
         # the place of a run's first and last coefficient is the place of all of it: a
         # run varies k alone, and the cube of a support centre grows with k
@@ -330,6 +331,18 @@ def read_tile_file(path, entry, data, manifest):
         values = np.concatenate([v for _, v in out.values()])
         return indices, levels, values
     return _read_tile_v1(path, entry, data, manifest)
+
+
+def steps_nest(tile_step: float, store_step: float) -> bool:
+    """A tile's quantisation step is the store's or ``store_step / 2**k`` (a regional
+    update writes its tiles with a finer step where its tolerance needs it; every
+    multiple of the store's step is a multiple of those, so the untouched coefficients
+    keep their values bit for bit)."""
+    if not (0.0 < tile_step <= store_step):
+        return False
+    ratio = store_step / tile_step
+    k = round(math.log2(ratio))
+    return 0 <= k <= 30 and ratio == 2.0 ** k
 
 
 def _refusal(path, entry):

@@ -42,6 +42,7 @@ from ..sources.base import NodeSample
 from ..sphere.coordinates import directions
 from ..sphere.coverage import Coverage
 from ..sphere.region import Region
+from .codec import quantised_spline
 from .coverage import coverage_record
 from .format import FORMAT_VERSION, MANIFEST, TILE_DIR, error_stats, load_manifest, utc_now
 from .reader import TileStore
@@ -298,11 +299,25 @@ def _update(root, store, source, region, blend_width_km, executor, progress, att
                       refinement=_ResidualRefinement(params.refine_radius, zone), progress=progress, executor=executor,
                       base_is_overlay=True)
     merged = _merge(store.spline, delta.spline)
+    format_version, encoding = tile_encoding(manifest)  # the store's own tile format and step
     inside = region.contains(lat2, lon2) & has_new
-    errors = sample.undulation[inside] - merged.undulation(lat2[inside], lon2[inside])
+    store_step = encoding.get("value_step_m")
+    if store_step:
+        # the errors of what the store will hold: a format-2 store rounds coefficients
+        # to its step; the rewritten tiles take the store's step halved as often as the
+        # update's tolerance needs at its nodes (the untouched tiles' coefficients are
+        # multiples of every such step, so they keep their values)
+        step, errors = _update_step(merged, store_step, sample.undulation[inside],
+                                    directions(lat2[inside], lon2[inside]), params.tolerance_m)
+        encoding = dict(encoding, value_step_m=step)
+        old_levels = {lv.level for lv in store.spline.levels}
+        # each level's rounding: at most half its coarsest step anywhere (partition of unity)
+        value_bound = sum((store_step if lv.level in old_levels else step) / 2.0 for lv in merged.levels)
+    else:
+        errors = sample.undulation[inside] - merged.undulation(lat2[inside], lon2[inside])
+    converged = bool(delta.converged) and (errors.size == 0 or float(np.abs(errors).max()) <= params.tolerance_m)
 
     version = manifest["store_version"] + 1
-    format_version, encoding = tile_encoding(manifest)  # the store's own tile format and step
     spline_meta = {"order": params.order, "h0": params.h0, "tile_size": params.tile_size, **encoding}
     if manifest.get("store_id"):
         spline_meta["store_id"] = manifest["store_id"]
@@ -342,10 +357,10 @@ def _update(root, store, source, region, blend_width_km, executor, progress, att
         "max_error_m": region_stats["max_error_m"],
         "rms_error_m": region_stats["rms_error_m"],
         "tolerance_m": params.tolerance_m,
-        "converged": bool(delta.converged),
+        "converged": converged,
     }
     spacing_km = KM_PER_DEGREE * max(_step(sample.latitude), _step(sample.longitude))
-    if not delta.converged and blend_width_km < BLEND_NODE_SPACINGS * spacing_km:
+    if not converged and blend_width_km < BLEND_NODE_SPACINGS * spacing_km:
         record["hint"] = (f"the blend width ({blend_width_km:g} km) spans fewer than {BLEND_NODE_SPACINGS} node "
                           f"spacings of {source.provenance.source} ({spacing_km:.3g} km): the update cannot fall "
                           f"to the store's values within it; widen the blend or use a finer source")
@@ -359,11 +374,27 @@ def _update(root, store, source, region, blend_width_km, executor, progress, att
         "spline": dict(manifest["spline"], levels=[
             {"level": lv.level, "h": lv.h, "coefficients": len(lv)} for lv in merged.levels
         ], coefficients=merged.coefficient_count,
-           **(quantisation_meta(encoding["value_step_m"], len(merged.levels)) if encoding else {})),
+           **(quantisation_meta(store_step, len(merged.levels), value_bound) if store_step else {})),
         "tiles": [entries[k] for k in sorted(entries)],
         "history": manifest.get("history", []) + [record],
     })
     return record, new_manifest
+
+
+def _update_step(merged: AmbientSpline, store_step: float, truth, node_directions, tolerance_m: float):
+    """(step, errors): the store's step halved until the quantised ``merged`` spline is
+    within ``tolerance_m`` of ``truth`` at ``node_directions`` (or the fit's own largest
+    error there, if that is more), down to 1 µm; and its errors there (truth − stored)."""
+    target = None
+    step = float(store_step)
+    while True:
+        errors = truth - quantised_spline(merged, step).evaluate_points(node_directions)
+        if target is None:
+            fitted = truth - merged.evaluate_points(node_directions)
+            target = max(float(tolerance_m), float(np.abs(fitted).max()) if fitted.size else 0.0)
+        if not errors.size or np.abs(errors).max() <= target or step / 2.0 < 1e-6:
+            return step, errors
+        step /= 2.0
 
 
 def _merge(old: AmbientSpline, delta: AmbientSpline) -> AmbientSpline:

@@ -397,11 +397,13 @@ def write_tile_entry(root, key, group, version, spline_meta, stats, attempt: _At
     }
 
 
-def quantisation_meta(step, levels) -> dict:
-    """The manifest's statement of a format-2 store's quantisation (``spline`` keys)."""
+def quantisation_meta(step, levels, bound_m: float | None = None) -> dict:
+    """The manifest's statement of a format-2 store's quantisation (``spline`` keys);
+    ``bound_m`` when the levels' steps differ (a regional update's finer tiles), else
+    ``levels · step / 2``."""
     return {
         "value_step_m": step,
-        "value_error_bound_m": value_error_bound(step, levels),
+        "value_error_bound_m": value_error_bound(step, levels) if bound_m is None else float(bound_m),
         "value_error_rule": "each coefficient within step/2; B-splines of a level are non-negative and sum "
                             "to at most 1, so the value moves by at most step/2 per level",
     }
