@@ -84,6 +84,29 @@ def test_codec_round_trip_keeps_keys_and_rounds_values(tile, step):
         assert np.array_equal(got, np.rint(want / step) * step)
 
 
+#: int32 [5, 7, -3, 2**31 - 1, -2**31, 0, 12345, 12346, 12350] as numcodecs 0.16.6 coded
+#: it (Delta(int32), Shuffle(4), Zstd(level=19, checksum=True)): the layout the first
+#: format-2 stores were written in, by numcodecs, before python-zstandard replaced it.
+NUMCODECS_ARRAY = "KLUv/SQk9QAAQoIGD+BpDSoAABbwcVBmCaRMAa+1/334JhFlxoAAIVyG9A=="
+NUMCODECS_VALUES = [5, 7, -3, 2**31 - 1, -2**31, 0, 12345, 12346, 12350]
+
+
+def test_arrays_coded_by_numcodecs_decode_and_ours_round_trip():
+    import base64
+
+    blob = base64.b64decode(NUMCODECS_ARRAY)
+    values = codec._delta_decode(blob, np.int32, len(NUMCODECS_VALUES))
+    assert values.dtype == np.int32 and values.tolist() == NUMCODECS_VALUES
+    ours = codec._delta_encode(np.array(NUMCODECS_VALUES, np.int32), np.int32)
+    assert codec._delta_decode(ours, np.int32, len(NUMCODECS_VALUES)).tolist() == NUMCODECS_VALUES
+    with pytest.raises(ValueError, match="header says 10 numbers"):
+        codec._delta_decode(blob, np.int32, 10)
+    damaged = bytearray(blob)
+    damaged[len(damaged) // 2] ^= 0xFF
+    with pytest.raises(ValueError, match="damaged array"):
+        codec._delta_decode(bytes(damaged), np.int32, len(NUMCODECS_VALUES))
+
+
 def test_keys_cost_little_as_runs():
     # one level of 20,000 coefficients in 400 runs of 50: the keys are nearly free
     starts = np.c_[np.repeat(np.arange(20), 20), np.tile(np.arange(20), 20), np.full(400, -25)]
