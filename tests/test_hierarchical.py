@@ -376,6 +376,13 @@ def test_local_problems_per_block_reach_the_whole_problems_fit():
     assert np.abs(fit - values).max() < 1e-3  # the fit itself is close
     difference = AmbientSpline(basis.level_splines(tiled - whole)).evaluate_points(pts)
     assert np.abs(difference).max() < 3e-4
+    # a block whose problem did not change is not solved again, and gives the same coefficients
+    cache = {}
+    first, solved = solve_basis(basis, points, data, params, force_tiles=True, cache=cache)
+    again, solved_again = solve_basis(basis, points, data, params, force_tiles=True, cache=cache)
+    assert solved == many and solved_again == 0 and len(cache) == many
+    np.testing.assert_array_equal(again, first)
+    np.testing.assert_array_equal(first, tiled)
 
 
 @pytest.mark.parametrize("refinement", ["overlays", "hierarchical"])

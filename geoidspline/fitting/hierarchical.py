@@ -22,6 +22,7 @@ of either method are written, queried, updated and exported the same way.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import logging
 import math
 import time
@@ -143,6 +144,16 @@ class HierarchicalProblem:
     points: tuple  # per level: (M, 3) sites in the box
     values: tuple  # per level: (M,) values at them
 
+    def digest(self) -> bytes:
+        """A hash of everything the solution depends on: equal digests, equal solutions
+        (a refinement step leaves most blocks as they were)."""
+        h = hashlib.blake2b(repr((self.block, self.order, self.h0, self.regularization)).encode(), digest_size=20)
+        for part in (self.active, self.leaves, self.own, self.points, self.values):
+            for array in part:
+                h.update(np.ascontiguousarray(array).tobytes())
+                h.update(b"|")
+        return h.digest()
+
     def solve(self):
         """(own keys per level, own coefficients per level, solve seconds)."""
         start = time.perf_counter()
@@ -177,17 +188,19 @@ def block_keys(basis: HierarchicalBasis, size: float) -> np.ndarray:
 
 
 def block_problems(basis: HierarchicalBasis, points, values, params: FitParameters):
-    """Local problems (thesis §5.3.3): blocks of ``tile_size`` own the B-splines whose
-    support centre they hold; a block's problem carries every active B-spline whose
-    support meets the block grown by a margin and the sites there. The margin is one
-    level-0 support, ``order * h0``: the support of every B-spline a block keeps lies
-    in its problem (the thesis's condition; half that margin would do) with half a
-    support to spare, which keeps the truncation of the least-squares coupling small
-    (with half the margin, blocks differed from the whole problem by 0.1 m at nodes of
-    the Andes at 0.5 m tolerance)."""
+    """Local problems (thesis §5.3.3): blocks of ``tile_size`` (the store's tiles) own
+    the B-splines whose support centre they hold; a block's problem carries every active
+    B-spline whose support meets the block grown by a margin and the sites there.
+
+    The margin is one support, ``order * h``, of the coarsest level the block owns a
+    B-spline of: the support of every B-spline a block keeps lies in its problem (the
+    thesis's condition; half that margin would do) with half a support to spare, which
+    keeps the truncation of the least-squares coupling small (with half the margin,
+    blocks differed from the whole problem by 0.1 m at nodes of the Andes at 0.5 m
+    tolerance). Requirement 5.3 keeps level ℓ - 2 and coarser away from level-ℓ
+    supports, so where a region is refined the margin shrinks with its levels."""
     n = basis.order
     size = params.tile_size
-    margin = n * params.h0
     levels = basis.levels
     spans, fbins, sbins, cbins = [], [], [], []
     for lv in range(levels):
@@ -199,10 +212,16 @@ def block_problems(basis: HierarchicalBasis, points, values, params: FitParamete
         cells = unpack_keys(basis.leaves[lv]) * h
         cbins.append((cells, _binned(cells + h / 2.0, size)))
     blocks = block_keys(basis, size)
-    reach = int(math.ceil((margin + n * params.h0 / 2.0) / size))
+    coarsest = np.full(blocks.size, levels - 1)
+    for lv in range(levels - 1, -1, -1):
+        coarsest[isin_sorted(blocks, fbins[lv][0])] = lv
+    reach = int(math.ceil(1.5 * n * params.h0 / size))
     f_near = cube_offsets(-reach, reach)
-    reach = int(math.ceil(margin / size))
+    reach = int(math.ceil(n * params.h0 / size))
     s_near = cube_offsets(-reach, reach)
+    for key, top in zip(blocks, coarsest):
+        block = unpack_keys(np.array([key]))[0]
+        margin = n * basis.spacing(int(top))
     for key in blocks:
         block = unpack_keys(np.array([key]))[0]
         box_lo = block * size - margin
@@ -235,29 +254,49 @@ def block_problems(basis: HierarchicalBasis, points, values, params: FitParamete
 
 
 def solve_basis(basis: HierarchicalBasis, points, values, params: FitParameters, force_tiles=False,
-                executor: Executor | None = None, progress=None, name="hierarchical fit"):
+                executor: Executor | None = None, progress=None, name="hierarchical fit", cache=None):
     """Coefficients (all levels, in :meth:`HierarchicalBasis.offsets` order) of the
     least-squares fit of ``values`` at ``points`` (one array each per level) over the
     whole basis: one problem up to :data:`WHOLE_MAX_UNKNOWNS` unknowns, else local
     problems per block (:func:`block_problems`) solved by ``executor``; and the number
     of problems solved. ``progress`` (:mod:`geoidspline.fitting.progress`) is told of
-    each problem solved, as the stage ``name``."""
+    each problem solved or reused, as the stage ``name``. ``cache`` (a dict kept across
+    refinement steps) maps a block's :meth:`HierarchicalProblem.digest` to its result:
+    a block whose problem has not changed is not solved again."""
     progress = as_progress(progress)
     if basis.coefficient_count <= WHOLE_MAX_UNKNOWNS and not force_tiles:
         with progress.stage(name, 1, "block") as advance:
             coefs = _solve(basis, points, values, params.regularization)
             advance(1)
         return coefs, 1
+    cache = {} if cache is None else cache
+    reused, digests = [], []
+
+    def changed(problems, advance):
+        for problem in problems:
+            digest = problem.digest()
+            if digest in cache:
+                reused.append((digest, cache[digest]))
+                advance(1)
+            else:
+                digests.append(digest)
+                yield problem
+
     with progress.stage(name, int(block_keys(basis, params.tile_size).size), "block") as advance:
-        results = (executor or Executor()).solve(block_problems(basis, points, values, params), advance)
+        solved = (executor or Executor()).solve(changed(block_problems(basis, points, values, params), advance),
+                                                advance)
+    cache.clear()  # only this step's blocks can recur in the next
+    cache.update(reused)
+    cache.update(zip(digests, solved))
     at = basis.offsets()
     coefs = np.full(basis.coefficient_count, np.nan)
-    for keys, values_, _ in results:
+    for keys, values_, _ in solved + [r for _, r in reused]:
         for lv, (k, v) in enumerate(zip(keys, values_)):
             coefs[at[lv] + np.searchsorted(basis.active[lv], k)] = v
     if np.isnan(coefs).any():
         raise FitError(f"blocks returned {int((~np.isnan(coefs)).sum())} of {coefs.size} coefficients")
-    return coefs, len(results)
+    log.info("%s: %d blocks solved, %d unchanged since the last step", name, len(solved), len(reused))
+    return coefs, len(solved)
 
 
 def _finest_level(params: FitParameters, nodes: DataNodes) -> int:
@@ -290,6 +329,7 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
     if basis.coefficient_count == 0:
         raise FitError(f"no cells of spacing {params.h0} meet the sphere over the region {region.as_tuple()}")
     reports = []
+    cache = {}  # block results by problem digest, across steps
     converged = data_limited = False
     while True:
         t0 = time.perf_counter()
@@ -297,7 +337,7 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
         sites = leaf_sites(nodes, basis, params)
         points, values = [p for p, _ in sites], [nodes.values[i] for _, i in sites]
         coefs, solved = solve_basis(basis, points, values, params, force_tiles, executor, progress,
-                                    f"hierarchical step {step} ({basis.coefficient_count:,} unknowns)")
+                                    f"hierarchical step {step} ({basis.coefficient_count:,} unknowns)", cache)
         if on_step is not None:
             on_step(basis, points, values, coefs)
         spline = AmbientSpline(basis.level_splines(coefs))
