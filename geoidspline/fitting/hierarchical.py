@@ -270,7 +270,7 @@ def solve_basis(basis: HierarchicalBasis, points, values, params: FitParameters,
             advance(1)
         return coefs, 1
     cache = {} if cache is None else cache
-    reused, digests = [], []
+    reused, digests, sizes = [], [], []
 
     def changed(problems, advance):
         for problem in problems:
@@ -280,6 +280,7 @@ def solve_basis(basis: HierarchicalBasis, points, values, params: FitParameters,
                 advance(1)
             else:
                 digests.append(digest)
+                sizes.append(int(sum(a.size for a in problem.active)))
                 yield problem
 
     with progress.stage(name, int(block_keys(basis, params.tile_size).size), "block") as advance:
@@ -295,7 +296,9 @@ def solve_basis(basis: HierarchicalBasis, points, values, params: FitParameters,
             coefs[at[lv] + np.searchsorted(basis.active[lv], k)] = v
     if np.isnan(coefs).any():
         raise FitError(f"blocks returned {int((~np.isnan(coefs)).sum())} of {coefs.size} coefficients")
-    log.info("%s: %d blocks solved, %d unchanged since the last step", name, len(solved), len(reused))
+    log.info("%s: %d blocks solved (%d unknowns in all, at most %d in one; %.0f s of solves), %d unchanged since "
+             "the last step", name, len(solved), sum(sizes), max(sizes, default=0), sum(r[2] for r in solved),
+             len(reused))
     return coefs, len(solved)
 
 
