@@ -222,8 +222,6 @@ def block_problems(basis: HierarchicalBasis, points, values, params: FitParamete
     for key, top in zip(blocks, coarsest):
         block = unpack_keys(np.array([key]))[0]
         margin = n * basis.spacing(int(top))
-    for key in blocks:
-        block = unpack_keys(np.array([key]))[0]
         box_lo = block * size - margin
         box_hi = (block + 1) * size + margin
         active, leaves, own, pts, vals = [], [], [], [], []
