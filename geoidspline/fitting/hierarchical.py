@@ -79,6 +79,20 @@ RADIAL_OFFSETS = (0.0,)
 #: factorisation); above, local problems per block (:func:`block_problems`).
 WHOLE_MAX_UNKNOWNS = 100_000
 
+#: The margin of a local problem is one support of the level this many above the
+#: coarsest level its block owns a B-spline of.
+MARGIN_LEVELS_UP = 1
+
+#: Ridge relative to the mean diagonal of AᵀA: keeps B-splines no site sees decided.
+RIDGE = 1e-10
+
+#: The ridge of a local problem. With sites on the sphere only, the thin basis has
+#: combinations that vanish on the sphere (a null space the penalty decides); each block
+#: decides them its own way, and the coefficients kept from different blocks then no
+#: longer cancel on the sphere (Andes, level 0 alone: 99 m at the nodes against 15 m for
+#: the whole problem). A ridge makes that choice local (the smallest coefficients).
+BLOCK_RIDGE = 1e-4
+
 _EMPTY = np.empty(0, dtype=np.int64)
 
 
@@ -118,13 +132,12 @@ def _penalty(basis: HierarchicalBasis, diagonal, weight):
     return sp.block_diag(blocks, format="csc") if blocks else sp.csc_matrix((0, 0))
 
 
-def _solve(basis: HierarchicalBasis, points, values, regularization):
+def _solve(basis: HierarchicalBasis, points, values, regularization, ridge=None):
     matrix, rhs = normal_matrix(basis, [(p, v) for p, v in zip(points, values)])
     diagonal = matrix.diagonal()
     system = matrix + _penalty(basis, diagonal, regularization)
     scale = float(diagonal[diagonal > 0].mean()) if np.any(diagonal > 0) else 1.0
-    # keeps B-splines no site sees (outside a block's sites) decided; 1e-10 biases nothing
-    system = system + sp.identity(basis.coefficient_count, format="csc") * (1e-10 * scale)
+    system = system + sp.identity(basis.coefficient_count, format="csc") * ((RIDGE if ridge is None else ridge) * scale)
     return qdldl.Solver(sp.triu(system, format="csc")).solve(rhs)
 
 
@@ -158,7 +171,7 @@ class HierarchicalProblem:
         """(own keys per level, own coefficients per level, solve seconds)."""
         start = time.perf_counter()
         basis = HierarchicalBasis(Domain(_EMPTY, self.h0), self.order, self.active, self.leaves)
-        coefs = _solve(basis, self.points, self.values, self.regularization)
+        coefs = _solve(basis, self.points, self.values, self.regularization, BLOCK_RIDGE)
         at = basis.offsets()
         keys = tuple(a[o] for a, o in zip(self.active, self.own))
         values = tuple(coefs[at[lv]:at[lv + 1]][o] for lv, o in enumerate(self.own))
@@ -221,7 +234,7 @@ def block_problems(basis: HierarchicalBasis, points, values, params: FitParamete
     s_near = cube_offsets(-reach, reach)
     for key, top in zip(blocks, coarsest):
         block = unpack_keys(np.array([key]))[0]
-        margin = n * basis.spacing(int(top))
+        margin = n * basis.spacing(max(int(top) - MARGIN_LEVELS_UP, 0))
         box_lo = block * size - margin
         box_hi = (block + 1) * size + margin
         active, leaves, own, pts, vals = [], [], [], [], []
