@@ -441,3 +441,21 @@ def test_stores_of_either_refinement_fit_query_update_verify_and_export(syntheti
     # the grid's nodes are 2° apart: between them the field is matched to a few cm
     np.testing.assert_allclose(exported.values, analytic(lat2, lon2), atol=0.03)
     np.testing.assert_allclose(exported.values, TileStore.open(store).undulation(lat2, lon2), atol=1e-6)
+
+
+def test_refinement_is_checked_where_parameters_are(synthetic_gtx, tmp_path):
+    """An unknown refinement, or the hierarchical basis with quasi-interpolation, is a
+    user's mistake: one ERROR line, exit status 1 (click refuses an unknown name: 2)."""
+    from click.testing import CliRunner
+
+    from geoidspline.cli.fit import main as fit_main
+    from geoidspline.errors import FitError
+
+    with pytest.raises(FitError, match="refinement must be one of"):
+        FitParameters(refinement="octree")
+    with pytest.raises(FitError, match="least squares"):
+        FitParameters(refinement="hierarchical", method="interpolation")
+    args = [str(synthetic_gtx), "--store", str(tmp_path / "s"), "--region", "10", "20", "30", "40"]
+    run = CliRunner().invoke(fit_main, args + ["--refinement", "hierarchical", "--method", "interpolation"])
+    assert run.exit_code == 1 and run.stderr.startswith("ERROR:") and "least squares" in run.stderr
+    assert CliRunner().invoke(fit_main, args + ["--refinement", "octree"]).exit_code == 2
