@@ -19,7 +19,9 @@ from ._common import command, echo, store_options, user_errors, verbosity_option
 @click.option("--region", nargs=4, type=float, metavar="S W N E", required=True,
               help="Region in degrees where SOURCE replaces the store's geoid: south west north east.")
 @click.option("--blend-width", type=click.FloatRange(min=0.0), default=100.0, show_default=True,
-              help="Width in km outside --region over which SOURCE fades into the store (0: sharpest).")
+              help="Width in km outside --region over which SOURCE fades into the store; outside it the store "
+                   "is unchanged (0: the change stays inside the region, so SOURCE is reached only away from its "
+                   "edge).")
 @click.option("--tolerance", type=click.FloatRange(min=0.0, min_open=True), default=None,
               help="Largest |error| in metres accepted inside --region [default: the store's]; the levels "
                    "available stay the store's.")
@@ -36,13 +38,16 @@ def main(source, store_path, region, blend_width, tolerance, workers, correction
     """Replace the geoid of the store at --store by SOURCE inside --region.
 
     The update fits overlays to w·(N_new − N_store) with the store's own parameters (w
-    fades from 1 inside the region to 0 over --blend-width km outside it), so the result
-    is still one C² spline with no step at the region's edge, and only the tiles owning
-    the new B-splines are rewritten. Refused before anything is written when the store
+    fades from 1 inside the region to 0 over --blend-width km outside it, and likewise
+    from SOURCE's data into its no-data areas, such as a national grid's sea), so the
+    result is still one C² spline with no step at the region's edge or the coast. The
+    new B-splines lie inside the blend zone: outside it the store is unchanged, and
+    only the tiles owning them are rewritten. Refused before anything is written when the store
     is read-only or being written by another process, the source's ellipsoid or tide
-    system differs from the store's, or the region lies outside the source's data or
-    the store's region. Exit status 3: written, but the store's tolerance was not
-    reached inside the region.
+    system differs from the store's, or the region with its blend zone lies outside the
+    source's extent (the message names the largest region that fits), or outside the
+    store's region. Exit status 3: written, but the tolerance was not reached
+    inside the region.
     """
     if store_path is None:
         raise click.UsageError("give --store DIR, the store to update")
@@ -74,7 +79,9 @@ def run_update(source, store, region, blend_width, workers, correction, preset, 
         echo(f"region     {record['nodes_in_region']:,} nodes: max |error| {record['max_error_m']:.4f} m, "
                    f"RMS {record['rms_error_m']:.4f} m")
     if not record["converged"]:
-        echo(f"tolerance  {record['tolerance_m']:g} m NOT reached with the store's levels")
+        echo(f"tolerance  {record['tolerance_m']:g} m NOT reached inside the region")
+        if record.get("hint"):
+            echo(f"hint       {record['hint']}")
     echo(f"time       {record['wall_seconds']:.1f} s")
     if not record["converged"]:
         sys.exit(3)

@@ -13,7 +13,8 @@ cache (``cache=True``): in ``__pycache__`` beside the installed sources, or in
 compilation on the first fit or large query of a process; this module pays it once, at
 install time (the README's set-up command, the Dockerfile), by running the package's own
 code paths on tiny synthetic inputs: a least-squares grid fit with one overlay level, a
-quasi-interpolation fit of a small spherical-harmonic model, and large-batch queries.
+quasi-interpolation fit of a small spherical-harmonic model, large-batch queries and
+a large coverage lookup against a no-data mask.
 Every kernel is therefore compiled for exactly the argument types real use passes
 (dtypes, layouts and read-only flags are part of a numba signature), and
 :func:`warm_up` checks that no public kernel was left out.
@@ -35,6 +36,7 @@ import numpy as np
 #: Modules holding numba kernels (every public dispatcher in them is warmed up).
 KERNEL_MODULES = (
     "geoidspline._kernels.common",
+    "geoidspline._kernels.coverage",
     "geoidspline._kernels.fitting",
     "geoidspline._kernels.interpolation",
     "geoidspline._kernels.query",
@@ -127,6 +129,22 @@ def _queries(spline):
         spline.evaluate_points(points, nderiv=nderiv)
 
 
+def _coverage_lookup():
+    """A large batch against a coverage with a no-data mask (a national grid's sea)."""
+    from .sources.base import NodeSample
+    from .sphere.coordinates import COMPILED_FROM_POINTS
+    from .sphere.coverage import Coverage
+    from .sphere.region import Region
+
+    lat = np.arange(-2.0, 2.01, 0.5)
+    lon = np.arange(30.0, 34.01, 0.5)
+    values = np.ones((lat.size, lon.size))
+    values[4, 4] = np.nan
+    coverage = Coverage.from_sample(NodeSample(lat, lon, values), Region(-2.0, 30.0, 2.0, 34.0))
+    rng = np.random.default_rng(4)
+    coverage.covers(rng.uniform(-2.0, 2.0, COMPILED_FROM_POINTS), rng.uniform(30.0, 34.0, COMPILED_FROM_POINTS))
+
+
 def _legendre_table():
     """:func:`~geoidspline._kernels.legendre.plm_bar`, public but not on a fit's path."""
     from ._kernels import legendre
@@ -155,6 +173,7 @@ def warm_up() -> dict:
     result = _grid_fit()
     _queries(result.spline)
     _model_fit()
+    _coverage_lookup()
     _legendre_table()
     seconds = time.perf_counter() - started
     dispatchers = kernel_dispatchers()

@@ -2,14 +2,18 @@
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.interpolate import BSpline
 
 from geoidspline._kernels.common import bspline_weights as compiled_bspline_weights
+from geoidspline.bspline.domain import supports_inside
 from geoidspline.bspline.keys import pack_keys, unpack_keys
 from geoidspline.bspline.level import LevelSpline
 from geoidspline.errors import CoordinateError
 from geoidspline.hierarchy.ambient import AmbientSpline
 from geoidspline.sphere.coordinates import directions
+from geoidspline.sphere.region import Region
 
 
 @pytest.mark.parametrize("order", [2, 3, 4, 5, 6])
@@ -148,3 +152,40 @@ def test_directions_are_unit_vectors_with_the_documented_convention():
     np.testing.assert_allclose(u[1], [0, 0, 1], atol=1e-15)
     np.testing.assert_allclose(u[2], [0, 1, 0], atol=1e-15)
     np.testing.assert_allclose(u[3], [-np.sqrt(0.5), 0, -np.sqrt(0.5)], atol=1e-15)
+
+
+@settings(max_examples=60, deadline=None)
+@given(south=st.floats(-85, 60), west=st.floats(-180, 179), height=st.floats(2, 25), width=st.floats(2, 60),
+       log2_h=st.floats(-8, -3), order=st.integers(3, 6), seed=st.integers(0, 2**31))
+def test_supports_inside_a_region_are_zero_outside_it(south, west, height, width, log2_h, order, seed):
+    """Every B-spline ``supports_inside`` keeps is 0 at every point of the sphere outside
+    the region: its support cube meets the sphere only inside (checked at points of the
+    sphere drawn inside the cube), and it keeps the B-splines well inside the region."""
+    region = Region(south, west, min(south + height, 90.0), west + width)
+    h = 2.0 ** log2_h
+    rng = np.random.default_rng(seed)
+    # candidate B-splines around the region: those touching cells of random points near it
+    lat = rng.uniform(max(-90.0, region.south - 5), min(90.0, region.north + 5), 400)
+    lon = rng.uniform(region.west - 5, region.east + 5, 400)
+    cells = np.floor(directions(lat, lon) / h).astype(np.int64)
+    keys = np.unique(pack_keys(cells[:, None, :] - rng.integers(0, order, (400, 4, 3))))
+    inside = supports_inside(keys, h, order, region)
+    lo = unpack_keys(keys[inside]) * h
+    for corner in lo[:50]:
+        # points of the sphere inside the support cube [lo, lo + order h]³
+        centre = corner + 0.5 * order * h
+        probe = centre / np.linalg.norm(centre) + rng.uniform(-order * h, order * h, (4000, 3))
+        probe /= np.linalg.norm(probe, axis=1)[:, None]
+        in_cube = np.all((probe >= corner) & (probe <= corner + order * h), axis=1)
+        plat = np.degrees(np.arcsin(probe[in_cube, 2]))
+        plon = np.degrees(np.arctan2(probe[in_cube, 1], probe[in_cube, 0]))
+        assert region.contains(plat, plon).all()
+    # the B-spline around the region's centre is kept when the region is wider than
+    # twice its support
+    margin = np.degrees(2 * order * h)
+    lat0, lon0 = 0.5 * (region.south + region.north), region.west + 0.5 * region.longitude_span
+    widest = max(abs(region.south), abs(region.north))
+    if region.north - region.south > 2 * margin and widest < 60 and \
+            region.longitude_span * np.cos(np.radians(widest)) > 2 * margin:
+        key = pack_keys(np.floor(directions(lat0, lon0) / h).astype(np.int64) - order // 2)
+        assert supports_inside(np.array([key]), h, order, region)[0]

@@ -14,6 +14,7 @@ import pytest
 import geoidspline
 from geoidspline.api import build_store
 from geoidspline.errors import CoordinateError, StoreError
+from geoidspline.geodesy.ellipsoids import KM_PER_DEGREE
 from geoidspline.fitting.parameters import FitParameters
 from geoidspline.sources.base import Provenance
 from geoidspline.sources.formats import write_gtx
@@ -198,12 +199,74 @@ def test_region_outside_the_source_is_refused(store):
     assert snapshot(store) == before
 
 
-def test_no_data_where_the_blend_weight_is_zero_keeps_the_store(store, monkeypatch):
-    """A source with no data outside the region (a national grid, NaN over the sea): Δ is
-    fitted to a zero residual wherever the blend weight is 0, with or without data there,
-    so the no-data nodes do not leave it free to change the store far away; inside the
-    blend zone a node without new data keeps the store's value (0) where the store has
-    coverage, and is no data (NaN) elsewhere, never a made-up residual."""
+def national_grid(region, blend_km, offset_m=1.0, margin_deg=1.0, step=0.25):
+    """A national grid: the new geoid (the bump, and a datum offset) on a lattice four
+    times finer than the store's source, covering the region's blend zone and
+    ``margin_deg`` more, nothing beyond."""
+    s, w, n, e = region.expanded(blend_km / KM_PER_DEGREE).expanded(margin_deg).as_tuple()
+    lat = np.arange(np.floor(s), np.ceil(n) + 1e-9, step)
+    lon = np.arange(np.floor(w), np.ceil(e) + 1e-9, step)
+    lat2, lon2 = np.meshgrid(lat, lon, indexing="ij")
+    values = base_field(lat2, lon2) + bump(lat2, lon2) + offset_m
+    return GeoidGrid(lat, lon, values, Provenance(source="national", model="national", tide_system="tide_free"))
+
+
+def test_outside_the_blend_zone_the_store_is_unchanged(store):
+    """The update's B-splines lie inside the blend zone, so beyond it the store keeps its
+    values (to the rounding of summing the levels in another order), even where the national grid has no nodes at all (beyond its extent
+    nothing constrains a B-spline that would reach there: it used to move the store by
+    decimetres hundreds of km away)."""
+    before = geoidspline.open_store(store)
+    record = update_store(store, national_grid(REGION, BLEND_KM), REGION, blend_width_km=BLEND_KM)
+    assert record["converged"] and record["max_error_m"] <= PARAMS.tolerance_m
+    after = geoidspline.open_store(store)
+    zone = REGION.expanded(BLEND_KM / KM_PER_DEGREE)
+    rng = np.random.default_rng(5)
+    lat, lon = rng.uniform(-40, 60, 200_000), rng.uniform(-30, 70, 200_000)
+    outside = ~zone.contains(lat, lon)
+    assert outside.sum() > 150_000
+    change = after.undulation(lat[outside], lon[outside]) - before.undulation(lat[outside], lon[outside])
+    assert np.abs(change).max() <= 1e-12
+    # and inside the region the national geoid, offset included
+    inside = REGION.contains(lat, lon)
+    truth = base_field(lat[inside], lon[inside]) + bump(lat[inside], lon[inside]) + 1.0
+    assert np.abs(after.undulation(lat[inside], lon[inside]) - truth).max() < 2 * PARAMS.tolerance_m
+
+
+def test_a_source_too_coarse_for_its_blend_is_reported_and_still_local(store):
+    """A 2° source cannot fall to the store's values within 100 km: the update says so
+    (not converged, with the reason) and still changes nothing outside its blend zone."""
+    before = geoidspline.open_store(store)
+    record = update_store(store, national_grid(REGION, 100.0, step=2.0), REGION, blend_width_km=100.0)
+    assert not record["converged"] and "blend width (100 km) spans fewer than 4 node spacings" in record["hint"]
+    after = geoidspline.open_store(store)
+    zone = REGION.expanded(100.0 / KM_PER_DEGREE)
+    lat, lon = np.meshgrid(np.arange(-40, 60, 0.7), np.arange(-30, 70, 0.7), indexing="ij")
+    outside = ~zone.contains(lat, lon)
+    assert np.abs(after.undulation(lat[outside], lon[outside]) - before.undulation(lat[outside], lon[outside])).max() \
+        <= 1e-12
+
+
+def test_a_blend_zone_beyond_the_source_is_refused_with_the_region_that_fits(store):
+    before = snapshot(store)
+    source = national_grid(REGION, BLEND_KM, margin_deg=0.0)  # just the zone, rounded out to 1°
+    wide = Region(REGION.south - 1.0, REGION.west, REGION.north, REGION.east)
+    with pytest.raises(CoordinateError, match=r"blend zone reaches beyond the extent of national.*the largest is") as error:
+        update_store(store, source, wide, blend_width_km=BLEND_KM)
+    assert snapshot(store) == before
+    bounds = str(error.value).split("the largest is ")[1].split(")")[0].split()
+    assert bounds[0::2] == ["S", "W", "N", "E"]
+    suggested = Region(*map(float, bounds[1::2]))
+    assert suggested.south >= source.extent.south and suggested.north <= source.extent.north
+    record = update_store(store, source, suggested, blend_width_km=BLEND_KM)  # the region offered is accepted
+    assert record["store_version"] == 2
+
+
+def test_no_data_nodes_fade_from_the_nearest_data_and_keep_the_store_beyond(store, monkeypatch):
+    """A source with no data outside the region (a national grid, NaN over the sea): a
+    no-data node gets the difference of the nearest node with data, faded out over the
+    blend width, times the region's weight, so the change has no step at the coast and
+    is 0 (the store's values) where either taper is; never NaN where the store has data."""
     import geoidspline.store.update as update_module
 
     def island(la, lo):
@@ -223,11 +286,63 @@ def test_no_data_where_the_blend_weight_is_zero_keeps_the_store(store, monkeypat
         update_store(store, grid(island, "island"), REGION, blend_width_km=BLEND_KM, tolerance_m=0.02)
     sample = captured["sample"]
     lat2, lon2 = np.meshgrid(sample.latitude, sample.longitude, indexing="ij")
-    weight = update_module.blend_weight(REGION, BLEND_KM / update_module.KM_PER_DEGREE, lat2, lon2)
-    assert np.all(sample.undulation[weight == 0.0] == 0.0)
-    in_blend = sample.undulation[(weight > 0.0) & ~REGION.contains(lat2, lon2)]
-    assert in_blend.size and np.all((in_blend == 0.0) | np.isnan(in_blend))
-    assert np.all(np.isfinite(sample.undulation[REGION.contains(lat2, lon2)]))
+    weight = update_module.blend_weight(REGION, BLEND_KM / KM_PER_DEGREE, lat2, lon2)
+    residual = sample.undulation
+    assert np.all(np.isfinite(residual))  # the global store covers every node
+    assert np.all(residual[weight == 0.0] == 0.0)
+    inside = REGION.contains(lat2, lon2)
+    old = geoidspline.open_store(store).undulation(lat2, lon2)
+    # (the grid holds float32 values: rounding of 30 m values, ~2e-6 m)
+    np.testing.assert_allclose(residual[inside], island(lat2, lon2)[inside] - old[inside], atol=1e-5)
+    # just outside the east edge: the edge node's difference, tapered twice (region and data)
+    row = np.argmin(np.abs(sample.latitude - 10.0))
+    edge = np.argmin(np.abs(sample.longitude - REGION.east))
+    diff_edge = residual[row, edge]
+    for k in (1, 2):
+        d_km = (sample.longitude[edge + k] - REGION.east) * KM_PER_DEGREE * np.cos(np.radians(10.0))
+        taper = 0.5 * (1 + np.cos(np.pi * min(d_km / BLEND_KM, 1.0)))
+        assert residual[row, edge + k] == pytest.approx(weight[row, edge + k] * taper * diff_edge, rel=0.05)
+    assert 0 < abs(residual[row, edge + 1]) < abs(diff_edge)
+
+
+def test_fade_into_no_data():
+    from geoidspline.store.update import fade_into_no_data
+
+    lat = np.arange(0.0, 10.01, 0.1)
+    lon = np.arange(0.0, 10.01, 0.1)
+    diff = np.full((lat.size, lon.size), np.nan)
+    diff[:, :50] = 2.0  # data west of 5° E
+    faded = fade_into_no_data(diff, lat, lon, 100.0)
+    assert np.all(faded[:, :50] == 0.0)  # nodes with data are not faded
+    km = (lon - lon[49]) * KM_PER_DEGREE * np.cos(np.radians(5.0))
+    expected = np.where(km >= 100.0, 0.0, 1.0 + np.cos(np.pi * np.minimum(km / 100.0, 1.0)))
+    np.testing.assert_allclose(faded[50, 50:], expected[50:], atol=1e-12)
+    assert np.all(np.diff(faded[50, 50:]) <= 0)  # falling away from the data
+    assert not fade_into_no_data(diff, lat, lon, 0.0).any()  # no blend: no fade
+    assert not fade_into_no_data(np.full_like(diff, np.nan), lat, lon, 100.0).any()
+
+
+def test_a_coast_is_no_step(store):
+    """A national grid with no data east of a meridian inside the region ("sea"), 1 m
+    above the store on land: across the coast the composite changes smoothly (steps per
+    0.01° a small fraction of the 1 m a hard switch makes), and beyond the blend width
+    out at sea the store keeps its values."""
+    def land(la, lo):
+        return np.where(lo <= 20.0, base_field(la, lo) + 1.0, np.nan)
+
+    before = geoidspline.open_store(store)
+    source = national_grid(REGION, BLEND_KM)
+    lat2, lon2 = np.meshgrid(source.latitude, source.longitude, indexing="ij")
+    coast = GeoidGrid(source.latitude, source.longitude, land(lat2, lon2), source.provenance)
+    update_store(store, coast, REGION, blend_width_km=BLEND_KM)
+    after = geoidspline.open_store(store)
+    lon = np.arange(17.0, 26.0, 0.01)
+    lat = np.full(lon.size, 10.0)
+    change = after.undulation(lat, lon) - before.undulation(lat, lon)
+    assert change[0] == pytest.approx(1.0, abs=PARAMS.tolerance_m)  # land: the new geoid
+    assert np.abs(np.diff(change)).max() < 0.02  # a hard switch: a 1 m step
+    beyond = lon > 20.0 + BLEND_KM / KM_PER_DEGREE / np.cos(np.radians(10.0)) + 0.5
+    assert np.abs(change[beyond]).max() < PARAMS.tolerance_m
 
 
 def test_read_only_and_locked_stores_are_refused(store, monkeypatch):

@@ -38,6 +38,21 @@ query = CliRunner().invoke(query_main, ["--store", store, "--input", "-", "--def
 assert query.exit_code == 0, query.output
 assert len(query.stdout.splitlines()) == 5001
 assert np.all(np.isfinite(geoidspline.open_store(store).undulation(lat, lon)))
+# a store whose source has a no-data hole: its coverage carries a mask
+from geoidspline.sources.formats import read_grid, write_gtx
+from geoidspline.sources.grid import GeoidGrid
+grid = read_grid(gtx)
+values = grid.values.copy()
+values[(grid.latitude[:, None] >= 18) & (grid.latitude[:, None] <= 22) & (grid.longitude[None, :] >= 28)
+       & (grid.longitude[None, :] <= 32)] = np.nan
+holed = write_gtx(store + "-holed.gtx", GeoidGrid(grid.latitude, grid.longitude, values, grid.provenance))
+fit = CliRunner().invoke(fit_main, [str(holed), "--store", store + "-holed", "--region", "10", "20", "30", "40",
+                                    "--h0", "0.2", "--max-level", "1", "--tolerance", "0.05", "-q"])
+assert fit.exit_code in (0, 3), fit.output
+query = CliRunner().invoke(query_main, ["--store", store + "-holed", "--input", "-", "--outside", "nan"], input=rows)
+assert query.exit_code == 0, query.output
+answers = geoidspline.open_store(store + "-holed").undulation(lat, lon)
+assert np.isnan(answers).any() and np.isfinite(answers).any()
 after = signatures()
 added = {name: sorted(after[name] - before.get(name, set())) for name in after if after[name] - before.get(name, set())}
 print(json.dumps({"added": added, "kernels": sorted(report["kernels"])}))
@@ -51,7 +66,8 @@ def test_warmup_covers_the_kernel_signatures_of_a_cli_fit_and_large_queries(synt
     result = json.loads(proc.stdout.splitlines()[-1])
     assert {"geoidspline._kernels.query.undulation_latlon", "geoidspline._kernels.query.evaluate_bricks",
             "geoidspline._kernels.fitting.normal_equations", "geoidspline._kernels.interpolation.filter_axis",
-            "geoidspline._kernels.legendre.row_sums"} <= set(result["kernels"])
+            "geoidspline._kernels.legendre.row_sums", "geoidspline._kernels.coverage.cells_have_data"} \
+        <= set(result["kernels"])
     # a kernel compiled for an argument type the warm-up did not use gains a signature
     assert result["added"] == {}
 

@@ -46,3 +46,32 @@ def active_cells(h: float, region: Region):
         margin = math.degrees(math.sqrt(3.0) * h / max(1.0 - math.sqrt(3.0) * h, 0.1))
         cells = cells[region.expanded(margin).contains(lat, lon)]
     return cells
+
+
+def supports_inside(keys, h: float, order: int, region: Region):
+    """Boolean mask of the B-splines (packed ``keys`` of spacing ``h``) whose support on
+    the unit sphere lies inside ``region``: outside it they are exactly 0.
+
+    Conservative: the support of key k is the cube [k h, (k + order) h]³; its points on
+    the sphere lie within latitudes asin(z) over the cube's z range and within the
+    longitudes the cube's (x, y) rectangle subtends from the axis (all of them when the
+    rectangle touches the axis). A B-spline counts as inside when that latitude and
+    longitude box lies inside the region.
+    """
+    lo = unpack_keys(np.asarray(keys, dtype=np.int64)).astype(float) * h
+    hi = lo + order * h
+    inside = (np.degrees(np.arcsin(np.clip(lo[:, 2], -1.0, 1.0))) >= region.south) & (
+        np.degrees(np.arcsin(np.clip(hi[:, 2], -1.0, 1.0))) <= region.north)
+    if region.longitude_span >= 360.0:
+        return inside
+    x = np.stack([lo[:, 0], lo[:, 0], hi[:, 0], hi[:, 0]], axis=1)
+    y = np.stack([lo[:, 1], hi[:, 1], lo[:, 1], hi[:, 1]], axis=1)
+    # the rectangle subtends less than 180° unless it touches the axis; measure its
+    # corners' longitudes from its centre's so that the span never wraps
+    centre = np.arctan2(0.5 * (lo[:, 1] + hi[:, 1]), 0.5 * (lo[:, 0] + hi[:, 0]))
+    offset = (np.arctan2(y, x) - centre[:, None] + np.pi) % (2 * np.pi) - np.pi
+    west = np.degrees(centre + offset.min(axis=1))
+    width = np.degrees(offset.max(axis=1) - offset.min(axis=1))
+    touches_axis = (lo[:, 0] <= 0.0) & (hi[:, 0] >= 0.0) & (lo[:, 1] <= 0.0) & (hi[:, 1] >= 0.0)
+    start = (west - region.west) % 360.0
+    return inside & ~touches_axis & (start + width <= region.longitude_span)

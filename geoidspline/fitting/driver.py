@@ -112,8 +112,10 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
         else:
             keys, marked, site_cells = refinement.level_keys(level, h, params.order, region, violating)
             if keys.size == 0:
-                converged = True
-                break
+                if violating.size == 0:
+                    converged = True
+                    break
+                continue  # no B-spline of this level may be used there (a regional update's zone)
             ray_mask = nodes.thinned(h, params.rays_per_cell)
             points, node_of_site = sites_for_level(
                 nodes, ray_mask, h, params.order, keys, params.radial_offsets, site_cells

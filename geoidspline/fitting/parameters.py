@@ -20,6 +20,17 @@ REFINEMENTS = ("overlays", "hierarchical")
 #: Finest level spacing allowed, in units of the data's node spacing.
 MIN_H_PER_DATA_SPACING = 0.5
 
+#: Deepest level index a fit may reach.
+MAX_LEVEL = 12
+
+
+def finest_level(h0: float) -> int:
+    """The finest level (≤ :data:`MAX_LEVEL`) whose coefficient indices stay in range for ``h0``."""
+    level = 0
+    while level < MAX_LEVEL and h0 / 2 ** (level + 1) * MAX_INDEX >= 1.5:
+        level += 1
+    return level
+
 
 @dataclass(frozen=True)
 class FitParameters:
@@ -74,9 +85,9 @@ class FitParameters:
             raise FitError(f"h0 must be within (0, 0.5] on the unit sphere, got {self.h0}")
         if not self.tolerance_m > 0:
             raise FitError(f"tolerance must be positive metres, got {self.tolerance_m}")
-        if not 0 <= self.max_level <= 12:
-            raise FitError(f"max level must be within 0..12, got {self.max_level}")
-        if self.h0 / 2 ** self.max_level * MAX_INDEX < 1.5:
+        if not 0 <= self.max_level <= MAX_LEVEL:
+            raise FitError(f"max level must be within 0..{MAX_LEVEL}, got {self.max_level}")
+        if self.max_level > finest_level(self.h0):
             raise FitError("h0 / 2**max_level is too small for the coefficient index range")
         if not self.tile_size >= self.h0:
             raise FitError(f"tile size ({self.tile_size}) must be at least h0 ({self.h0})")

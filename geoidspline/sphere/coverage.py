@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .coordinates import COMPILED_FROM_POINTS
 from .region import Region
 
 __all__ = ["Coverage", "CoveragePart", "NodataLattice", "INSIDE", "OUTSIDE", "NO_DATA"]
@@ -77,19 +78,40 @@ class NodataLattice:
         east = np.roll(mask, -1, axis=1) if self.periodic else mask[:, 1:]
         west = mask if self.periodic else mask[:, :-1]
         holes = west[:-1] | west[1:] | east[:-1] | east[1:]
-        return np.ascontiguousarray(~holes).ravel()
+        return _read_only(np.ascontiguousarray(~holes).ravel())
 
-    def cells_have_data(self, latitude, longitude):
-        """Boolean mask: the lattice cell holding each point has data at all four nodes.
+    def cells_have_data(self, latitude, longitude, region: Region | None = None):
+        """Boolean mask: the lattice cell holding each point has data at all four nodes
+        (and, with ``region``, the point lies in it: one pass for both).
 
-        Points beyond the lattice (and NaN) give False.
+        Points beyond the lattice (and NaN) give False. Batches of
+        :data:`~geoidspline.sphere.coordinates.COMPILED_FROM_POINTS` points or more take
+        one compiled pass (:mod:`geoidspline._kernels.coverage`), smaller ones numpy
+        (no numba import for a few points); both apply the same rule.
         """
         lat, lon = np.broadcast_arrays(np.asarray(latitude, dtype=float), np.asarray(longitude, dtype=float))
         shape = lat.shape
-        lat, lon = lat.ravel(), lon.ravel()
+        lat, lon = np.ascontiguousarray(lat).ravel(), np.ascontiguousarray(lon).ravel()
         nlat, nlon = self.nodata.shape
         if nlat < 2 or nlon < 2:
             return np.zeros(shape, dtype=bool)
+        if lat.size < COMPILED_FROM_POINTS:
+            out = self._numpy_cells_have_data(lat, lon)
+            return (out if region is None else out & region.contains(lat, lon)).reshape(shape)
+        from .._kernels.coverage import cells_have_data
+
+        bounds = (-np.inf, np.inf, 0.0, 360.0) if region is None else \
+            (region.south, region.north, region.west, region.longitude_span)
+        out = np.empty(lat.size, dtype=bool)
+        # read-only views, whatever the caller's arrays: one compiled signature for all
+        cells_have_data(_read_only(lat), _read_only(lon), *map(float, bounds), float(self.lat0), float(self.dlat),
+                        float(self.lon0), float(self.dlon), nlat, nlon, bool(self.periodic), self._cell_ok,
+                        _EDGE_TOL, out)
+        return out.reshape(shape)
+
+    def _numpy_cells_have_data(self, lat, lon):
+        """:meth:`cells_have_data` of 1-D arrays in numpy (nlat, nlon >= 2)."""
+        nlat, nlon = self.nodata.shape
         with np.errstate(invalid="ignore"):
             fi = (lat - self.lat0) / self.dlat
             ok = (fi >= -_EDGE_TOL) & (fi <= nlat - 1 + _EDGE_TOL)  # False for NaN
@@ -111,7 +133,7 @@ class NodataLattice:
             j %= nlon
         else:
             np.clip(j, 0, columns - 1, out=j)
-        return (ok & self._cell_ok[i * columns + j]).reshape(shape)
+        return ok & self._cell_ok[i * columns + j]
 
     def spans(self, region: Region) -> bool:
         """Whether every point of ``region`` lies within the lattice's cells."""
@@ -138,6 +160,8 @@ class CoveragePart:
     source: str | None = None
 
     def covers(self, latitude, longitude):
+        if self.lattice is not None and np.size(latitude) >= COMPILED_FROM_POINTS:
+            return self.lattice.cells_have_data(latitude, longitude, region=self.region)
         inside = self.region.contains(latitude, longitude)
         if self.lattice is None:
             return inside
@@ -234,6 +258,12 @@ class Coverage:
             in_region |= part.region.contains(lat, lon)
         out = np.where(covered, INSIDE, np.where(in_region, NO_DATA, OUTSIDE)).astype(object)
         return str(out[()]) if out.ndim == 0 else out
+
+
+def _read_only(array: np.ndarray) -> np.ndarray:
+    view = array.view()
+    view.flags.writeable = False
+    return view
 
 
 def _within(inner: Region, outer: Region, tol: float = 1e-9) -> bool:

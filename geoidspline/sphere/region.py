@@ -86,7 +86,8 @@ class Region:
         """Boolean mask (or bool) of the points inside the region, edges included."""
         latitude = np.asarray(latitude, dtype=float)
         longitude = np.asarray(longitude, dtype=float)
-        offset = (longitude - self.west) % 360.0
+        with np.errstate(invalid="ignore"):  # an infinite longitude: NaN offset, not inside
+            offset = (longitude - self.west) % 360.0
         inside = (latitude >= self.south) & (latitude <= self.north)
         if self.longitude_span < 360.0:
             inside &= offset <= self.longitude_span
@@ -111,6 +112,11 @@ class Region:
 
     def as_tuple(self):
         return (self.south, self.west, self.north, self.east)
+
+    def bounds_text(self) -> str:
+        """``"S -42 W -77 N -18 E -53"``: the bounds in degrees for messages, without the
+        float noise of bounds computed from a grid's nodes."""
+        return " ".join(f"{name} {round(value, 9):g}" for name, value in zip("SWNE", self.as_tuple()))
 
 
 GLOBAL = Region(-90.0, -180.0, 90.0, 180.0)

@@ -5,11 +5,17 @@ An update fits one more set of overlays, Δ, to the residual
     r(u) = w(u) · (N_new(u) − S_old(u)),
 
 w = 1 inside the region, falling to 0 with a cosine taper over ``blend_width_km``
-outside it (0 where the new source has no data). Δ only takes B-splines centred
-within the blend zone, so the result S_old + Δ is one spline on R³ (C² everywhere, no
-step at the region's edge) and only the tiles owning those B-splines are rewritten:
-every other tile file stays byte-identical. The new tiles and manifest are committed
-the same atomic way as a fresh store (:mod:`geoidspline.store.writer`); the previous
+outside it. Where the new source has no data but the store has (a national grid's
+sea), N_new − S_old is that of the nearest node with new data, faded out with the same
+taper over the blend width (:func:`fade_into_no_data`): the coast is no step, and
+beyond the blend width the store keeps its values. Δ only takes B-splines whose whole
+support lies inside the blend zone (the region grown by the blend width), so outside
+the zone Δ is exactly 0 and the store keeps its old values there (to the rounding of
+summing its levels); the result S_old + Δ is one spline on R³ (C² everywhere, no step
+at the region's edge) and only the tiles owning Δ's B-splines are rewritten: every
+other tile file stays byte-identical. The blend zone must lie inside the source's
+extent: beyond it there is no new data to fade from, and a B-spline reaching there
+would be unconstrained. The new tiles and manifest are committed the same atomic way as a fresh store (:mod:`geoidspline.store.writer`); the previous
 version's tile files are kept for readers that opened it, until the next write.
 """
 
@@ -22,17 +28,18 @@ from pathlib import Path
 
 import numpy as np
 
+from ..bspline.domain import supports_inside
 from ..bspline.keys import unpack_keys
 from ..bspline.level import LevelSpline
 from ..errors import CoordinateError, FitError, StoreCorruptError, StoreError
 from ..fitting.driver import clip_to_extent, fit_nodes
 from ..fitting.executors import Executor
-from ..fitting.parameters import FitParameters
+from ..fitting.parameters import FitParameters, finest_level
 from ..geodesy.ellipsoids import KM_PER_DEGREE
 from ..hierarchy.ambient import AmbientSpline
 from ..hierarchy.overlays import OverlayRefinement
 from ..sources.base import NodeSample
-from ..sphere.coordinates import directions, latlon_of
+from ..sphere.coordinates import directions
 from ..sphere.coverage import Coverage
 from ..sphere.region import Region
 from .coverage import coverage_record
@@ -50,7 +57,16 @@ from .writer import (
     write_tile_entry,
 )
 
-__all__ = ["update_store", "blend_weight"]
+__all__ = ["update_store", "blend_weight", "fade_into_no_data"]
+
+#: Node spacings of the new source a blend zone should span: Δ falls from the new
+#: values to 0 within it on B-splines the data determine.
+BLEND_NODE_SPACINGS = 4
+
+
+def _step(axis) -> float:
+    """Largest spacing (degrees) of a sample axis (0 for a single node)."""
+    return float(np.max(np.diff(axis))) if len(axis) > 1 else 0.0
 
 
 def blend_weight(region: Region, blend_deg: float, latitude, longitude):
@@ -71,7 +87,10 @@ def blend_weight(region: Region, blend_deg: float, latitude, longitude):
 
 
 class _ResidualRefinement(OverlayRefinement):
-    """Overlays from level 0 on, restricted to B-splines centred in the blend zone."""
+    """Overlays from level 0 on, restricted to B-splines whose support lies inside the
+    blend zone: Δ is then 0 outside the zone whatever the data there (a B-spline reaching
+    past the zone would be constrained only on one side of it, and free to change the
+    store hundreds of km away)."""
 
     def __init__(self, refine_radius, zone: Region):
         super().__init__(refine_radius)
@@ -80,12 +99,73 @@ class _ResidualRefinement(OverlayRefinement):
     def level_keys(self, level, h, order, region, violating_directions):
         keys, marked, _ = super().level_keys(max(level, 1), h, order, region, violating_directions)
         if keys.size:
-            lat, lon = latlon_of((unpack_keys(keys) + order / 2.0) * h)
-            keys = keys[self.zone.expanded(math.degrees(h)).contains(lat, lon)]
+            keys = keys[supports_inside(keys, h, order, self.zone)]
         return keys, marked, None
 
 
-def _check_compatible(store: TileStore, source, region: Region):
+def fade_into_no_data(difference, latitude, longitude, blend_width_km: float):
+    """At each node of a latitude/longitude lattice without data (NaN in ``difference``),
+    the difference at the nearest node with data times a cosine taper from 1 there to 0
+    at ``blend_width_km`` (0 beyond, and everywhere for a width of 0 or no data at all).
+
+    Distances are measured on the lattice with the spacing of its middle latitude (a
+    taper, so a few per cent of distance do not matter); nodes with data get 0.
+    """
+    from scipy.ndimage import distance_transform_edt
+
+    difference = np.asarray(difference, dtype=float)
+    has_data = np.isfinite(difference)
+    faded = np.zeros(difference.shape)
+    if blend_width_km <= 0.0 or has_data.all() or not has_data.any() or difference.ndim != 2:
+        return faded
+    dlat = float(np.mean(np.diff(latitude))) if len(latitude) > 1 else 1.0
+    dlon = float(np.mean(np.diff(longitude))) if len(longitude) > 1 else 1.0
+    mid = math.radians(0.5 * (float(latitude[0]) + float(latitude[-1])))
+    sampling = (abs(dlat) * KM_PER_DEGREE, abs(dlon) * KM_PER_DEGREE * max(math.cos(mid), 1e-3))
+    distance, (rows, cols) = distance_transform_edt(~has_data, sampling=sampling, return_indices=True)
+    taper = np.where(distance >= blend_width_km, 0.0,
+                     0.5 * (1.0 + np.cos(np.pi * np.minimum(distance / blend_width_km, 1.0))))
+    faded[~has_data] = (taper * difference[rows, cols])[~has_data]
+    return faded
+
+
+def _inside(inner: Region, outer: Region) -> bool:
+    """``inner`` lies inside ``outer`` (longitudes modulo 360)."""
+    if outer.is_global:
+        return True
+    if inner.south < outer.south or inner.north > outer.north:
+        return False
+    if outer.longitude_span >= 360.0:
+        return True
+    start = (inner.west - outer.west + 1e-9) % 360.0 - 1e-9  # equal wests, to rounding, are inside
+    return inner.longitude_span < 360.0 and start + inner.longitude_span <= outer.longitude_span + 1e-9
+
+
+def _shrunk(extent: Region, margin_deg: float) -> Region | None:
+    """The largest region whose ``margin_deg`` zone (:meth:`Region.expanded`) fits in ``extent``."""
+    south, north = extent.south + margin_deg, extent.north - margin_deg
+    if extent.south <= -90.0:
+        south = -90.0
+    if extent.north >= 90.0:
+        north = 90.0
+    if south >= north:
+        return None
+    if extent.longitude_span >= 360.0:
+        return Region(south, extent.west, north, extent.east)
+    widest = max(abs(extent.south), abs(extent.north))  # where Region.expanded measures its margin
+    if widest >= 89.0:
+        return None  # the zone would take every longitude
+    lon_margin = margin_deg / math.cos(math.radians(widest))
+    if extent.longitude_span <= 2 * lon_margin:
+        return None
+    # rounded inwards to 4 decimals, so that the region offered is accepted as printed
+    s, w = math.ceil(south * 1e4) / 1e4, math.ceil((extent.west + lon_margin) * 1e4) / 1e4
+    n, e = math.floor(north * 1e4) / 1e4, math.floor((extent.east - lon_margin) * 1e4) / 1e4
+    return Region(s, w, n, e) if s < n and w < e else None
+
+
+def _check_compatible(store: TileStore, source, region: Region, blend_width_km: float):
+    blend_deg = blend_width_km / KM_PER_DEGREE
     old = store.manifest["provenance"]
     new = source.provenance
     if new.ellipsoid and old.get("ellipsoid") and new.ellipsoid != old["ellipsoid"]:
@@ -99,11 +179,19 @@ def _check_compatible(store: TileStore, source, region: Region):
             "convert the source to the store's tide system first"
         )
     extent = source.extent
-    corners_lat = [region.south, region.north]
-    inside = extent.contains(np.array(corners_lat * 2), np.array([region.west, region.west, region.east, region.east]))
-    if not (extent.is_global or (np.all(inside) and region.longitude_span <= extent.longitude_span)):
+    if not _inside(region, extent):
         raise CoordinateError(
-            f"update region {region.as_tuple()} is not inside the extent of {new.source} {extent.as_tuple()}"
+            f"update region {region.bounds_text()} is not inside the extent of {new.source} ({extent.bounds_text()})"
+        )
+    zone = region.expanded(blend_deg) if blend_deg > 0 else region
+    if not _inside(zone, extent):
+        inner = _shrunk(extent, blend_deg)
+        hint = (f"give a region at least {blend_width_km:g} km inside it (the largest is "
+                f"{inner.bounds_text()}) or a smaller --blend-width"
+                if inner is not None else "give a smaller --blend-width")
+        raise CoordinateError(
+            f"update region {region.bounds_text()} with its {blend_width_km:g} km blend zone reaches beyond the "
+            f"extent of {new.source} ({extent.bounds_text()}): there is no new data there to blend from; {hint}"
         )
     store_region = Region(*store.manifest["region"])
     if not store_region.is_global:
@@ -152,7 +240,8 @@ def update_store(path, source, region: Region, blend_width_km: float = 100.0, ex
     ``source`` has data; where the source has no data (a national grid's sea, say) the
     store keeps its own values (the residual fitted there is 0) and its coverage.
     ``tolerance_m`` (metres), when given, is this update's tolerance instead of the
-    store's; the levels available stay the store's.
+    store's. The update may add levels finer than the store's, as far as the new
+    source's node spacing determines them.
     """
     root = Path(path)
     if not blend_width_km >= 0.0:
@@ -163,7 +252,7 @@ def update_store(path, source, region: Region, blend_width_km: float = 100.0, ex
         crash_point("after-lock")
         store = TileStore.open(root)  # the manifest as it is now that the lock is held
         state = _manifest_state(root)
-        _check_compatible(store, source, region)
+        _check_compatible(store, source, region, blend_width_km)
         manifest = store.manifest
         with _Attempt(root, manifest["store_version"]) as attempt:
             record, new_manifest = _update(root, store, source, region, blend_width_km, executor, progress, attempt,
@@ -177,21 +266,28 @@ def _update(root, store, source, region, blend_width_km, executor, progress, att
     """Fit the update and write its tile files; (history record, new manifest)."""
     manifest = store.manifest
     params = _stored_parameters(store)
-    if tolerance_m is not None:  # this update's tolerance; the levels available stay the store's
+    if tolerance_m is not None:  # this update's tolerance
         params = dataclasses.replace(params, tolerance_m=float(tolerance_m))
+    # Levels finer than the store's, down to what the new data determines (the driver
+    # stops at MIN_H_PER_DATA_SPACING): Δ must fall to 0 inside the blend zone, and a
+    # national grid is usually much finer than the global source the store was fitted to.
+    params = dataclasses.replace(params, max_level=finest_level(params.h0))
     blend_deg = blend_width_km / KM_PER_DEGREE
     zone = region.expanded(blend_deg) if blend_deg > 0 else region
 
-    # data wherever a B-spline centred in the zone is non-zero
-    reach = math.degrees((params.order / 2.0 + 1.0) * params.h0)
-    sample = source.nodes(clip_to_extent(zone.expanded(reach), source), spacing_deg=params.sample_spacing_deg)
+    # Δ's B-splines lie inside the zone (_ResidualRefinement): the zone's nodes are all the data
+    sample = source.nodes(clip_to_extent(zone, source), spacing_deg=params.sample_spacing_deg)
     lat2, lon2 = np.meshgrid(sample.latitude, sample.longitude, indexing="ij")
     old = store.spline.full.undulation(lat2, lon2)  # the spline, covered or not
     weight = blend_weight(region, blend_deg, lat2, lon2)
     has_new = np.isfinite(sample.undulation)
-    # no new data where the store has its own: keep the store's values there (residual 0)
+    difference = np.where(has_new, sample.undulation - old, np.nan)
+    # no new data where the store has its own (a national grid's sea): the change fades
+    # out from the nearest new data over the blend width, as at the region's edge, so the
+    # coast is no step; farther out the store keeps its values (residual 0)
     keep_old = ~has_new & np.asarray(store.coverage.covers(lat2, lon2))
-    residual = np.where(has_new, weight * (sample.undulation - old), np.where(keep_old, 0.0, np.nan))
+    faded = fade_into_no_data(difference, sample.latitude, sample.longitude, blend_width_km)
+    residual = weight * np.where(has_new, difference, np.where(keep_old, faded, np.nan))
     try:
         new_coverage = Coverage.from_sample(sample, region, source.provenance.source)
     except ValueError as exc:
@@ -244,6 +340,11 @@ def _update(root, store, source, region, blend_width_km, executor, progress, att
         "tolerance_m": params.tolerance_m,
         "converged": bool(delta.converged),
     }
+    spacing_km = KM_PER_DEGREE * max(_step(sample.latitude), _step(sample.longitude))
+    if not delta.converged and blend_width_km < BLEND_NODE_SPACINGS * spacing_km:
+        record["hint"] = (f"the blend width ({blend_width_km:g} km) spans fewer than {BLEND_NODE_SPACINGS} node "
+                          f"spacings of {source.provenance.source} ({spacing_km:.3g} km): the update cannot fall "
+                          f"to the store's values within it; widen the blend or use a finer source")
     new_manifest = dict(manifest)
     new_manifest.pop("integrity", None)
     new_manifest.update({
