@@ -118,8 +118,9 @@ NODE_SPACING_DEG = 1.0 / 12.0
 #: B-splines (§5.3) against overlays (§5.2)").
 REFINEMENT_REASON = (
     "overlays (§5.2): the hierarchical basis (§5.3, --refinement hierarchical) needs fewer coefficients "
-    "(Andes, 0.5 m: 21,472 against 28,968) but takes about twice the time, and a basis above 100,000 "
-    "unknowns is solved in local blocks, much slower than overlays (benchmarks/README.md)"
+    "(Andes, 0.5 m: 21,472 against 28,968) in 1.6 times the time, but a basis above 100,000 unknowns "
+    "(a global fit) is solved in local blocks at about ten times the cost of one factorisation "
+    "(benchmarks/README.md)"
 )
 
 
