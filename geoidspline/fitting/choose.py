@@ -118,9 +118,9 @@ NODE_SPACING_DEG = 1.0 / 12.0
 #: B-splines (§5.3) against overlays (§5.2)").
 REFINEMENT_REASON = (
     "overlays (§5.2): the hierarchical basis (§5.3, --refinement hierarchical) needs fewer coefficients "
-    "(Andes, 0.5 m: 21,472 against 28,968) in 1.6 times the time, but a basis above 100,000 unknowns "
-    "(a global fit) is solved in local blocks at about ten times the cost of one factorisation "
-    "(benchmarks/README.md)"
+    "(Andes, 0.5 m: 21,472 against 28,968, in 1.6 times the time; global 0.1 m: 353,763 against 796,487) "
+    "but its global fit, solved in local blocks, took 3.5 times as long, stopped at 0.114 m and left seams "
+    "between blocks (benchmarks/README.md)"
 )
 
 
