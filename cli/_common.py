@@ -21,6 +21,8 @@ import sys
 
 import click
 
+from geoidspline._memory import pin_mmap_threshold
+
 from geoidspline._version import __version__
 from geoidspline.errors import GeoidSplineError
 
@@ -102,6 +104,9 @@ def verbosity_options(func):
     def wrapper(*args, verbose, quiet, **kwargs):
         level = logging.ERROR if quiet else (logging.WARNING, logging.INFO, logging.DEBUG)[min(verbose, 2)]
         logging.basicConfig(level=level, stream=sys.stderr, format="%(levelname)s: %(message)s", force=True)
+        # a command owns its process: freed arrays go back to the system (the library
+        # itself leaves the process's allocator alone; see geoidspline._memory)
+        pin_mmap_threshold()
         return func(*args, quiet=quiet, verbose=verbose, **kwargs)
 
     return version_option(wrapper)

@@ -27,9 +27,11 @@ from ._common import command, echo, store_options, user_errors, verbosity_option
 @click.option("--verify", is_flag=True,
               help="Check every tile's size and sha256 against the manifest; name each missing, truncated or "
                    "altered tile and exit 1 if there is any.")
+@click.option("--upgrade", is_flag=True,
+              help="Rewrite a format-1 store in format 2 (compact tiles), atomically, then describe it.")
 @verbosity_options
 @user_errors
-def main(store_path, as_json, model_path, correction_path, preset, points, verify, quiet, verbose):
+def main(store_path, as_json, model_path, correction_path, preset, points, verify, quiet, verbose, upgrade):
     """Summary of the tile store at --store (a directory written by geoid-fit).
 
     With --check-against MODEL: max, RMS and 99th percentile of |store - model| at
@@ -56,6 +58,14 @@ def main(store_path, as_json, model_path, correction_path, preset, points, verif
             if not problems:
                 echo(f"{store_path}: every tile matches the manifest")
         sys.exit(1 if problems else 0)
+    if upgrade:
+        from geoidspline.store.upgrade import upgrade_store
+
+        record = upgrade_store(store_path)
+        if not as_json:
+            click.echo(f"{store_path}: format {record['from_format']} -> {record['to_format']}, tiles "
+                       f"{record['tile_bytes_before']:,} -> {record['tile_bytes_after']:,} bytes, value step "
+                       f"{record['value_step_m']:g} m (bound {record['value_error_bound_m']:g} m)")
     store = geoidspline.open_store(store_path)
     info = store.info()
     if model_path is not None:

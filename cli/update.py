@@ -31,10 +31,13 @@ from ._common import command, echo, store_options, user_errors, verbosity_option
               help="NGA zeta-to-N correction coefficients (CORRCOEF) for a model SOURCE.")
 @click.option("--preset", type=click.Choice(PRESETS), default=None,
               help="Synthesis conventions for a model SOURCE [default: chosen from the model].")
+@click.option("--wait", "wait_seconds", type=click.FloatRange(min=0.0), default=0.0, show_default=True,
+              metavar="SECONDS", help="Wait this long for another process writing the store, then give up.")
 @click.option("--json", "as_json", is_flag=True, help="Print the update's history record as JSON.")
 @verbosity_options
 @user_errors
-def main(source, store_path, region, blend_width, tolerance, workers, correction, preset, as_json, quiet, verbose):
+def main(source, store_path, region, blend_width, tolerance, workers, correction, preset, wait_seconds, as_json, quiet,
+         verbose):
     """Replace the geoid of the store at --store by SOURCE inside --region.
 
     The update fits overlays to w·(N_new − N_store) with the store's own parameters (w
@@ -43,7 +46,7 @@ def main(source, store_path, region, blend_width, tolerance, workers, correction
     result is still one C² spline with no step at the region's edge or the coast. The
     new B-splines lie inside the blend zone: outside it the store is unchanged, and
     only the tiles owning them are rewritten. Refused before anything is written when the store
-    is read-only or being written by another process, the source's ellipsoid or tide
+    is read-only or being written by another process (after --wait), the source's ellipsoid or tide
     system differs from the store's, or the region with its blend zone lies outside the
     source's extent (the message names the largest region that fits), or outside the
     store's region. Exit status 3: written, but the tolerance was not reached
@@ -51,10 +54,12 @@ def main(source, store_path, region, blend_width, tolerance, workers, correction
     """
     if store_path is None:
         raise click.UsageError("give --store DIR, the store to update")
-    run_update(source, store_path, region, blend_width, workers, correction, preset, as_json, quiet, tolerance)
+    run_update(source, store_path, region, blend_width, workers, correction, preset, as_json, quiet, tolerance,
+               wait_seconds)
 
 
-def run_update(source, store, region, blend_width, workers, correction, preset, as_json, quiet, tolerance=None):
+def run_update(source, store, region, blend_width, workers, correction, preset, as_json, quiet, tolerance=None,
+               wait_seconds=0.0):
     from geoidspline.fitting.executors import Executor
     from geoidspline.sources.resolve import open_source
     from geoidspline.sphere.region import Region
@@ -65,7 +70,7 @@ def run_update(source, store, region, blend_width, workers, correction, preset, 
     src = open_source(source, correction, preset)
     started = time.perf_counter()
     record = update_store(store, src, Region.from_bounds(*region), blend_width_km=blend_width,
-                          executor=Executor(workers=workers), tolerance_m=tolerance)
+                          executor=Executor(workers=workers), tolerance_m=tolerance, wait_seconds=wait_seconds)
     record["wall_seconds"] = round(time.perf_counter() - started, 2)
     if as_json:
         echo(json.dumps(record, indent=1))

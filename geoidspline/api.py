@@ -93,14 +93,19 @@ def fit(source, store, *, region=None, overwrite: bool = False, workers: int = 1
     return TileStore.open(store)
 
 
-def update(store, source, region, *, blend_width_km: float = 100.0, workers: int = 1, correction=None,
-           preset: str | None = None, progress=None) -> dict:
+def update(store, source, region, *, blend_width_km: float = 100.0, tolerance_m: float | None = None,
+           workers: int = 1, correction=None, preset: str | None = None, progress=None,
+           wait_seconds: float = 0.0) -> dict:
     """Replace the store's geoid inside ``region`` by ``source`` (a regional update,
-    :func:`geoidspline.store.update.update_store`); returns the update's history record."""
+    :func:`geoidspline.store.update.update_store`); returns the update's history record.
+
+    ``tolerance_m``: this update's tolerance in metres (default: the store's);
+    ``wait_seconds``: how long to wait for another process writing the store."""
     from .sources.resolve import open_source
     from .store.update import update_store
 
     if isinstance(source, (str, bytes)) or hasattr(source, "__fspath__"):
         source = open_source(source, correction, preset)
     return update_store(store, source, _as_region(region), blend_width_km=blend_width_km,
-                        executor=Executor(workers=workers), progress=progress)
+                        executor=Executor(workers=workers), tolerance_m=tolerance_m, progress=progress,
+                        wait_seconds=wait_seconds)

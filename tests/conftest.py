@@ -69,6 +69,7 @@ class SmallStore:
     params: FitParameters
     result: FitResult
     info: dict  # build_store's summary
+    stored: object  # the spline the store holds: result.spline quantised (format 2)
 
 
 @pytest.fixture(scope="session")
@@ -81,7 +82,19 @@ def small_store(tmp_path_factory) -> SmallStore:
     params = FitParameters(**STORE_PARAMS)
     path = base / "store"
     result, info = build_store(grid, path, region, params)
-    return SmallStore(path=path, gtx=gtx, grid=grid, region=region, params=params, result=result, info=info)
+    return SmallStore(path=path, gtx=gtx, grid=grid, region=region, params=params, result=result, info=info,
+                      stored=stored_spline(result.spline, path))
+
+
+def stored_spline(spline, store_path):
+    """What the store at ``store_path`` holds of ``spline``: its coefficients quantised
+    with the store's step (format 2; format 1 stores float64 as it is)."""
+    import json
+
+    from geoidspline.store.codec import quantised_spline
+
+    step = json.loads((Path(store_path) / "manifest.json").read_text())["spline"].get("value_step_m")
+    return spline if step is None else quantised_spline(spline, step)
 
 
 @pytest.fixture

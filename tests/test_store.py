@@ -7,9 +7,9 @@ import json
 import os
 from pathlib import Path
 
-import netCDF4
 import numpy as np
 import pytest
+from conftest import stored_spline
 
 import geoidspline
 from geoidspline.api import build_store
@@ -17,7 +17,8 @@ from geoidspline.errors import GeoidSplineError, StoreCorruptError, StoreError
 from geoidspline.fitting.check_points import check_points
 from geoidspline.fitting.parameters import FitParameters
 from geoidspline.sphere.coordinates import directions
-from geoidspline.store.format import FORMAT_NAME, FORMAT_VERSION, manifest_text
+from geoidspline.store.codec import decode_tile
+from geoidspline.store.format import FORMAT_NAME, FORMAT_VERSION, manifest_text, read_tile_file
 from geoidspline.store.reader import TileStore
 from geoidspline.store.writer import StoreLock, write_store
 
@@ -58,13 +59,15 @@ def test_round_trip_values_are_bitwise_equal(small_store):
     lat = np.concatenate([lat, rng.uniform(0, 40, 500), rng.uniform(-90, 90, 500)])
     lon = np.concatenate([lon, rng.uniform(10, 50, 500), rng.uniform(-180, 180, 500)])
     got = store.undulation(lat, lon)
-    want = small_store.result.spline.undulation(lat, lon)
+    want = small_store.stored.undulation(lat, lon)  # the fit, coefficients quantised
     assert got.dtype == np.float64
     inside = small_store.region.contains(lat, lon)
     assert inside[:3000].all() and not inside[3000:].all()
     # the fitted values where the store has data, NaN elsewhere (never a number there)
     assert np.array_equal(got[inside], want[inside])
     assert np.all(np.isnan(got[~inside]))
+    bound = _manifest(small_store.path)["spline"]["value_error_bound_m"]
+    assert np.abs(got[inside] - small_store.result.spline.undulation(lat, lon)[inside]).max() <= bound
     assert np.all(np.isfinite(got[:3000]))
     # the spline itself is stored everywhere, bit for bit
     assert np.array_equal(store.spline.full.undulation(lat, lon), want)
@@ -72,7 +75,7 @@ def test_round_trip_values_are_bitwise_equal(small_store):
 
 def test_round_trip_keeps_every_coefficient(small_store):
     store = geoidspline.open_store(small_store.path)
-    fitted = small_store.result.spline.levels
+    fitted = small_store.stored.levels
     opened = store.spline.levels
     assert [lv.level for lv in opened] == [lv.level for lv in fitted]
     assert [lv.level for lv in opened] == list(range(len(opened)))
@@ -130,14 +133,10 @@ def test_manifest_tiles_describe_their_files(small_store):
         data = path.read_bytes()
         assert e["bytes"] == len(data)
         assert e["sha256"] == hashlib.sha256(data).hexdigest()
-        with netCDF4.Dataset(path) as ds:
-            assert ds.getncattr("Conventions").startswith("CF-")
-            assert list(ds.getncattr("tile")) == e["tile"]
-            assert ds["value"].units == "m"
-            assert ds["index"].units == "1" and ds["level"].units == "1"
-            values = np.asarray(ds["value"][:])
-            index = np.asarray(ds["index"][:], dtype=np.int64)
-            level = np.asarray(ds["level"][:], dtype=np.int64)
+        header, _ = decode_tile(data)
+        assert header["tile"] == e["tile"] and header["value_units"] == "m"
+        assert header["value_step_m"] == m["spline"]["value_step_m"]
+        index, level, values = read_tile_file(path, e, data, m)
         assert values.shape == (e["coefficients"],) and e["coefficients"] > 0
         assert index.shape == (e["coefficients"], 3)
         assert sorted(set(level.tolist())) == e["levels"]
@@ -184,11 +183,15 @@ def test_manifest_node_errors_respect_the_tolerance(small_store):
     store = geoidspline.open_store(small_store.path)
     sample = small_store.grid.nodes(small_store.region)
     lat, lon = np.meshgrid(sample.latitude, sample.longitude, indexing="ij")
+    # node errors are the stored spline's, within value_error_bound_m of the fit's
+    fitted = sample.undulation - small_store.result.spline.undulation(lat, lon)
     errors = sample.undulation - store.undulation(lat, lon)
+    assert np.abs(errors - fitted).max() <= m["spline"]["value_error_bound_m"]
     acc = m["accuracy"]
     assert acc["nodes"] == errors.size == 11 * 11
     assert acc["node_max_error_m"] == pytest.approx(np.abs(errors).max(), rel=1e-9, abs=1e-12)
     assert acc["node_rms_error_m"] == pytest.approx(np.sqrt(np.mean(errors**2)), rel=1e-9)
+    assert acc["fit_node_max_error_m"] == pytest.approx(np.abs(fitted).max(), rel=1e-9, abs=1e-12)
     # converged means every node of the region is within the tolerance
     assert m["fit"]["converged"] == (acc["node_max_error_m"] <= m["fit"]["tolerance_m"])
     assert sum(e["nodes"] for e in m["tiles"]) == errors.size
@@ -247,7 +250,7 @@ def test_overwrite_replaces_store_and_removes_old_tiles(small_store, store_copy)
     assert all(f.exists() for f in old_files)
     store = geoidspline.open_store(store_copy)
     lat, lon = _random_points(small_store.region, 500, seed=3)
-    assert np.array_equal(store.undulation(lat, lon), result.spline.undulation(lat, lon))
+    assert np.array_equal(store.undulation(lat, lon), stored_spline(result.spline, store_copy).undulation(lat, lon))
     assert info["bytes"] == sum((store_copy / name).stat().st_size for name in (
         "manifest.json", ".geoidspline-store", ".lock")) + sum(
         (store_copy / e["file"]).stat().st_size for e in new["tiles"])
@@ -291,7 +294,7 @@ def test_crash_during_overwrite_keeps_the_old_store(small_store, store_copy, mon
     assert {k: v for k, v in after.items() if k in before} == before
     store = geoidspline.open_store(store_copy)
     lat, lon = _random_points(small_store.region, 300, seed=5)
-    assert np.array_equal(store.undulation(lat, lon), small_store.result.spline.undulation(lat, lon))
+    assert np.array_equal(store.undulation(lat, lon), small_store.stored.undulation(lat, lon))
     # the next successful write removes the orphans (keeping the previous version's files)
     previous = {Path(e["file"]).name for e in _manifest(store_copy)["tiles"]}
     build_store(small_store.grid, store_copy, small_store.region, params, overwrite=True)
@@ -346,7 +349,7 @@ def test_half_written_directory_needs_overwrite_and_is_cleaned(small_store, tmp_
     assert not stray.exists() and not old_tile.exists()
     store = geoidspline.open_store(half)
     lat, lon = _random_points(small_store.region, 200, seed=4)
-    assert np.array_equal(store.undulation(lat, lon), small_store.result.spline.undulation(lat, lon))
+    assert np.array_equal(store.undulation(lat, lon), small_store.stored.undulation(lat, lon))
 
 
 def test_other_directories_and_files_are_refused(small_store, tmp_path):

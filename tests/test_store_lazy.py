@@ -91,7 +91,7 @@ def test_one_point_reads_few_tiles_and_gives_the_same_bits(small_store):
     assert lazy.spline.tiles_read < total
     # and small batches equal the fitted spline itself, bit for bit
     la, lo = _points(rng, FOLDED_FROM_POINTS - 1, small_store.region)
-    np.testing.assert_array_equal(lazy.undulation(la, lo), small_store.result.spline.undulation(la, lo))
+    np.testing.assert_array_equal(lazy.undulation(la, lo), small_store.stored.undulation(la, lo))
 
 
 def test_large_batches_and_the_levels_read_every_tile(small_store):
@@ -100,7 +100,7 @@ def test_large_batches_and_the_levels_read_every_tile(small_store):
     lat, lon = _points(np.random.default_rng(3), FOLDED_FROM_POINTS, small_store.region)
     values = store.undulation(lat, lon)
     assert store.spline.tiles_read == total
-    np.testing.assert_array_equal(values, small_store.result.spline.undulation(lat, lon))
+    np.testing.assert_array_equal(values, small_store.stored.undulation(lat, lon))
     other = geoidspline.open_store(small_store.path)
     assert sum(len(lv) for lv in other.spline.levels) == other.spline.coefficient_count
     assert other.spline.tiles_read == total
@@ -117,7 +117,7 @@ def test_scattered_small_batch_reads_the_whole_store_at_once(small_store):
     values = store.undulation(lat, lon)
     assert store.spline.tiles_read == len(store.manifest["tiles"])
     assert store.spline._full is not None
-    np.testing.assert_array_equal(values, small_store.result.spline.undulation(lat, lon))
+    np.testing.assert_array_equal(values, small_store.stored.undulation(lat, lon))
 
 
 def test_concurrent_queries_see_the_same_values(small_store):
@@ -178,3 +178,22 @@ finally:
     assert float(value) == pytest.approx(want, abs=5e-5)
     manifest = json.loads((small_store.path / "manifest.json").read_text())
     assert abs(want) > 1.0 and manifest["spline"]["coefficients"] > 0
+
+
+def test_only_the_command_line_pins_the_allocator(small_store):
+    """glibc's mmap threshold is the whole process's: a program reading a store and
+    building its index through the library keeps its own, a geoid-* command (which owns
+    its process) pins it so that the index build's temporaries go back to the system."""
+    code = f"""
+import numpy as np
+import geoidspline
+from geoidspline import _memory
+store = geoidspline.open_store({str(small_store.path)!r})
+store.undulation(np.linspace(20, 21, 5000), np.linspace(30, 31, 5000))  # every tile, the index
+library = _memory._pinned
+from geoidspline.cli.info import main
+main([{str(small_store.path)!r}], standalone_mode=False)
+print(library, _memory._pinned)
+"""
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert run.stdout.strip().splitlines()[-1] == "False True"

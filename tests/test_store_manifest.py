@@ -26,7 +26,13 @@ from geoidspline.api import build_store
 from geoidspline.errors import StoreCorruptError, StoreError
 from geoidspline.fitting.parameters import FitParameters
 from geoidspline.sphere.region import Region
-from geoidspline.store.format import MAX_MANIFEST_BYTES, integrity_digest, manifest_text, write_tile_file
+from geoidspline.store.format import (
+    MAX_MANIFEST_BYTES,
+    integrity_digest,
+    manifest_text,
+    read_tile_file,
+    write_tile_file,
+)
 from geoidspline.store.reader import TileStore, verify_store
 from geoidspline.store.writer import write_store
 
@@ -264,12 +270,10 @@ def test_a_tile_whose_coefficients_belong_elsewhere_is_refused(copy):
     centres give it away even when every attribute and digest was made to match."""
     m = _manifest(copy)
     a, b = m["tiles"][0], m["tiles"][1]
-    with netCDF4.Dataset(copy / b["file"]) as ds:
-        ds.set_auto_mask(False)
-        idx, lvl, val = (np.asarray(ds[k][:]) for k in ("index", "level", "value"))
-        attrs = {k: ds.getncattr(k) for k in ("order", "h0", "tile_size", "store_id")}
-    with netCDF4.Dataset(copy / a["file"]) as ds:
-        old_levels = np.asarray(ds["level"][:])
+    idx, lvl, val = read_tile_file(copy / b["file"], b, (copy / b["file"]).read_bytes(), m)
+    attrs = {"store_id": m["store_id"], "value_step_m": m["spline"]["value_step_m"],
+             **{k: m["spline"][k] for k in ("order", "h0", "tile_size")}}
+    old_levels = read_tile_file(copy / a["file"], a, (copy / a["file"]).read_bytes(), m)[1]
     (copy / a["file"]).unlink()
     write_tile_file(copy / a["file"], a["tile"], lvl.astype(np.int64), idx.astype(np.int64), val, attrs)
     # the editor makes every count add up
@@ -296,9 +300,15 @@ def test_an_intact_store_verifies_and_a_format_1_store_keeps_opening(tiny, copy)
 
 
 def _downgrade_to_format_1(root: Path):
-    """What a store written before coverage, store ids and digests looks like."""
+    """What a store written before coverage, store ids, digests and format-2 tiles looks like."""
     m = _manifest(root)
     for entry in m["tiles"]:
+        idx, lvl, val = read_tile_file(root / entry["file"], entry, (root / entry["file"]).read_bytes(), m)
+        (root / entry["file"]).unlink()
+        entry["file"] = entry["file"].replace(".gst", ".nc")
+        write_tile_file(root / entry["file"], entry["tile"], lvl, idx, val,
+                        {k: m["spline"][k] for k in ("order", "h0", "tile_size")}
+                        | {"store_id": m["store_id"], "store_version": m["store_version"]}, format_version=1)
         with netCDF4.Dataset(root / entry["file"], "a") as ds:
             for name in ("store_id", "store_version", "levels", "coefficients", "support_centre_min",
                          "support_centre_max"):
@@ -307,6 +317,8 @@ def _downgrade_to_format_1(root: Path):
         _fix_entry(root, entry)
     for key in ("coverage", "store_id", "integrity"):
         m.pop(key)
+    for key in ("value_step_m", "value_error_bound_m", "value_error_rule"):
+        m["spline"].pop(key)
     m["format_version"] = 1
     (root / "manifest.json").write_text(json.dumps(m, indent=1))
     (root / ".geoidspline-store").unlink()
@@ -430,7 +442,8 @@ def _exercise(root: Path, spline_values, path):
 @pytest.fixture(scope="module")
 def mutation_target(tiny, tmp_path_factory):
     root = Path(shutil.copytree(tiny[0], tmp_path_factory.mktemp("mutated") / "store"))
-    return root, _manifest(root), tiny[1].spline.undulation(LAT, LON)
+    # the values the store gives: the fit's coefficients quantised (format 2)
+    return root, _manifest(root), geoidspline.open_store(root).spline.full.undulation(LAT, LON)
 
 
 #: Examples per property test (counted in benchmarks/README.md "Trust").

@@ -114,6 +114,59 @@ def test_values_inside_follow_the_new_data(updated):
     assert np.abs(store.undulation(lat, lon) - truth).max() < 2 * PARAMS.tolerance_m
 
 
+def test_the_record_gives_the_errors_of_what_the_store_holds(updated):
+    """The update's errors in the region are those of the stored spline (a format-2
+    store rounds coefficients to its step), not of the unrounded fit."""
+    path, _, record = updated
+    store = geoidspline.open_store(path)
+    assert store.manifest["spline"].get("value_step_m")  # a format-2 store: rounding happened
+    source = new_grid()
+    lat2, lon2 = np.meshgrid(source.latitude, source.longitude, indexing="ij")
+    inside = REGION.contains(lat2, lon2)
+    errors = source.values[inside] - store.undulation(lat2[inside], lon2[inside])
+    assert record["nodes_in_region"] == inside.sum()
+    assert record["max_error_m"] == pytest.approx(np.abs(errors).max(), abs=1e-9)
+
+
+def test_an_update_finer_than_the_store_rounds_its_tiles_finer(store):
+    """A format-2 store rounds coefficients to its step (here 67 mm, sized for the fit's
+    5 cm); an update asking 1 cm rewrites its tiles with that step halved as often as
+    its nodes need, so the stored spline meets 1 cm there, and the untouched tiles
+    (multiples of every such step) stay byte-identical."""
+    from geoidspline.store.codec import decode_tile
+    from geoidspline.store.format import steps_nest
+
+    before = json.loads((store / "manifest.json").read_text())
+    store_step = before["spline"]["value_step_m"]
+    record = update_store(store, national_grid(REGION, BLEND_KM, offset_m=0.0), REGION, blend_width_km=BLEND_KM,
+                          tolerance_m=0.01)
+    after = json.loads((store / "manifest.json").read_text())
+    assert after["spline"]["value_step_m"] == store_step and verify_store(store) == []
+    old_files = {e["file"] for e in before["tiles"]}
+    steps = {e["file"]: decode_tile((store / e["file"]).read_bytes())[0]["value_step_m"] for e in after["tiles"]}
+    rewritten = {f: st for f, st in steps.items() if f not in old_files}
+    assert len(rewritten) == record["tiles_rewritten"] > 0
+    assert all(st == store_step for f, st in steps.items() if f in old_files)
+    finer = set(rewritten.values())
+    assert len(finer) == 1 and finer.pop() < store_step / 2 and all(steps_nest(st, store_step) for st in steps.values())
+    # what the store holds meets the update's tolerance at the source's nodes
+    source = national_grid(REGION, BLEND_KM, offset_m=0.0)
+    lat2, lon2 = np.meshgrid(source.latitude, source.longitude, indexing="ij")
+    inside = REGION.contains(lat2, lon2)
+    errors = source.values[inside] - geoidspline.open_store(store).undulation(lat2[inside], lon2[inside])
+    assert record["max_error_m"] == pytest.approx(np.abs(errors).max(), abs=1e-9)
+    assert record["converged"] == (np.abs(errors).max() <= 0.01)
+    assert np.abs(errors).max() <= 0.0105
+
+
+def test_steps_nest():
+    from geoidspline.store.format import steps_nest
+
+    step = 0.066666
+    assert steps_nest(step, step) and steps_nest(step / 2, step) and steps_nest(step / 2**20, step)
+    assert not steps_nest(step / 3, step) and not steps_nest(2 * step, step) and not steps_nest(0.0, step)
+
+
 def test_far_values_and_tiles_are_unchanged(updated, base_store):
     path, before, record = updated
     after = geoidspline.open_store(path).manifest
@@ -359,6 +412,32 @@ def test_read_only_and_locked_stores_are_refused(store, monkeypatch):
     with pytest.raises(StoreError, match="read-only"):
         update_store(store, new_grid(), REGION)
     assert snapshot(store) == before
+
+
+def test_a_second_writer_waits_for_the_first_with_wait(store, monkeypatch):
+    """--wait: an update finding the lock taken tries again until it is free (here the
+    holder lets go at the first retry), or gives up once the time is spent, naming the
+    holder and the wait, with nothing changed."""
+    import geoidspline.store.writer as writer
+    from geoidspline.store.writer import StoreLock
+
+    holder = StoreLock(store)  # another open file description holds the lock
+    holder.__enter__()
+    before = snapshot(store)
+    with pytest.raises(StoreError, match=rf"another writer \(pid {os.getpid()}\) is writing this store \(waited 0.3 s\)"):
+        update_store(store, new_grid(), REGION, blend_width_km=BLEND_KM, wait_seconds=0.3)
+    assert snapshot(store) == before
+    pauses = []
+
+    def pause(seconds):
+        pauses.append(seconds)
+        if len(pauses) == 1:
+            holder.__exit__(None, None, None)  # the first writer finishes
+
+    monkeypatch.setattr(writer, "_pause", pause)
+    record = update_store(store, new_grid(), REGION, blend_width_km=BLEND_KM, wait_seconds=600)
+    assert len(pauses) == 1 and 0 < pauses[0] <= writer.LOCK_POLL_SECONDS
+    assert record["store_version"] == 2 and verify_store(store) == []
 
 
 UPDATE_SCRIPT = textwrap.dedent("""

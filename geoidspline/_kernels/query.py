@@ -38,54 +38,121 @@ _U = np.uint64  # unsigned indices: no negative-index wraparound code in the hot
 
 
 @_jit
-def brick_entries(keys, order, bits):
-    """Every (brick, coefficient) pair of a level: a B-spline is listed in each brick of
-    ``2**bits`` cells a side whose tables hold it (1 to 8, see
-    :class:`geoidspline.spline._Members`).
+def brick_row_entries(keys, order, bits, row):
+    """Every (brick, coefficient) pair of one row of a level's bricks (brick index ``row``
+    on the first axis): a B-spline is listed in each brick of ``2**bits`` cells a side
+    whose tables hold it (1 to 8, see :class:`geoidspline.query.index._Slab`).
 
-    Returns ``(brick_keys, local (E, 3), coefficient index)``, entries grouped by
-    coefficient; ``local = k - brick 2**bits + order - 1`` per axis. One counting pass
-    and one filling pass: the numpy version built (N, 3) temporaries per combination.
+    ``keys``: sorted packed keys (those outside the row are skipped). Returns
+    ``(brick_keys (B,), brick_start (B + 1,), brick_of_entry (E,), local (E, 3),
+    coefficient index (E,))``, entries sorted by (brick key, local position) (a counting
+    sort by brick over the keys in order); ``local = k - brick 2**bits + order - 1`` per
+    axis. Three passes over the keys, no sort and no temporaries per entry.
     """
     n = keys.size
     mask = (1 << KEY_BITS) - 1
-    total = 0
+    big = np.int64(1) << 40
+    lo1 = big
+    hi1 = -big
+    lo2 = big
+    hi2 = -big
     for c in range(n):
-        m = 1
-        for d in range(3):
-            a = ((keys[c] >> ((2 - d) * KEY_BITS)) & mask) - KEY_OFFSET
-            if ((a + order - 1) >> bits) != (a >> bits):
-                m *= 2
-        total += m
-    brick_keys = np.empty(total, np.int64)
-    local = np.empty((total, 3), np.int64)
-    coef = np.empty(total, np.int64)
-    a3 = np.empty(3, np.int64)
-    b3 = np.empty(3, np.int64)
-    e = 0
-    for c in range(n):
-        for d in range(3):
-            a3[d] = ((keys[c] >> ((2 - d) * KEY_BITS)) & mask) - KEY_OFFSET
-        for combo in range(8):
-            ok = True
-            for d in range(3):
-                lo = a3[d] >> bits
-                if (combo >> d) & 1:
-                    hi = (a3[d] + order - 1) >> bits
-                    if hi == lo:
-                        ok = False
-                        break
-                    b3[d] = hi
-                else:
-                    b3[d] = lo
-            if not ok:
+        a0 = ((keys[c] >> (2 * KEY_BITS)) & mask) - KEY_OFFSET
+        if (a0 >> bits) != row and ((a0 + order - 1) >> bits) != row:
+            continue
+        a1 = ((keys[c] >> KEY_BITS) & mask) - KEY_OFFSET
+        a2 = (keys[c] & mask) - KEY_OFFSET
+        lo1 = min(lo1, a1 >> bits)
+        hi1 = max(hi1, (a1 + order - 1) >> bits)
+        lo2 = min(lo2, a2 >> bits)
+        hi2 = max(hi2, (a2 + order - 1) >> bits)
+    n1 = max(hi1 - lo1 + 1, 0)
+    n2 = max(hi2 - lo2 + 1, 0)
+    counts = np.zeros(n1 * n2 + 1, np.int64)
+    for sweep in range(2):  # 0: count per brick; 1: place
+        if sweep == 1:
+            nb = 0
+            for cell in range(n1 * n2):
+                if counts[cell] > 0:
+                    nb += 1
+            brick_keys = np.empty(nb, np.int64)
+            brick_start = np.empty(nb + 1, np.int64)
+            brick_of_cell = np.full(n1 * n2, -1, np.int64)
+            cursor = np.empty(nb, np.int64)
+            total = 0
+            b = 0
+            for cell in range(n1 * n2):
+                if counts[cell] > 0:
+                    brick_keys[b] = _pack(row, lo1 + cell // n2, lo2 + cell % n2)
+                    brick_start[b] = total
+                    cursor[b] = total
+                    brick_of_cell[cell] = b
+                    total += counts[cell]
+                    b += 1
+            brick_start[nb] = total
+            local = np.empty((total, 3), np.int16)  # 0 .. 2**bits + order - 2: small (memory)
+            coef = np.empty(total, np.int32)
+            brick_of_entry = np.empty(total, np.int32)
+        for c in range(n):
+            a0 = ((keys[c] >> (2 * KEY_BITS)) & mask) - KEY_OFFSET
+            if (a0 >> bits) != row and ((a0 + order - 1) >> bits) != row:
                 continue
-            brick_keys[e] = _pack(b3[0], b3[1], b3[2])
-            for d in range(3):
-                local[e, d] = a3[d] - (b3[d] << bits) + order - 1
-            coef[e] = c
-            e += 1
-    return brick_keys, local, coef
+            l0 = a0 - (row << bits) + order - 1
+            a1 = ((keys[c] >> KEY_BITS) & mask) - KEY_OFFSET
+            a2 = (keys[c] & mask) - KEY_OFFSET
+            for b1 in range(a1 >> bits, ((a1 + order - 1) >> bits) + 1):
+                for b2 in range(a2 >> bits, ((a2 + order - 1) >> bits) + 1):
+                    cell = (b1 - lo1) * n2 + (b2 - lo2)
+                    if sweep == 0:
+                        counts[cell] += 1
+                    else:
+                        b = brick_of_cell[cell]
+                        e = cursor[b]
+                        cursor[b] = e + 1
+                        local[e, 0] = l0
+                        local[e, 1] = a1 - (b1 << bits) + order - 1
+                        local[e, 2] = a2 - (b2 << bits) + order - 1
+                        coef[e] = c
+                        brick_of_entry[e] = b
+    return brick_keys, brick_start, brick_of_entry, local, coef
+
+
+@_jit
+def own_table_row(brick_start, local, coef_index, coefficients, side):
+    """The own table of one row of bricks from its entries (:func:`brick_row_entries`):
+    ``(base (B,), columns (B, side, side) int32, values)``.
+
+    A run per (brick, column lx, ly) from its first to its last local k (gaps hold 0),
+    runs in entry order; the column entry is the run's offset from its brick's base
+    ``<< COL_SHIFT | first k << COL_KBITS | length``. Two passes: count, then fill.
+    """
+    nb = brick_start.size - 1
+    base = np.zeros(nb, np.int64)
+    cols = np.zeros((nb, side, side), np.int32)
+    total = 0
+    for sweep in range(2):
+        if sweep == 1:
+            values = np.zeros(total)
+        at = 0
+        for b in range(nb):
+            base[b] = at
+            e = brick_start[b]
+            end = brick_start[b + 1]
+            while e < end:
+                f = e
+                while f + 1 < end and local[f + 1, 0] == local[e, 0] and local[f + 1, 1] == local[e, 1]:
+                    f += 1
+                k0 = np.int64(local[e, 2])
+                length = np.int64(local[f, 2]) - k0 + 1
+                if sweep == 1:
+                    cols[b, local[e, 0], local[e, 1]] = np.int32(((at - base[b]) << COL_SHIFT) | (k0 << COL_KBITS)
+                                                                 | length)
+                    for g in range(e, f + 1):
+                        values[at + local[g, 2] - k0] = coefficients[coef_index[g]]
+                at += length
+                e = f + 1
+        total = at
+    return base, cols, values
 
 
 @_ijit

@@ -13,7 +13,7 @@ import numpy as np
 from .._kernels import query as _qk
 from .._kernels._jit import numba_threads
 from ..bspline.basis import refinement_weights
-from ..bspline.keys import pack_keys, unpack_keys
+from ..bspline.keys import KEY_BITS, KEY_OFFSET, pack_keys, unpack_keys
 from ..bspline.level import LevelSpline
 
 FOLD_BAND_CELLS = 2.0
@@ -68,8 +68,9 @@ def _fold_depths(levels):
     return depths
 
 
-class _Members:
-    """A level's coefficients listed once per brick whose table holds them.
+class _Slab:
+    """One row of a level's bricks (those with brick index ``row`` along the first axis):
+    each of the level's coefficients listed once per brick of the row whose table holds it.
 
     A brick's table covers the B-splines touching its cells: ``k`` in
     ``[b S - n + 1, b S + S - 1]`` per axis, so a coefficient is in 1 to 8 bricks.
@@ -77,30 +78,105 @@ class _Members:
     ``(lx * side + ly) * side + lz`` with ``l = k - b S + n - 1`` in 0..side-1.
     """
 
-    def __init__(self, lv, order):
+    def __init__(self, lv, order, row):
         bits = _qk.BRICK_BITS
-        side = (1 << bits) + order - 1
-        bkey, local, coef = _qk.brick_entries(lv.keys, order, bits)
-        flat = (local[:, 0] * side + local[:, 1]) * side + local[:, 2]
-        perm = np.lexsort((flat, bkey))
-        self.entry_keys = bkey[perm]
-        self.local = local[perm]
-        self.flat = flat[perm]
-        self.coefs = lv.coefficients[coef[perm]]
-        first = np.r_[True, self.entry_keys[1:] != self.entry_keys[:-1]]
-        self.brick_keys = self.entry_keys[first]
-        self.brick_of_entry = np.cumsum(first) - 1
+        cells = 1 << bits
+        # the coefficients with i in [row S - n + 1, row S + S - 1]: one contiguous run of
+        # the sorted keys (i is the keys' leading field)
+        lo, hi = np.searchsorted(lv.keys, pack_keys(np.array([[row * cells - order + 1, -KEY_OFFSET, -KEY_OFFSET],
+                                                               [row * cells + cells, -KEY_OFFSET, -KEY_OFFSET]])))
+        (self.brick_keys, self.brick_start, self.brick_of_entry, self.local,
+         coef) = _qk.brick_row_entries(lv.keys[lo:hi], order, bits, row)
+        self.coef_index = coef + np.int32(lo)  # int32 positions in the level's coefficients
+
+
+class _Members:
+    """A level's coefficients by bricks, one row of bricks at a time (:class:`_Slab`).
+
+    Listing every (brick, coefficient) pair of a level at once took 34 bytes an entry
+    (2.3 entries a coefficient for order 6): 0.8 GB for the 5.6 M coefficients of the
+    EGM96 2 mm store. A row holds a few % of them and is let go once used: the own
+    tables are built row by row, and folding finer levels computes the rows of the
+    parents it needs again (the last one is kept, as parents come in key order).
+    """
+
+    def __init__(self, lv, order):
+        self.lv = lv
+        self.order = order
+        self.coefficients = lv.coefficients
+        if len(lv):
+            first_i = int((lv.keys[0] >> (2 * KEY_BITS)) - KEY_OFFSET)
+            last_i = int((lv.keys[-1] >> (2 * KEY_BITS)) - KEY_OFFSET)
+            self.rows = range(first_i >> _qk.BRICK_BITS, ((last_i + order - 1) >> _qk.BRICK_BITS) + 1)
+        else:
+            self.rows = range(0)
+        self._cached = None
+
+    def slab(self, row) -> _Slab:
+        if self._cached is None or self._cached[0] != row:
+            self._cached = (row, _Slab(self.lv, self.order, row))
+        return self._cached[1]
 
     def scatter(self, keys, dense):
-        """Add the coefficients into dense (len(keys), side³) blocks of bricks ``keys``."""
-        starts = np.searchsorted(self.entry_keys, keys, side="left")
-        counts = np.searchsorted(self.entry_keys, keys, side="right") - starts
-        total = int(counts.sum())
-        if total == 0:
-            return
-        rows = np.repeat(np.arange(keys.size), counts)
-        entry = np.repeat(starts - (np.cumsum(counts) - counts), counts) + np.arange(total)
-        dense.reshape(keys.size, -1)[rows, self.flat[entry]] += self.coefs[entry]
+        """Add the coefficients into dense (len(keys), side³) blocks of bricks ``keys``
+        (sorted)."""
+        side = (1 << _qk.BRICK_BITS) + self.order - 1
+        rows = (keys >> (2 * KEY_BITS)) - KEY_OFFSET
+        bounds = np.r_[0, np.flatnonzero(rows[1:] != rows[:-1]) + 1, keys.size]
+        flat_dense = dense.reshape(keys.size, -1)
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            slab = self.slab(int(rows[a]))
+            if not slab.brick_keys.size:
+                continue
+            at = np.minimum(np.searchsorted(slab.brick_keys, keys[a:b]), slab.brick_keys.size - 1)
+            found = slab.brick_keys[at] == keys[a:b]
+            starts = np.where(found, slab.brick_start[at], 0)
+            counts = np.where(found, slab.brick_start[at + 1] - slab.brick_start[at], 0)
+            total = int(counts.sum())
+            if total == 0:
+                continue
+            block = np.repeat(np.arange(a, b), counts)
+            entry = np.repeat(starts - (np.cumsum(counts) - counts), counts) + np.arange(total)
+            local = slab.local[entry].astype(np.int32)
+            flat = (local[:, 0] * side + local[:, 1]) * side + local[:, 2]
+            flat_dense[block, flat] += self.coefficients[slab.coef_index[entry]]
+
+
+def _own_tables(members, side):
+    """The own table of a level, built one row of bricks at a time: (brick keys, value
+    base per brick, int32 columns (nb, side, side) and values as lists of parts, the
+    number of values)."""
+    keys_parts, base_parts, col_parts, value_parts = [], [], [], []
+    value_base = 0
+    for row in members.rows:
+        slab = _Slab(members.lv, members.order, row)  # used once: not kept
+        nb = slab.brick_keys.size
+        if nb == 0:
+            continue
+        base, cols, own = _qk.own_table_row(slab.brick_start, slab.local, slab.coef_index, members.coefficients,
+                                            side)
+        keys_parts.append(slab.brick_keys)
+        base_parts.append(base + value_base)
+        col_parts.append(cols)
+        value_parts.append(own)
+        value_base += own.size
+    if not keys_parts:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), [], [], 0
+    return np.concatenate(keys_parts), np.concatenate(base_parts), col_parts, value_parts, value_base
+
+
+def _joined(parts, dtype, shape):
+    """``np.concatenate(parts)``, letting each part go once copied (``parts`` is emptied):
+    the index is never held twice."""
+    total = sum(p.shape[0] for p in parts)
+    out = np.empty((total,) + tuple(np.atleast_1d(shape)[1:]), dtype)
+    at = 0
+    while parts:
+        part = parts.pop(0)
+        out[at:at + part.shape[0]] = part
+        at += part.shape[0]
+        del part
+    return out
 
 
 def _column_tables(nb, side, run_brick, run_cx, run_cy, run_k0, run_len):
@@ -190,47 +266,36 @@ class BrickIndex:
         slot_base = 0
         brick_base = 0
         for i, (lv, mem) in enumerate(zip(self.levels, members)):
-            nb = mem.brick_keys.size
-            # own table: runs of the level's coefficients, column by column
-            col_id = (mem.brick_of_entry * side + mem.local[:, 0]) * side + mem.local[:, 1]
-            starts = np.flatnonzero(np.r_[True, col_id[1:] != col_id[:-1]])
-            stops = np.r_[starts[1:], col_id.size]
-            kz = mem.local[:, 2]
-            k0 = kz[starts]
-            length = kz[stops - 1] - k0 + 1
-            base, cols, run_start = _column_tables(
-                nb, side, mem.brick_of_entry[starts], mem.local[starts, 0], mem.local[starts, 1], k0, length)
-            own = np.zeros(int(length.sum()))
-            run = np.repeat(np.arange(starts.size), stops - starts)
-            own[run_start[run] + kz - k0[run]] = mem.coefs
+            brick_keys, base, col_parts, own_parts, own_size = _own_tables(mem, side)
+            nb = brick_keys.size
             own_bases.append(base + value_base)
-            own_cols.append(cols)
-            values.append(own)
-            value_base += own.size
+            own_cols.extend(col_parts)
+            values.extend(own_parts)
+            value_base += own_size
             if i == 0 or self.depths[i] is None or not fold:
-                fold_bases.append(base + value_base - own.size)
-                fold_cols.append(cols)
+                fold_bases.append(base + value_base - own_size)
+                fold_cols.append((brick_base, brick_base + nb))  # its own columns, copied once joined
                 band_lo2.append(-np.inf if i == 0 else np.inf)
                 band_hi2.append(np.inf if i == 0 else -np.inf)
             else:
                 width = FOLD_BAND_CELLS * lv.h
-                base, cols, folded = self._folded_tables(self.depths[i], lv.h, mem.brick_keys, width)
+                base, cols, folded = self._folded_tables(self.depths[i], lv.h, brick_keys, width)
                 fold_bases.append(base + value_base)
                 fold_cols.append(cols)
                 values.append(folded)
                 value_base += folded.size
                 band_lo2.append(max(0.0, 1.0 - width) ** 2)
                 band_hi2.append((1.0 + width) ** 2)
-            slots = _qk.build_hash(mem.brick_keys)
+            slots = _qk.build_hash(brick_keys)
             slots[:, 1] = np.where(slots[:, 1] >= 0, slots[:, 1] + brick_base, -1)
             brick_base += nb
             slot_tables.append(slots)
             slot_start.append(slot_base)
             slot_mask.append(slots.shape[0] - 1)
             slot_base += slots.shape[0]
-            presence.append(self._presence(mem.brick_keys, lv.h))
+            presence.append(self._presence(brick_keys, lv.h))
         self._members_at_depth = None  # only needed while building
-        cat = lambda parts, dtype, shape: np.concatenate(parts) if parts else np.zeros(shape, dtype)  # noqa: E731
+        cat = _joined
         self.inv_hs = np.array([1.0 / lv.h for lv in self.levels], dtype=np.float64)
         self.band_lo2 = np.array(band_lo2, dtype=np.float64)
         self.band_hi2 = np.array(band_hi2, dtype=np.float64)
@@ -238,9 +303,10 @@ class BrickIndex:
         self.slot_start = np.array(slot_start, dtype=np.int64)
         self.slot_mask = np.array(slot_mask, dtype=np.int64)
         self.fold_base = cat(fold_bases, np.int64, 0)
-        self.fold_cols = cat(fold_cols, np.int32, (0, side, side))
         self.own_base = cat(own_bases, np.int64, 0)
         self.own_cols = cat(own_cols, np.int32, (0, side, side))
+        fold_cols = [self.own_cols[p[0]:p[1]] if isinstance(p, tuple) else p for p in fold_cols]
+        self.fold_cols = cat(fold_cols, np.int32, (0, side, side))
         self.values = cat(values, np.float64, 0)
         n = _qk.PRESENCE_SIDE
         self.presence = np.stack(presence) if presence else np.zeros((0, n, n, n), np.uint8)

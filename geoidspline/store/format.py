@@ -6,23 +6,26 @@ Layout of a store directory::
     STORE/.lock                              the writers' lock file (never removed)
     STORE/manifest.json                      the commit point: lists the live tile files
     STORE/manifest.json.tmp                  the next manifest, before its atomic rename
-    STORE/tiles/t+0001-0002+0000.v1.nc       one file per tile and store version
+    STORE/tiles/t+0001-0002+0000.v1.gst      one file per tile and store version (.nc: format 1)
 
 These are the only names a store owns: a writer never removes any other file.
 
 A tile file holds every coefficient, of every level, whose B-spline support centre
-lies in the tile's cube: variables ``index`` (coefficient, axis: the B-spline's
-integer position on its level's grid), ``level`` and ``value`` (metres). Its
-attributes record what it holds (the tile, the store it belongs to, the spline's
-order, h0 and tile size), and a reader refuses a tile whose attributes or contents
-disagree with its manifest entry (a tile copied from another store, or two tiles
-swapped, even when the manifest's sha256 was edited to match).
+lies in the tile's cube. Format 2 (``.gst``, written now): runs of keys and quantised
+values, see :mod:`geoidspline.store.codec`. Format 1 (``.nc``, still read, and written
+by :func:`write_tile_file` with ``format_version=1``): netCDF4 variables ``index``
+(coefficient, axis: the B-spline's integer position on its level's grid), ``level``
+and ``value`` (metres). Readers tell them apart by the file's first bytes. Either
+records what it holds (the tile, the store it belongs to, the spline's order, h0 and
+tile size: netCDF attributes, or the format-2 header), and a reader refuses a tile
+whose record or contents disagree with its manifest entry (a tile copied from another
+store, or two tiles swapped, even when the manifest's sha256 was edited to match).
 
 The manifest is checked against a schema written as code (:func:`validate_manifest`;
 a schema library would not name the rule as plainly, nor bound nesting, sizes and
-numbers before use); format 2 adds the coverage record, the store id and an integrity
-digest of the manifest itself. Format 1 stores keep opening (their coverage is their
-region).
+numbers before use); format 2 adds the coverage record, the store id, an integrity
+digest of the manifest itself and the quantisation step of its ``.gst`` tiles.
+Format 1 stores keep opening (their coverage is their region).
 """
 
 from __future__ import annotations
@@ -39,10 +42,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .._files import atomic_path
+from .._files import atomic_path, atomic_write
 from .._version import __version__  # noqa: F401 (recorded in manifests)
+from ..bspline.keys import pack_keys, unpack_keys
 from ..bspline.level import cube_of_support_centres
 from ..errors import StoreCorruptError, StoreError
+from .codec import decode_tile, encode_tile, is_tile_v2, runs_of
 
 FORMAT_NAME = "geoidspline-tile-store"
 
@@ -68,11 +73,11 @@ MARKER = ".geoidspline-store"
 
 
 #: A tile file's name: its tile (i, j, k) and the store version that wrote it.
-TILE_NAME = re.compile(r"t([+-]\d{4,7})([+-]\d{4,7})([+-]\d{4,7})\.v([1-9]\d{0,9})\.nc")
+TILE_NAME = re.compile(r"t([+-]\d{4,7})([+-]\d{4,7})([+-]\d{4,7})\.v([1-9]\d{0,9})\.(nc|gst)")
 
 
 #: A tile file being written (:func:`geoidspline._files.atomic_path` temporaries).
-TILE_TMP_NAME = re.compile(r"\.t[+-]\d{4,7}[+-]\d{4,7}[+-]\d{4,7}\.v\d{1,10}\.nc\.[A-Za-z0-9_]+\.tmp")
+TILE_TMP_NAME = re.compile(r"\.t[+-]\d{4,7}[+-]\d{4,7}[+-]\d{4,7}\.v\d{1,10}\.(nc|gst)\.[A-Za-z0-9_]+\.tmp")
 
 
 #: Largest manifest read (bytes): a global store at 1' lists ~10^5 tiles in ~30 MB.
@@ -92,9 +97,9 @@ MAX_MANIFEST_DEPTH = 32
 MAX_COEFFICIENT_M = 1.0e5
 
 
-def tile_name(tile, version):
+def tile_name(tile, version, format_version=FORMAT_VERSION):
     i, j, k = (int(v) for v in tile)
-    return f"t{i:+05d}{j:+05d}{k:+05d}.v{version}.nc"
+    return f"t{i:+05d}{j:+05d}{k:+05d}.v{version}.{'nc' if format_version == 1 else 'gst'}"
 
 
 def is_store_file(relative: str) -> bool:
@@ -122,10 +127,16 @@ def error_stats(errors):
     }
 
 
-# -- tile files ---------------------------------------------------------------------
+#: What a format-2 tile's header records of the store beside its tile (format 1: attributes).
+TILE_RECORD = ("store_id", "store_version", "order", "h0", "tile_size")
 
 
-def write_tile_file(path, tile, levels, indices, values, attrs):
+def write_tile_file(path, tile, levels, indices, values, attrs, format_version=FORMAT_VERSION):
+    """Write one tile file; format 2 quantises with ``attrs["value_step_m"]``."""
+    if format_version >= 2:
+        record = {key: attrs[key] for key in TILE_RECORD if attrs.get(key) is not None}
+        atomic_write(path, encode_tile(tile, levels, indices, values, attrs["value_step_m"], record))
+        return
     import netCDF4
 
     tile = np.asarray(tile, dtype=np.int64)
@@ -134,7 +145,7 @@ def write_tile_file(path, tile, levels, indices, values, attrs):
         ds.setncattr("Conventions", "CF-1.8")
         ds.setncattr("title", "geoidspline ambient B-spline tile")
         ds.setncattr("format", FORMAT_NAME)
-        ds.setncattr("format_version", FORMAT_VERSION)
+        ds.setncattr("format_version", 1)
         ds.setncattr("tile", tile.astype(np.int32))
         # the cube [tile·size, (tile+1)·size) holding every coefficient's support centre
         ds.setncattr("support_centre_min", tile * size)
@@ -142,7 +153,7 @@ def write_tile_file(path, tile, levels, indices, values, attrs):
         ds.setncattr("levels", np.unique(levels).astype(np.int32))
         ds.setncattr("coefficients", np.int64(len(values)))
         for key, value in attrs.items():
-            if value is not None:
+            if value is not None and key != "value_step_m":
                 ds.setncattr(key, value)
         ds.createDimension("coefficient", len(values))
         ds.createDimension("axis", 3)
@@ -261,24 +272,140 @@ class TileDirectory:
         return data
 
 
-def read_tile_file(path, entry, data, manifest):
-    """(indices (M, 3), levels (M,), values (M,)) of a tile file's bytes ``data``.
+def read_tile_levels(path, entry, data, manifest):
+    """{level: (sorted packed keys, values in metres)} of a tile file's bytes ``data``
+    (either format; format 2 decodes straight to keys, without index triples), checked
+    as :func:`read_tile_file` checks it."""
+    if not is_tile_v2(data):
+        indices, levels, values = read_tile_file(path, entry, data, manifest)
+        out = {}
+        for level in np.unique(levels):
+            sel = levels == level
+            keys = pack_keys(indices[sel])
+            order = np.argsort(keys)
+            out[int(level)] = (keys[order], values[sel][order])
+        return out
+    refuse = _refusal(path, entry)
+    try:
+        header, out = decode_tile(data)
+    except ValueError as exc:
+        raise refuse(str(exc)) from None
+    found = header.get("tile")
+    found = [int(v) for v in found] if isinstance(found, list) and len(found) == 3 else found
+    _check_record(refuse, entry, manifest, found, header)
+    count = sum(v[0].size for v in out.values())
+    if count != entry["coefficients"]:
+        raise refuse(f"holds {count} coefficients, the manifest says {entry['coefficients']}")
+    step = manifest["spline"].get("value_step_m")
+    if step is not None and not steps_nest(float(header["value_step_m"]), float(step)):
+        raise refuse(f"was quantised with step {header['value_step_m']} m, not the manifest's {step} m "
+                     f"or a power-of-two fraction of it")
+    if out:
+        # the place of a run's first and last coefficient is the place of all of it: a
+        # run varies k alone, and the cube of a support centre grows with k
+        ends = {lv: _run_ends(k) for lv, (k, _) in out.items()}
+        indices = np.concatenate([unpack_keys(k) for k in ends.values()])
+        levels = np.concatenate([np.full(k.size, lv, np.int64) for lv, k in ends.items()])
+        values = np.concatenate([v for _, v in out.values()])
+        _check_contents(refuse, entry, manifest, indices, levels, values)
+    return out
 
-    Refuses (:class:`StoreCorruptError` naming the file) a tile whose attributes or
+
+def read_tile_file(path, entry, data, manifest):
+    """(indices (M, 3), levels (M,), values (M,)) of a tile file's bytes ``data`` (either format).
+
+    Refuses (:class:`StoreCorruptError` naming the file) a tile whose record or
     contents disagree with its manifest entry: another tile, another store, another
     spline (order, h0, tile size), another number of coefficients or levels, a
     coefficient whose support centre is not in the tile's cube, a non-finite or
     implausibly large coefficient.
     """
-    import netCDF4
+    if data is None:
+        data = Path(path).read_bytes()
+    if is_tile_v2(data):
+        out = read_tile_levels(path, entry, data, manifest)
+        if not out:
+            return np.zeros((0, 3), np.int64), np.zeros(0, np.int64), np.zeros(0)
+        indices = np.concatenate([unpack_keys(k) for k, _ in out.values()])
+        levels = np.concatenate([np.full(k.size, lv, np.int64) for lv, (k, _) in out.items()])
+        values = np.concatenate([v for _, v in out.values()])
+        return indices, levels, values
+    return _read_tile_v1(path, entry, data, manifest)
 
+
+def steps_nest(tile_step: float, store_step: float) -> bool:
+    """A tile's quantisation step is the store's or ``store_step / 2**k`` (a regional
+    update writes its tiles with a finer step where its tolerance needs it; every
+    multiple of the store's step is a multiple of those, so the untouched coefficients
+    keep their values bit for bit)."""
+    if not (0.0 < tile_step <= store_step):
+        return False
+    ratio = store_step / tile_step
+    k = round(math.log2(ratio))
+    return 0 <= k <= 30 and ratio == 2.0 ** k
+
+
+def _refusal(path, entry):
     tile = [int(v) for v in entry["tile"]]
-    meta = manifest["spline"]
-    order, h0, tile_size = int(meta["order"]), float(meta["h0"]), float(meta["tile_size"])
 
     def refuse(rule):
         return StoreCorruptError(f"{path}: tile {tile} {rule}")
+    return refuse
 
+
+def _check_record(refuse, entry, manifest, found, record):
+    """The tile, store and spline a tile file records (netCDF attributes or the format-2
+    header) against its manifest entry."""
+    meta = manifest["spline"]
+    if found != [int(v) for v in entry["tile"]]:
+        raise refuse(f"holds tile {found}: it is not this tile's file (moved, swapped or copied)")
+    store_id = manifest.get("store_id")
+    if store_id is not None and record.get("store_id") != store_id:
+        raise refuse("belongs to another store (its store_id differs from the manifest's)")
+    for key in ("order", "h0", "tile_size"):
+        want = float(meta[key])
+        try:
+            bad = key in record and float(record[key]) != want
+        except (TypeError, ValueError):
+            bad = True
+        if bad:
+            raise refuse(f"was written for {key} {record[key]}, the manifest says {want}")
+
+
+def _run_ends(keys):
+    """The first and last key of every run of consecutive keys (sorted keys)."""
+    starts, lengths = runs_of(keys)
+    return np.concatenate([keys[starts], keys[starts + lengths - 1]])
+
+
+def _check_contents(refuse, entry, manifest, indices, levels, values):
+    """Levels, values and the place of every coefficient of a tile against its manifest entry."""
+    meta = manifest["spline"]
+    order, h0, tile_size = int(meta["order"]), float(meta["h0"]), float(meta["tile_size"])
+    present = sorted(set(np.unique(levels).tolist()))
+    if present != list(entry["levels"]):
+        raise refuse(f"holds levels {present}, the manifest says {entry['levels']}")
+    known = {int(lv["level"]) for lv in meta["levels"]}
+    if not set(present) <= known:
+        raise refuse(f"holds levels {present}, the store has {sorted(known)}")
+    if not np.all(np.isfinite(values)) or np.any(np.abs(values) > MAX_COEFFICIENT_M):
+        raise refuse(f"holds coefficients that are not finite or beyond ±{MAX_COEFFICIENT_M:g} m")
+    # every coefficient's support centre lies in this tile's cube (the writer's grouping)
+    centre_tile = np.empty_like(indices)
+    for level in present:
+        sel = levels == level
+        centre_tile[sel] = cube_of_support_centres(indices[sel], h0 / 2.0**level, order, tile_size)
+    wrong = np.any(centre_tile != np.asarray([int(v) for v in entry["tile"]]), axis=1)
+    if wrong.any():
+        raise refuse(f"holds {int(wrong.sum())} coefficients whose support centre lies outside the tile's cube "
+                     f"(first in tile {centre_tile[wrong][0].tolist()}): the file is in the wrong place")
+
+
+def _read_tile_v1(path, entry, data, manifest):
+    """A format-1 (netCDF4) tile file's (indices, levels, values), checked."""
+    import netCDF4
+
+    refuse = _refusal(path, entry)
     try:
         ds = netCDF4.Dataset(str(path), "r", memory=data)
     except (OSError, RuntimeError, ValueError, MemoryError) as exc:
@@ -290,14 +417,7 @@ def read_tile_file(path, entry, data, manifest):
             if attrs.get("format") != FORMAT_NAME:
                 raise refuse("is not a geoidspline tile file (no format attribute)")
             found = [int(v) for v in np.atleast_1d(attrs["tile"])] if "tile" in attrs else None
-            if found != tile:
-                raise refuse(f"holds tile {found}: it is not this tile's file (moved, swapped or copied)")
-            store_id = manifest.get("store_id")
-            if store_id is not None and attrs.get("store_id") != store_id:
-                raise refuse("belongs to another store (its store_id differs from the manifest's)")
-            for key, want in (("order", order), ("h0", h0), ("tile_size", tile_size)):
-                if key in attrs and float(attrs[key]) != float(want):
-                    raise refuse(f"was written for {key} {attrs[key]}, the manifest says {want}")
+            _check_record(refuse, entry, manifest, found, attrs)
             dims = ds.dimensions
             if "coefficient" not in dims or "axis" not in dims or len(dims["axis"]) != 3:
                 raise refuse("lacks the coefficient/axis dimensions")
@@ -314,23 +434,7 @@ def read_tile_file(path, entry, data, manifest):
         raise
     except (OSError, KeyError, IndexError, RuntimeError, ValueError, TypeError, AttributeError) as exc:
         raise refuse(f"cannot be read as a tile file ({exc})") from None
-    present = sorted(set(np.unique(levels).tolist()))
-    if present != list(entry["levels"]):
-        raise refuse(f"holds levels {present}, the manifest says {entry['levels']}")
-    known = {int(lv["level"]) for lv in meta["levels"]}
-    if not set(present) <= known:
-        raise refuse(f"holds levels {present}, the store has {sorted(known)}")
-    if not np.all(np.isfinite(values)) or np.any(np.abs(values) > MAX_COEFFICIENT_M):
-        raise refuse(f"holds coefficients that are not finite or beyond ±{MAX_COEFFICIENT_M:g} m")
-    # every coefficient's support centre lies in this tile's cube (the writer's grouping)
-    centre_tile = np.empty_like(indices)
-    for level in present:
-        sel = levels == level
-        centre_tile[sel] = cube_of_support_centres(indices[sel], h0 / 2.0**level, order, tile_size)
-    wrong = np.any(centre_tile != np.asarray(tile), axis=1)
-    if wrong.any():
-        raise refuse(f"holds {int(wrong.sum())} coefficients whose support centre lies outside the tile's cube "
-                     f"(first in tile {centre_tile[wrong][0].tolist()}): the file is in the wrong place")
+    _check_contents(refuse, entry, manifest, indices, levels, values)
     return indices, levels, values
 
 
@@ -595,8 +699,17 @@ def validate_manifest(path, manifest: dict):
     for key in ("node_max_error_m", "node_rms_error_m", "max_error_m", "rms_error_m", "p99_error_m"):
         s.number(s.get(accuracy, key, "accuracy"), f"accuracy.{key}", 0.0, 1e9, nullable=True)
     s.number(accuracy.get("node_p99_error_m"), "accuracy.node_p99_error_m", 0.0, 1e9, nullable=True)
+    s.number(accuracy.get("fit_node_max_error_m"), "accuracy.fit_node_max_error_m", 0.0, 1e9, nullable=True)
     s.string(s.get(accuracy, "check_truth", "accuracy"), "accuracy.check_truth", nullable=True)
 
+    # tiles: format 2 (.gst, quantised with spline.value_step_m) or format 1 (.nc, in a
+    # format-1 manifest, or in a format-2 one of a format-1 store updated since)
+    step = s.number(spline.get("value_step_m"), "spline.value_step_m", 0.0, 1e6, nullable=True, open_lo=True)
+    if step is not None and version < 2:
+        s.fail("spline.value_step_m", "is format 2's: a format-1 manifest has none")
+    if step is not None:
+        s.number(s.get(spline, "value_error_bound_m", "spline"), "spline.value_error_bound_m", 0.0, 1e6)
+    tile_suffix = "gst" if step is not None else "nc"
     bound = math.ceil(1.0 / tile_size) + 1  # the unit sphere lies within ±1 on each axis
     tiles = s.array(manifest["tiles"], "tiles", 1)
     seen_tiles, seen_files, counted = set(), set(), 0
@@ -617,6 +730,9 @@ def validate_manifest(path, manifest: dict):
         if tuple(int(v) for v in match.groups()[:3]) != tile or int(match.group(4)) > store_version:
             s.fail(f"{key}.file", f"names tile {[int(v) for v in match.groups()[:3]]} of version "
                                   f"{match.group(4)}, not tile {list(tile)} of version <= {store_version}")
+        if match.group(5) != tile_suffix:
+            s.fail(f"{key}.file", f"must be a .{tile_suffix} tile: the store's tiles are "
+                                  f"{'format 2 (spline.value_step_m is given)' if step else 'format 1'}")
         if name in seen_files:
             s.fail(f"{key}.file", f"repeats the file {name}")
         seen_files.add(name)

@@ -10,6 +10,7 @@ A :class:`TileStore`'s queries are thread-safe (see :class:`StoreSpline`).
 from __future__ import annotations
 
 import hashlib
+import itertools
 import os
 import threading
 from pathlib import Path
@@ -21,7 +22,7 @@ from ..errors import StoreCorruptError, StoreError
 from ..hierarchy.ambient import FOLDED_FROM_POINTS, AmbientSpline
 from ..sphere.coordinates import check_coordinates, directions
 from .coverage import coverage_of
-from .format import LOCK, MANIFEST, MARKER, TileDirectory, load_manifest, read_tile_file
+from .format import LOCK, MANIFEST, MARKER, TileDirectory, load_manifest, read_tile_levels
 
 #: Fraction of a store's tiles from which a small batch that needs them loads them all
 #: (one full read instead of many partial rebuilds).
@@ -92,7 +93,7 @@ class StoreSpline:
         self.reach = self.order * coarsest / 2.0
         self._entries = {tuple(int(v) for v in e["tile"]): e for e in manifest["tiles"]}
         self._lock = threading.RLock()
-        self._tiles: dict = {}  # tile -> (levels, indices, values) as read
+        self._tiles: dict = {}  # tile -> {level: (sorted keys, values)} as read
         self._partial = AmbientSpline([])  # the spline of the tiles read so far
         self._full: AmbientSpline | None = None
 
@@ -112,8 +113,7 @@ class StoreSpline:
             raise self._missing(path, entry) from None
         if self.verify and hashlib.sha256(data).hexdigest() != entry["sha256"]:
             raise StoreCorruptError(f"{path}: tile {entry['tile']} does not match its sha256 in the manifest")
-        indices, levels, values = read_tile_file(path, entry, data, self.manifest)
-        return levels, indices, values
+        return read_tile_levels(path, entry, data, self.manifest)
 
     def _read_tiles(self, tiles):
         """Read ``tiles`` (not read yet) into self._tiles; the tile directory is opened once."""
@@ -141,27 +141,61 @@ class StoreSpline:
         return StoreCorruptError(f"{path}: tile {entry['tile']} is missing")
 
     def _build(self, tiles, complete=False):
-        by_level: dict[int, list] = {}
-        for tile in tiles:
-            levels, indices, values = self._tiles[tile]
-            for level in np.unique(levels):
-                sel = levels == level
-                by_level.setdefault(int(level), []).append((indices[sel], values[sel]))
-        out = []
-        for level in sorted(by_level):
-            idx = np.concatenate([p[0] for p in by_level[level]])
-            val = np.concatenate([p[1] for p in by_level[level]])
-            try:
-                out.append(LevelSpline.from_indices(level, self.h0 / 2.0**level, self.order, idx, val))
-            except ValueError as exc:  # the same coefficient in two tiles, say
-                raise StoreCorruptError(f"{self.path}: the tiles of level {level} disagree ({exc})") from None
+        # per level: only keys and values are held (16 bytes a coefficient), never index
+        # triples. A coefficient's tile is the cube of its support centre, which grows
+        # with its index, so the tiles of one first tile index (a "slab") hold a run of
+        # keys of their own: each slab is joined and sorted on its own and copied into
+        # the level's arrays. ``complete`` (the whole spline) reads the tiles not read yet
+        # slab by slab and lets each slab's tiles go once copied, so the coefficients are
+        # never held twice over; the level sizes are then the manifest's, and checked
+        tiles = sorted(tiles)
         if complete:
-            counts = {lv.level: len(lv) for lv in out}
-            wanted = {int(lv["level"]): int(lv["coefficients"]) for lv in self.manifest["spline"]["levels"]}
-            if {k: v for k, v in counts.items() if v} != {k: v for k, v in wanted.items() if v}:
-                raise StoreCorruptError(f"{self.path / MANIFEST}: the tiles hold {counts} coefficients per level, "
-                                        f"the manifest says {wanted}")
+            sizes = {int(lv["level"]): int(lv["coefficients"]) for lv in self.manifest["spline"]["levels"]}
+        else:
+            sizes = {}
+            for tile in tiles:
+                for level, (keys, _) in self._tiles[tile].items():
+                    sizes[level] = sizes.get(level, 0) + keys.size
+        joined = {level: (np.empty(n, np.int64), np.empty(n)) for level, n in sizes.items()}
+        filled = dict.fromkeys(sizes, 0)
+        for _, slab in itertools.groupby(tiles, key=lambda tile: tile[0]):
+            slab = list(slab)
+            if complete:
+                self._read_tiles([t for t in slab if t not in self._tiles])
+            by_level: dict[int, list] = {}
+            for tile in slab:
+                for level, part in (self._tiles.pop(tile) if complete else self._tiles[tile]).items():
+                    by_level.setdefault(level, []).append(part)
+            for level, parts in by_level.items():
+                keys = np.concatenate([p[0] for p in parts])
+                val = np.concatenate([p[1] for p in parts])
+                if len(parts) > 1:
+                    order = np.argsort(keys, kind="stable")
+                    keys, val = keys[order], val[order]
+                at = filled.get(level, 0)
+                if at + keys.size > sizes.get(level, 0):
+                    raise self._count_mismatch(level, f"more than {sizes.get(level, 0)}")
+                joined[level][0][at:at + keys.size] = keys
+                joined[level][1][at:at + keys.size] = val
+                filled[level] = at + keys.size
+            del by_level, parts
+        out = []
+        for level in sorted(joined):
+            keys, val = joined.pop(level)
+            if filled[level] != keys.size:
+                raise self._count_mismatch(level, filled[level])
+            if keys.size > 1 and np.any(keys[1:] <= keys[:-1]):
+                why = ("a coefficient is stored twice" if np.any(keys[1:] == keys[:-1])
+                       else "a coefficient lies outside the order of its tile's cube")
+                raise StoreCorruptError(f"{self.path}: the tiles of level {level} disagree ({why})")
+            if keys.size:
+                out.append(LevelSpline(level, self.h0 / 2.0**level, self.order, keys, val))
         return AmbientSpline(out)
+
+    def _count_mismatch(self, level, held):
+        wanted = {int(lv["level"]): int(lv["coefficients"]) for lv in self.manifest["spline"]["levels"]}
+        return StoreCorruptError(f"{self.path / MANIFEST}: the tiles hold {held} coefficients of level {level}, "
+                                 f"the manifest says {wanted.get(level, 0)}")
 
     @property
     def full(self) -> AmbientSpline:
@@ -169,8 +203,7 @@ class StoreSpline:
         if self._full is None:
             with self._lock:
                 if self._full is None:
-                    self._read_tiles([t for t in self._entries if t not in self._tiles])  # manifest order
-                    self._full = self._build(list(self._entries), complete=True)
+                    self._full = self._build(list(self._entries), complete=True)  # reads the rest
                     self._tiles = {}
                     self._partial = None
         return self._full
@@ -435,8 +468,7 @@ def verify_store(path) -> list[str]:
                     if hashlib.sha256(data).hexdigest() != entry["sha256"]:
                         problem = f"{root / entry['file']}: tile {entry['tile']} is altered (sha256 differs from the manifest)"
                     else:
-                        indices, levels, values = read_tile_file(root / entry["file"], entry, data, manifest)
-                        spline._tiles[tile] = (levels, indices, values)
+                        spline._tiles[tile] = read_tile_levels(root / entry["file"], entry, data, manifest)
                 except FileNotFoundError:
                     problem = f"{root / entry['file']}: tile {entry['tile']} is missing"
                 except StoreError as exc:

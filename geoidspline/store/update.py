@@ -42,6 +42,7 @@ from ..sources.base import NodeSample
 from ..sphere.coordinates import directions
 from ..sphere.coverage import Coverage
 from ..sphere.region import Region
+from .codec import quantised_spline
 from .coverage import coverage_record
 from .format import FORMAT_VERSION, MANIFEST, TILE_DIR, error_stats, load_manifest, utc_now
 from .reader import TileStore
@@ -52,6 +53,8 @@ from .writer import (
     commit,
     crash_point,
     group_by_tile,
+    quantisation_meta,
+    tile_encoding,
     tile_groups,
     tile_stats,
     write_tile_entry,
@@ -226,15 +229,15 @@ def _check_writable(root: Path):
 
 
 def update_store(path, source, region: Region, blend_width_km: float = 100.0, executor: Executor | None = None,
-                 tolerance_m: float | None = None,
-                 progress=None) -> dict:
+                 tolerance_m: float | None = None, progress=None, wait_seconds: float = 0.0) -> dict:
     """Replace the store's geoid inside ``region`` by ``source``; return the update report.
 
     Refused before anything is written when the store is read-only or locked by another
     writer, when the source's ellipsoid or tide system differs from the store's, or when
     the region lies outside the source's extent or the store's region. The manifest is
     read once the writer lock is held, so concurrent updates apply one after the other
-    (a second one started meanwhile is refused, never lost).
+    (a second one started meanwhile waits up to ``wait_seconds`` for the first, then is
+    refused; it is never lost).
 
     Coverage: the store answers where it did before and, inside ``region``, wherever
     ``source`` has data; where the source has no data (a national grid's sea, say) the
@@ -248,7 +251,7 @@ def update_store(path, source, region: Region, blend_width_km: float = 100.0, ex
         raise StoreError(f"blend width must be a non-negative number of km, got {blend_width_km}")
     load_manifest(root)  # a store, before a lock file is created in it
     _check_writable(root)
-    with StoreLock(root):
+    with StoreLock(root, wait_seconds):
         crash_point("after-lock")
         store = TileStore.open(root)  # the manifest as it is now that the lock is held
         state = _manifest_state(root)
@@ -296,11 +299,26 @@ def _update(root, store, source, region, blend_width_km, executor, progress, att
                       refinement=_ResidualRefinement(params.refine_radius, zone), progress=progress, executor=executor,
                       base_is_overlay=True)
     merged = _merge(store.spline, delta.spline)
+    format_version, encoding = tile_encoding(manifest)  # the store's own tile format and step
     inside = region.contains(lat2, lon2) & has_new
-    errors = sample.undulation[inside] - merged.undulation(lat2[inside], lon2[inside])
+    store_step = encoding.get("value_step_m")
+    if store_step:
+        # the errors of what the store will hold: a format-2 store rounds coefficients
+        # to its step; the rewritten tiles take the store's step halved as often as the
+        # update's tolerance needs at its nodes (the untouched tiles' coefficients are
+        # multiples of every such step, so they keep their values)
+        step, errors = _update_step(merged, store_step, sample.undulation[inside],
+                                    directions(lat2[inside], lon2[inside]), params.tolerance_m)
+        encoding = dict(encoding, value_step_m=step)
+        old_levels = {lv.level for lv in store.spline.levels}
+        # each level's rounding: at most half its coarsest step anywhere (partition of unity)
+        value_bound = sum((store_step if lv.level in old_levels else step) / 2.0 for lv in merged.levels)
+    else:
+        errors = sample.undulation[inside] - merged.undulation(lat2[inside], lon2[inside])
+    converged = bool(delta.converged) and (errors.size == 0 or float(np.abs(errors).max()) <= params.tolerance_m)
 
     version = manifest["store_version"] + 1
-    spline_meta = {"order": params.order, "h0": params.h0, "tile_size": params.tile_size}
+    spline_meta = {"order": params.order, "h0": params.h0, "tile_size": params.tile_size, **encoding}
     if manifest.get("store_id"):
         spline_meta["store_id"] = manifest["store_id"]
     changed = set(tile_groups(delta.spline, params.tile_size))
@@ -317,7 +335,8 @@ def _update(root, store, source, region, blend_width_km, executor, progress, att
                                                   "node_max_error_m", "node_rms_error_m", "nodes")
                     if k in entries[tile]}
             stats = kept
-        entries[tile] = write_tile_entry(root, key, groups[key], version, spline_meta, stats, attempt)
+        entries[tile] = write_tile_entry(root, key, groups[key], version, spline_meta, stats, attempt,
+                                         format_version)
         crash_point("during-tiles")
     crash_point("after-tiles")
     region_stats = error_stats(errors)
@@ -338,10 +357,10 @@ def _update(root, store, source, region, blend_width_km, executor, progress, att
         "max_error_m": region_stats["max_error_m"],
         "rms_error_m": region_stats["rms_error_m"],
         "tolerance_m": params.tolerance_m,
-        "converged": bool(delta.converged),
+        "converged": converged,
     }
     spacing_km = KM_PER_DEGREE * max(_step(sample.latitude), _step(sample.longitude))
-    if not delta.converged and blend_width_km < BLEND_NODE_SPACINGS * spacing_km:
+    if not converged and blend_width_km < BLEND_NODE_SPACINGS * spacing_km:
         record["hint"] = (f"the blend width ({blend_width_km:g} km) spans fewer than {BLEND_NODE_SPACINGS} node "
                           f"spacings of {source.provenance.source} ({spacing_km:.3g} km): the update cannot fall "
                           f"to the store's values within it; widen the blend or use a finer source")
@@ -354,11 +373,28 @@ def _update(root, store, source, region, blend_width_km, executor, progress, att
         "coverage": coverage_record(store.coverage.union(new_coverage)),
         "spline": dict(manifest["spline"], levels=[
             {"level": lv.level, "h": lv.h, "coefficients": len(lv)} for lv in merged.levels
-        ], coefficients=merged.coefficient_count),
+        ], coefficients=merged.coefficient_count,
+           **(quantisation_meta(store_step, len(merged.levels), value_bound) if store_step else {})),
         "tiles": [entries[k] for k in sorted(entries)],
         "history": manifest.get("history", []) + [record],
     })
     return record, new_manifest
+
+
+def _update_step(merged: AmbientSpline, store_step: float, truth, node_directions, tolerance_m: float):
+    """(step, errors): the store's step halved until the quantised ``merged`` spline is
+    within ``tolerance_m`` of ``truth`` at ``node_directions`` (or the fit's own largest
+    error there, if that is more), down to 1 µm; and its errors there (truth − stored)."""
+    target = None
+    step = float(store_step)
+    while True:
+        errors = truth - quantised_spline(merged, step).evaluate_points(node_directions)
+        if target is None:
+            fitted = truth - merged.evaluate_points(node_directions)
+            target = max(float(tolerance_m), float(np.abs(fitted).max()) if fitted.size else 0.0)
+        if not errors.size or np.abs(errors).max() <= target or step / 2.0 < 1e-6:
+            return step, errors
+        step /= 2.0
 
 
 def _merge(old: AmbientSpline, delta: AmbientSpline) -> AmbientSpline:

@@ -25,6 +25,7 @@ import logging
 import os
 import signal
 import stat
+import time
 import uuid
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -38,6 +39,7 @@ from ..bspline.level import cube_of_support_centres
 from ..errors import StoreCorruptError, StoreError
 from ..sphere.coordinates import directions
 from ..sphere.coverage import Coverage
+from .codec import node_safe_step, quantisation_change, quantised_spline, value_error_bound
 from .coverage import coverage_record
 from .format import (
     FORMAT_NAME,
@@ -152,9 +154,9 @@ def _netcdf_fault(directory: Path, exc: Exception) -> BaseException:
     return exc
 
 
-def _write_tile(path: Path, tile, levels, indices, values, attrs):
+def _write_tile(path: Path, tile, levels, indices, values, attrs, format_version=FORMAT_VERSION):
     try:
-        write_tile_file(path, tile, levels, indices, values, attrs)
+        write_tile_file(path, tile, levels, indices, values, attrs, format_version)
     except (RuntimeError, OSError) as exc:
         raise _netcdf_fault(path.parent, exc) from None
 
@@ -162,21 +164,33 @@ def _write_tile(path: Path, tile, levels, indices, values, attrs):
 # -- the lock -------------------------------------------------------------------------
 
 
+#: How often a writer waiting for the lock tries it again (seconds).
+LOCK_POLL_SECONDS = 0.2
+
+
+def _pause(seconds: float) -> None:
+    """Sleep between tries of the lock (a seam for tests)."""
+    time.sleep(seconds)
+
+
 class StoreLock:
     """Exclusive writer lock of a store: ``fcntl.flock`` on ``STORE/.lock``.
 
-    Taken without waiting: a store another process is writing is refused with a
-    :class:`StoreError` naming that process. The kernel releases the lock when its
-    holder exits or is killed, so a dead writer never blocks the next one; the file
+    A store another process is writing is refused with a :class:`StoreError` naming
+    that process, at once or, with ``wait_seconds`` > 0, once the lock has stayed taken
+    that long (the lock is tried every :data:`LOCK_POLL_SECONDS` meanwhile; whoever
+    tries first after the holder is done gets it). The kernel releases the lock when
+    its holder exits or is killed, so a dead writer never blocks the next one; the file
     itself is never removed (removing it would let two writers lock two different
     files) and holds the holder's pid for messages only. Worker processes forked while
     the lock is held share it until they exit.
     """
 
-    def __init__(self, root: Path):
+    def __init__(self, root: Path, wait_seconds: float = 0.0):
         self.root = Path(root)
         self.path = self.root / LOCK
         self.fd: int | None = None
+        self.wait_seconds = float(wait_seconds)
 
     def __enter__(self):
         import fcntl
@@ -191,16 +205,23 @@ class StoreLock:
             mode = os.fstat(fd).st_mode
             if not stat.S_ISREG(mode):
                 raise StoreCorruptError(f"{self.path}: is not a regular file, not the store's lock file")
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                holder = _read_pid(fd)
-                raise StoreError(
-                    f"{self.root}: another writer{f' (pid {holder})' if holder else ''} is writing this store; "
-                    f"try again when it has finished"
-                ) from None
-            except OSError as exc:
-                raise StoreError(f"{self.root}: cannot take the writer lock {LOCK}: {fault_cause(exc)}") from None
+            deadline = time.monotonic() + self.wait_seconds
+            while True:
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    break
+                except BlockingIOError:
+                    left = deadline - time.monotonic()
+                    if left <= 0.0:
+                        holder = _read_pid(fd)
+                        waited = f" (waited {self.wait_seconds:g} s)" if self.wait_seconds > 0 else ""
+                        raise StoreError(
+                            f"{self.root}: another writer{f' (pid {holder})' if holder else ''} is writing this "
+                            f"store{waited}; try again when it has finished, or wait longer"
+                        ) from None
+                    _pause(min(LOCK_POLL_SECONDS, left))
+                except OSError as exc:
+                    raise StoreError(f"{self.root}: cannot take the writer lock {LOCK}: {fault_cause(exc)}") from None
         except BaseException:
             os.close(fd)
             raise
@@ -353,16 +374,18 @@ def tile_groups(spline: AmbientSpline, tile_size: float) -> dict:
     return {int(key): (lvl[order[a:b]], idx[order[a:b]], val[order[a:b]]) for key, a, b in zip(unique, starts, stops)}
 
 
-def write_tile_entry(root, key, group, version, spline_meta, stats, attempt: _Attempt | None = None) -> dict:
-    """Write one tile file under a new name and return its manifest entry."""
+def write_tile_entry(root, key, group, version, spline_meta, stats, attempt: _Attempt | None = None,
+                     format_version=FORMAT_VERSION) -> dict:
+    """Write one tile file (of tile format ``format_version``) under a new name and return
+    its manifest entry."""
     lvl, idx, val = group
     tile = _keys.unpack_keys(np.array([key]))[0]
-    name = tile_name(tile, version)
+    name = tile_name(tile, version, format_version)
     path = root / TILE_DIR / name
     if attempt is not None:
         attempt.writing(path)
         attempt.created.append(path)
-    _write_tile(path, tile, lvl, idx, val, {**spline_meta, "store_version": version})
+    _write_tile(path, tile, lvl, idx, val, {**spline_meta, "store_version": version}, format_version)
     return {
         "tile": [int(v) for v in tile],
         "file": f"{TILE_DIR}/{name}",
@@ -372,6 +395,34 @@ def write_tile_entry(root, key, group, version, spline_meta, stats, attempt: _At
         "levels": [int(v) for v in np.unique(lvl)],
         **stats,
     }
+
+
+def quantisation_meta(step, levels, bound_m: float | None = None) -> dict:
+    """The manifest's statement of a format-2 store's quantisation (``spline`` keys);
+    ``bound_m`` when the levels' steps differ (a regional update's finer tiles), else
+    ``levels · step / 2``."""
+    return {
+        "value_step_m": step,
+        "value_error_bound_m": value_error_bound(step, levels) if bound_m is None else float(bound_m),
+        "value_error_rule": "each coefficient within step/2; B-splines of a level are non-negative and sum "
+                            "to at most 1, so the value moves by at most step/2 per level",
+    }
+
+
+def tolerance_asked(fit: dict) -> float:
+    """The tolerance a store promises at its nodes, from its manifest's ``fit`` section:
+    the one asked for (``choices``: a model fit works to 0.8 of it at the nodes) or the
+    fit's own ``tolerance_m``."""
+    choices = fit.get("choices") or {}
+    return float(choices.get("tolerance_asked_m") or fit["tolerance_m"])
+
+
+def tile_encoding(manifest) -> tuple[int, dict]:
+    """(tile format, tile attributes) with which new tiles of a store are written: its own
+    tiles' format and step, so that an update of a format-1 store keeps netCDF4 tiles
+    (its manifest becomes format 2: coverage and integrity; ``--upgrade`` re-encodes)."""
+    step = manifest["spline"].get("value_step_m")
+    return (2, {"value_step_m": step}) if step is not None else (1, {})
 
 
 def tile_stats(node_errors, check_errors):
@@ -439,13 +490,19 @@ def commit(root: Path, manifest: dict, keep_files=(), expect_state: str | None =
 
 
 def write_store(path, result, provenance, check: CheckPoints | None = None,
-                overwrite=False, extra=None) -> Path:
+                overwrite=False, extra=None, format_version=FORMAT_VERSION, value_step_m=None) -> Path:
     """Write a fit (:class:`geoidspline.fitting.driver.FitResult`) as a tile store at ``path``.
 
     An existing store is refused unless ``overwrite``; even then its files stay valid
     until the new manifest replaces the old one. A directory that is not a store is
     refused; leftovers of an unfinished write need ``overwrite``; nothing but the
-    names the store format owns is ever removed.
+    names the store format owns is ever removed. ``format_version=1`` writes the old
+    format (netCDF4 tiles, float64 values), kept for tests of older stores; format 2
+    quantises the coefficients with ``value_step_m`` (default
+    :func:`~geoidspline.store.codec.node_safe_step`: the largest step at which the stored
+    spline still meets the tolerance asked for at every node); the node and check-point
+    errors in the manifest are those of the stored (quantised) spline (``accuracy.
+    fit_node_max_error_m`` keeps the fit's), each within ``value_error_bound_m`` of the fit's.
     """
     root = Path(path)
     _previous_store(root, overwrite)  # refuse before writing anything
@@ -456,38 +513,54 @@ def write_store(path, result, provenance, check: CheckPoints | None = None,
         state = _manifest_state(root)
         version = (previous["store_version"] + 1) if previous else 1
         with _Attempt(root, previous["store_version"] if previous else None) as attempt:
-            manifest = _fit_manifest(root, result, provenance, check, previous, version, extra, attempt)
+            manifest = _fit_manifest(root, result, provenance, check, previous, version, extra, attempt,
+                                     format_version, value_step_m)
             keep = [e["file"] for e in previous["tiles"]] if previous else []
             commit(root, manifest, keep, expect_state=state, attempt=attempt)
     return root
 
 
-def _fit_manifest(root, result, provenance, check, previous, version, extra, attempt) -> dict:
+def _fit_manifest(root, result, provenance, check, previous, version, extra, attempt,
+                  format_version=FORMAT_VERSION, value_step_m=None) -> dict:
     """Write the fit's tile files; return the manifest naming them."""
     params = result.parameters
     spline = result.spline
     store_id = uuid.uuid4().hex
+    quantisation = {}
+    stored = spline  # what the store will give: the node and check errors are its own
+    node_errors = result.node_errors
+    if format_version >= 2:
+        if value_step_m:
+            step = value_step_m
+            node_errors = node_errors - quantisation_change(spline, step, result.node_directions)
+        else:
+            step, node_errors = node_safe_step(spline, result.node_directions, node_errors,
+                                               tolerance_asked({"tolerance_m": params.tolerance_m, **(extra or {})}))
+        quantisation = quantisation_meta(step, len(spline.levels))
+        stored = quantised_spline(spline, step)
     node_tile = group_by_tile(result.node_directions, params.tile_size)
     check_errors = None
     if check is not None:
-        check_errors = check.truth - spline.undulation(check.latitude, check.longitude)
+        check_errors = check.truth - stored.undulation(check.latitude, check.longitude)
         check_tile = group_by_tile(directions(check.latitude, check.longitude), params.tile_size)
     spline_meta = {"order": params.order, "h0": params.h0, "tile_size": params.tile_size, "store_id": store_id}
+    if format_version >= 2:
+        spline_meta["value_step_m"] = quantisation["value_step_m"]
     entries = []
     crash_point("before-tiles")
     for key, group in tile_groups(spline, params.tile_size).items():
-        stats = tile_stats(result.node_errors[node_tile == key],
+        stats = tile_stats(node_errors[node_tile == key],
                            check_errors[check_tile == key] if check is not None else [])
-        entries.append(write_tile_entry(root, key, group, version, spline_meta, stats, attempt))
+        entries.append(write_tile_entry(root, key, group, version, spline_meta, stats, attempt, format_version))
         crash_point("during-tiles")
     crash_point("after-tiles")
 
     coverage = result.coverage if result.coverage is not None else Coverage.of_region(result.region)
-    node_stats = error_stats(result.node_errors)
+    node_stats = error_stats(node_errors)
     check_stats = error_stats(check_errors if check is not None else [])
     return {
         "format": FORMAT_NAME,
-        "format_version": FORMAT_VERSION,
+        "format_version": format_version,
         "store_version": version,
         "store_id": store_id,
         "created": previous["created"] if previous else utc_now(),
@@ -505,6 +578,7 @@ def _fit_manifest(root, result, provenance, check, previous, version, extra, att
                 {"level": lv.level, "h": lv.h, "coefficients": len(lv)} for lv in spline.levels
             ],
             "coefficients": spline.coefficient_count,
+            **quantisation,
         },
         "fit": {
             "method": "hierarchical overlays (Lehmann 2013, section 5.2)",
@@ -520,6 +594,7 @@ def _fit_manifest(root, result, provenance, check, previous, version, extra, att
             "node_max_error_m": node_stats["max_error_m"],
             "node_rms_error_m": node_stats["rms_error_m"],
             "node_p99_error_m": node_stats["p99_error_m"],
+            "fit_node_max_error_m": error_stats(result.node_errors)["max_error_m"],
             "check_points": check_stats["count"],
             "check_truth": check.description if check is not None else None,
             "max_error_m": check_stats["max_error_m"],
