@@ -119,8 +119,8 @@ NODE_SPACING_DEG = 1.0 / 12.0
 REFINEMENT_REASON = (
     "overlays (§5.2): the hierarchical basis (§5.3, --refinement hierarchical) needs fewer coefficients "
     "(Andes, 0.5 m: 21,472 against 28,968, in 1.6 times the time; global 0.1 m: 353,763 against 796,487) "
-    "but its global fit, solved in local blocks, took 3.5 times as long, stopped at 0.114 m and left seams "
-    "between blocks (benchmarks/README.md)"
+    "but a global fit is solved in local blocks, which took 3.5 times as long or more and did not reach "
+    "0.1 m (benchmarks/README.md)"
 )
 
 
