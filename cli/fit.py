@@ -9,7 +9,7 @@ import time
 
 import click
 
-from geoidspline.fitting.parameters import FIT_METHODS, FitParameters
+from geoidspline.fitting.parameters import FIT_METHODS, REFINEMENTS, FitParameters
 from geoidspline.sources.harmonics.presets import PRESETS
 
 from ._common import command, echo, store_options, user_errors, verbosity_options
@@ -21,12 +21,12 @@ _DEFAULTS = FitParameters()
 
 #: Options that fix a fit parameter (given: used as given; not given: chosen from the
 #: tolerance by geoidspline.fitting.choose), option name -> FitParameters field.
-_CHOSEN = {"method": "method", "order": "order", "h0": "h0", "max_level": "max_level",
+_CHOSEN = {"method": "method", "refinement": "refinement", "order": "order", "h0": "h0", "max_level": "max_level",
            "sample_spacing": "sample_spacing_deg", "tolerance": "tolerance_m"}
 
 #: Options of a new fit that a regional update cannot honour: it refits with the store's
 #: own parameters, so that the result is one spline.
-_FIT_ONLY = ("h0", "max_level", "order", "method", "sample_spacing", "overwrite", "scheduler")
+_FIT_ONLY = ("h0", "max_level", "order", "method", "refinement", "sample_spacing", "overwrite", "scheduler")
 
 
 @command("fit")
@@ -59,13 +59,17 @@ _FIT_ONLY = ("h0", "max_level", "order", "method", "sample_spacing", "overwrite"
               help="How level 0 is computed: least squares (any source) or quasi-interpolation of a model "
                    "SOURCE (no linear solves: the way to millimetre-level global stores) [default: chosen: "
                    "interpolation for a model, least squares for a grid].")
+@click.option("--refinement", type=click.Choice(REFINEMENTS), default=None,
+              help="How levels are added: hierarchical overlays (each level fitted to the residual, thesis "
+                   "5.2) or one linearly independent hierarchical B-spline basis over all levels (5.3; least "
+                   "squares) [default: chosen: overlays].")
 @click.option("--overwrite", is_flag=True, help="Replace an existing store at --store.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @verbosity_options
 @user_errors
 @click.pass_context
 def main(ctx, source, store_path, update, blend_width, region, tolerance, h0, max_level, order, workers, scheduler,
-         correction, preset, sample_spacing, method, overwrite, as_json, quiet, verbose):
+         correction, preset, sample_spacing, method, refinement, overwrite, as_json, quiet, verbose):
     """Fit SOURCE into ambient B-spline tiles stored at --store.
 
     SOURCE is a grid file (.gtx, .nc, WW15MGH.DAC, .pgm), a catalogue name such as
@@ -103,7 +107,7 @@ def main(ctx, source, store_path, update, blend_width, region, tolerance, h0, ma
     executor = Executor(workers=workers, scheduler=scheduler)
     fit_region = Region.from_bounds(*region) if region else GLOBAL
     src = open_source(source, correction, preset)
-    options = {"method": method, "order": order, "h0": h0, "max_level": max_level,
+    options = {"method": method, "refinement": refinement, "order": order, "h0": h0, "max_level": max_level,
                "sample_spacing": sample_spacing, "tolerance": tolerance}
     given = {field: options[name] for name, field in _CHOSEN.items()
              if name != "tolerance" and ctx.get_parameter_source(name) is not ParameterSource.DEFAULT}

@@ -12,6 +12,8 @@ import math
 
 import numpy as np
 
+from .keys import cube_offsets, pack_keys, unpack_keys
+
 
 def bspline_weights(t, order, nderiv):
     """Weights (nderiv + 1, M, order) of the B-splines touching points at t in [0, 1).
@@ -74,6 +76,27 @@ def refinement_weights(order):
     of order n, ``B(x) = Σ_m w_m B(2x - m)``; coarse coefficient ``j`` adds ``w_m`` times
     itself to fine coefficient ``2j + m`` (per axis; cubic: (1, 4, 6, 4, 1) / 8)."""
     return np.array([math.comb(order, m) for m in range(order + 1)], dtype=float) / 2.0 ** (order - 1)
+
+
+def children(keys, order: int):
+    """The refinement relation of the 3-D B-splines ``keys`` (packed, one level):
+    ``B^ℓ_k = Σ_m w[m_x] w[m_y] w[m_z] B^{ℓ+1}_{2k+m}``, m in {0..n}³, w the
+    :func:`refinement_weights` (thesis §5.3, Figure 5.1; METHOD.md §3).
+
+    Returns ``(child_keys, parent, weight)``, each of length ``len(keys) * (n+1)³``:
+    ``B^ℓ_{keys[parent[i]]} = Σ_i weight[i] B^{ℓ+1}_{child_keys[i]}`` (children of one
+    parent consecutive; not deduplicated across parents). The hierarchical basis
+    (:mod:`geoidspline.hierarchy.hierarchical`) builds its ``up`` operator and its
+    cross-level normal equations from it; the query index folds coarse levels with the
+    same weights.
+    """
+    keys = np.asarray(keys, dtype=np.int64)
+    offsets = cube_offsets(0, order)
+    w = refinement_weights(order)
+    weight = w[offsets[:, 0]] * w[offsets[:, 1]] * w[offsets[:, 2]]
+    child = pack_keys(2 * unpack_keys(keys)[:, None, :] + offsets[None, :, :]).ravel()
+    parent = np.repeat(np.arange(keys.size), offsets.shape[0])
+    return child, parent, np.tile(weight, keys.size)
 
 
 def centred_bspline_samples(order: int) -> np.ndarray:

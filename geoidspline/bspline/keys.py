@@ -79,8 +79,30 @@ def dilate_keys(keys, lo, hi):
 
 
 def touching_keys(cells, order):
-    """Sorted keys of every B-spline non-zero on at least one of ``cells``."""
-    return dilate_keys(pack_keys(cells), -(order - 1), 0)
+    """Sorted keys of every B-spline non-zero on at least one of ``cells`` (M, 3)."""
+    return touching_cell_keys(pack_keys(cells), order)
+
+
+def touching_cell_keys(cell_keys, order):
+    """:func:`touching_keys` of cells given as packed keys."""
+    return dilate_keys(cell_keys, -(order - 1), 0)
+
+
+def keys_centred_near(position, order, radius=None, chunk=200_000):
+    """Sorted keys of the B-splines touching the cells of ``position`` (M, 3, in cells of
+    their level) whose support centre ``k + order/2`` is within ``radius`` cells of it
+    per axis (``None``: every B-spline touching the point). How overlays pick a level's
+    B-splines and how the hierarchical basis marks B-splines for refinement."""
+    position = np.asarray(position, dtype=float).reshape(-1, 3)
+    stencil = cube_offsets(-(order - 1), 0)
+    found = [np.empty(0, np.int64)]
+    for a in range(0, position.shape[0], chunk):
+        pos = position[a:a + chunk]
+        cand = np.floor(pos).astype(np.int64)[:, None, :] + stencil[None]
+        if radius is not None:
+            cand = cand[np.all(np.abs(cand + order / 2.0 - pos[:, None, :]) <= radius, axis=2)]
+        found.append(np.unique(pack_keys(cand.reshape(-1, 3))))
+    return np.unique(np.concatenate(found))
 
 
 def covered_cell_keys(coef_keys, order):

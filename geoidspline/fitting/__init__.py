@@ -6,5 +6,8 @@
 - :mod:`.interpolation`: quasi-interpolation of an exact source (no solves);
 - :mod:`.executors`: where blocks are solved (this process, a pool, dask): never persisted;
 - :mod:`.driver`: level after level until the tolerance holds (§5.2);
+- :mod:`.hierarchical`: one least-squares fit over the hierarchical basis, refined until
+  the tolerance holds (§5.3, ``refinement="hierarchical"``);
+- :mod:`.result`: what a fit returns (either way);
 - :mod:`.check_points`: where a fit is measured besides its sites.
 """

@@ -38,7 +38,7 @@ __all__ = ["MEASURED", "ConvergencePoint", "Choice", "choose_parameters", "CHOSE
 
 
 #: The FitParameters fields :func:`choose_parameters` chooses (the rest keep their defaults).
-CHOSEN_FIELDS = ("method", "order", "h0", "max_level", "sample_spacing_deg", "tolerance_m")
+CHOSEN_FIELDS = ("method", "refinement", "order", "h0", "max_level", "sample_spacing_deg", "tolerance_m")
 
 
 @dataclass(frozen=True)
@@ -114,6 +114,16 @@ MAX_LEVEL0_COEFFICIENTS = 12_000_000
 NODE_SPACING_DEG = 1.0 / 12.0
 
 
+#: Why overlays stay the default refinement (benchmarks/README.md, "Hierarchical
+#: B-splines (§5.3) against overlays (§5.2)").
+REFINEMENT_REASON = (
+    "overlays (§5.2): the hierarchical basis (§5.3, --refinement hierarchical) needs fewer coefficients "
+    "(Andes, 0.5 m: 21,472 against 28,968, in 1.6 times the time; global 0.1 m: 353,763 against 796,487) "
+    "but a global fit is solved in local blocks, which took 3.5 times as long or more and did not reach "
+    "0.1 m (benchmarks/README.md)"
+)
+
+
 @dataclass(frozen=True)
 class Choice:
     """The chosen parameters and, per field, why (``given`` when the caller fixed it)."""
@@ -162,11 +172,12 @@ def choose_parameters(source, tolerance_m: float, region: Region | None = None, 
     """
     region = region or GLOBAL
     given = dict(given or {})
-    everything_given = all(f in given for f in CHOSEN_FIELDS if f != "tolerance_m")
+    everything_given = all(f in given for f in CHOSEN_FIELDS if f not in ("tolerance_m", "refinement"))
     if everything_given:  # the expert's command as before: the tolerance holds at the nodes
         given.setdefault("tolerance_m", tolerance_m)
     if getattr(source.provenance, "kind", None) == "harmonic" and hasattr(source, "max_degree") \
-            and given.get("method", "interpolation") == "interpolation":
+            and given.get("method", "interpolation") == "interpolation" \
+            and given.get("refinement", "overlays") == "overlays":
         values, reasons = _for_model(source, tolerance_m, region, given)
     else:
         values, reasons = _for_grid(source, tolerance_m, region, given)
@@ -174,6 +185,8 @@ def choose_parameters(source, tolerance_m: float, region: Region | None = None, 
         reasons[name] = "given"
     if everything_given:
         reasons["tolerance_m"] = "given (with every other parameter: used at the nodes as it is)"
+    values.setdefault("refinement", "overlays")
+    reasons.setdefault("refinement", REFINEMENT_REASON)
     values.update(given)
     fields = {f.name for f in dataclasses.fields(FitParameters)}
     return Choice(FitParameters(**{k: v for k, v in values.items() if k in fields}), reasons, tolerance_m)
@@ -243,7 +256,9 @@ def _for_grid(source, tolerance_m, region, given):
     defaults = FitParameters()
     values = {"method": "least-squares", "order": defaults.order, "h0": defaults.h0}
     reasons = {
-        "method": "least squares: a grid is known at its nodes only",
+        "method": ("least squares: the hierarchical basis is fitted at once by least squares"
+                   if given.get("refinement") == "hierarchical" and getattr(source, "max_degree", None)
+                   else "least squares: a grid is known at its nodes only"),
         "order": f"{defaults.order} (cubic, C²), h0 {defaults.h0:g}: the thesis's Andes headline "
                  "(benchmarks scenario andes: < 0.5 m with 29,005 coefficients, results/fits.jsonl 2026-11-23T18:57)",
         "h0": f"{defaults.h0:g}: as the Andes headline",

@@ -20,7 +20,6 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -37,43 +36,10 @@ from .interpolation import interpolate_level, lattice_spacing, sample_nodes
 from .least_squares import local_problems
 from .parameters import MIN_H_PER_DATA_SPACING, FitParameters
 from .progress import as_progress
+from .result import FitResult, LevelReport
 from .sites import DataNodes, sites_for_level
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class LevelReport:
-    level: int
-    h: float
-    coefficients: int
-    marked_cells: int
-    sites: int
-    blocks_solved: int
-    max_error_m: float
-    rms_error_m: float
-    nodes_above_tolerance: int
-    seconds: float
-
-
-@dataclass
-class FitResult:
-    spline: AmbientSpline
-    parameters: FitParameters
-    region: Region
-    levels: list = field(default_factory=list)
-    node_count: int = 0
-    node_max_error_m: float = float("nan")
-    node_rms_error_m: float = float("nan")
-    converged: bool = False
-    seconds: float = 0.0
-    # per-node arrays kept for tile statistics (sphere directions and errors)
-    node_directions: np.ndarray | None = None
-    node_errors: np.ndarray | None = None
-    # refinement stopped because the next level would be finer than the data resolve
-    data_limited: bool = False
-    # where the source had data (region and no-data holes): the store answers only there
-    coverage: Coverage | None = None
 
 
 def solve_level(problems, executor: Executor, progress=None):
@@ -100,6 +66,10 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
     :class:`LevelSpline` computed already (by quasi-interpolation), stands as level 0;
     ``(level, seconds, lattice points)`` of it go into its report.
     """
+    # the hierarchical basis (§5.3) replaces the overlays of a new fit; an update (a
+    # strategy given, or residuals on a base) adds overlays to any store
+    hierarchical = (params.refinement == "hierarchical" and refinement is None and not base_is_overlay
+                    and first_level is None)
     refinement = refinement or OverlayRefinement(params.refine_radius)
     executor = executor or Executor()
     progress = as_progress(progress)
@@ -111,6 +81,10 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
         raise FitError(str(exc)) from None
     if not np.any(nodes.in_region):
         raise FitError(f"no data nodes inside the region {region.as_tuple()}")
+    if hierarchical:
+        from .hierarchical import fit_hierarchical  # §5.3: one basis over all levels
+
+        return fit_hierarchical(nodes, coverage, region, params, progress, force_tiles, executor, start)
     region_dirs = nodes.directions[nodes.in_region]
     errors = nodes.values[nodes.in_region].copy()  # residual N - S at region nodes
     levels: list[LevelSpline] = []
@@ -118,7 +92,7 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
     converged = False
     violating = region_dirs[np.abs(errors) > params.tolerance_m] if base_is_overlay else region_dirs
     # a level much finer than the data spacing is not determined between the nodes
-    data_spacing = max(nodes.dlat_rad, nodes.dlon_rad * float(np.cos(np.radians(np.abs(nodes.latitude)).mean())))
+    data_spacing = nodes.spacing_rad
     data_limited = False
     for level in range(params.max_level + 1):
         t0 = time.perf_counter()

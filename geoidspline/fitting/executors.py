@@ -100,12 +100,18 @@ def solve_problems(problems, workers: int = 1, scheduler: str | None = None, pro
     return _solve_dask(problems, workers, scheduler, progress)
 
 
-def _solve_serial(problems, progress):
-    from .least_squares import solve_local_problem
+def solve_problem(problem):
+    """``problem.solve()``: a local problem (a level's block,
+    :class:`geoidspline.fitting.least_squares.LocalProblem`, or a block of the
+    hierarchical basis, :class:`geoidspline.fitting.hierarchical.HierarchicalProblem`)
+    carries its own solver; this module-level function is what pools and dask ship."""
+    return problem.solve()
 
+
+def _solve_serial(problems, progress):
     results = []
     for problem in problems:
-        results.append(solve_local_problem(problem))
+        results.append(solve_problem(problem))
         if progress:
             progress(1)
     return results
@@ -122,12 +128,10 @@ def _worker_init():
 
 
 def _solve_pool(problems, workers, progress):
-    from .least_squares import solve_local_problem
-
     results = []
     ctx = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init) as pool:
-        for result in pool.map(solve_local_problem, problems):
+        for result in pool.map(solve_problem, problems):
             results.append(result)
             if progress:
                 progress(1)
@@ -161,8 +165,6 @@ def _quiet_dask_logs():
 
 
 def _solve_dask(problems, workers, scheduler, progress):
-    from .least_squares import solve_local_problem
-
     dask, Client, LocalCluster, as_completed = _import_dask()
     with contextlib.ExitStack() as stack:
         stack.enter_context(_quiet_dask_logs())
@@ -199,7 +201,7 @@ def _solve_dask(problems, workers, scheduler, progress):
             if not batch:
                 return []
             # pure=False: every block is its own task (no hashing of the data for a key)
-            futures = client.map(solve_local_problem, batch, pure=False)
+            futures = client.map(solve_problem, batch, pure=False)
             for future in futures:
                 position[future.key] = len(results)
                 results.append(None)

@@ -37,6 +37,10 @@ class LocalProblem:
     points: np.ndarray  # (M, 3) site positions
     values: np.ndarray  # (M,) residual values in metres
 
+    def solve(self):
+        """:func:`solve_local_problem` of this problem."""
+        return solve_local_problem(self)
+
 
 def _second_difference_penalty(keys):
     """D^T D for second differences along each axis among triples present in keys."""

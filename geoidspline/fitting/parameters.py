@@ -11,6 +11,11 @@ from ..errors import FitError
 #: quasi-interpolation of a source exact everywhere (:mod:`geoidspline.fitting.interpolation`).
 FIT_METHODS = ("least-squares", "interpolation")
 
+#: How levels are added: hierarchical overlays (§5.2, each level fitted to the residual
+#: of the ones before) or one linearly independent hierarchical B-spline basis over all
+#: levels, fitted at once (§5.3, :mod:`geoidspline.fitting.hierarchical`).
+REFINEMENTS = ("overlays", "hierarchical")
+
 
 #: Finest level spacing allowed, in units of the data's node spacing.
 MIN_H_PER_DATA_SPACING = 0.5
@@ -48,6 +53,10 @@ class FitParameters:
     sources exact everywhere (harmonic models): no linear solve, every coefficient from
     the source within a few cells. Overlays, when the tolerance asks for them, are
     least squares either way.
+    ``refinement`` says how levels are added: ``"overlays"`` (thesis §5.2) or
+    ``"hierarchical"``, the linearly independent hierarchical B-splines of §5.3
+    (:mod:`geoidspline.fitting.hierarchical`; with least squares: level 0 is part of
+    the one basis, so it is not quasi-interpolated).
     Where the blocks are solved is not a parameter of the fit: see
     :class:`geoidspline.fitting.executors.Executor` (it never goes into a store).
     """
@@ -67,6 +76,7 @@ class FitParameters:
     untiled_max_unknowns: int = 20_000
     sample_spacing_deg: float | None = None
     method: str = "least-squares"
+    refinement: str = "overlays"
 
     def __post_init__(self):
         if not 2 <= self.order <= 8:
@@ -88,6 +98,10 @@ class FitParameters:
 
         if self.method not in FIT_METHODS:
             raise FitError(f"fit method must be one of {FIT_METHODS}, got {self.method!r}")
+        if self.refinement not in REFINEMENTS:
+            raise FitError(f"refinement must be one of {REFINEMENTS}, got {self.refinement!r}")
+        if self.refinement == "hierarchical" and self.method != "least-squares":
+            raise FitError("refinement 'hierarchical' fits by least squares (use method 'least-squares')")
 
     def spacing(self, level: int) -> float:
         return self.h0 / 2.0 ** level

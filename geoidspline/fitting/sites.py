@@ -58,6 +58,13 @@ class DataNodes:
             dlon_rad=float(dlon),
         )
 
+    @property
+    def spacing_rad(self) -> float:
+        """The nodes' spacing on the unit sphere: the larger of the latitude step and the
+        longitude step at the nodes' mean |cos φ| (levels finer than half of it are not
+        determined between the nodes)."""
+        return max(self.dlat_rad, self.dlon_rad * float(np.cos(np.radians(np.abs(self.latitude))).mean()))
+
     def thinned(self, h, rays_per_cell):
         """Mask of the nodes kept as rays at spacing h (about rays_per_cell per cell width)."""
         target = h / rays_per_cell

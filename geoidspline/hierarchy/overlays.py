@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..bspline.domain import active_cells
-from ..bspline.keys import cube_offsets, pack_keys, touching_keys
+from ..bspline.keys import keys_centred_near, pack_keys, touching_keys
 
 
 class OverlayRefinement:
@@ -41,10 +41,4 @@ class OverlayRefinement:
         radius = order / 2.0 if self.refine_radius is None else self.refine_radius
         if radius >= order / 2.0:
             return touching_keys(cells, order), n_cells, None
-        keys = []
-        for chunk in range(0, len(position), 200_000):
-            pos = position[chunk:chunk + 200_000]
-            cand = cells[chunk:chunk + 200_000, None, :] + cube_offsets(-(order - 1), 0)[None]
-            near = np.all(np.abs(cand + order / 2.0 - pos[:, None, :]) <= radius, axis=2)
-            keys.append(np.unique(pack_keys(cand[near])))
-        return np.unique(np.concatenate(keys)), n_cells, None
+        return keys_centred_near(position, order, radius), n_cells, None
