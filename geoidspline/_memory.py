@@ -19,7 +19,6 @@ using geoidspline as a library can call it, or set the environment variable.
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import threading
 
 MMAP_THRESHOLD_BYTES = 1 << 20
@@ -35,7 +34,9 @@ def pin_mmap_threshold() -> bool:
     with _lock:
         if not _pinned:
             try:
-                mallopt = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").mallopt
+                # the process's own symbols: ctypes.util.find_library runs ldconfig (12 ms
+                # of every command's start)
+                mallopt = ctypes.CDLL(None).mallopt
                 mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
                 _pinned = bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES))
             except (OSError, AttributeError):

@@ -118,10 +118,7 @@ def _store_region(store) -> Region:
 
 def _require_inside(region: Region, store):
     outer = _store_region(store)
-    inside = region.south >= outer.south - _TOL_DEG and region.north <= outer.north + _TOL_DEG
-    if inside and outer.longitude_span < 360.0:
-        inside = _offset(region.west, outer.west) + region.longitude_span <= outer.longitude_span + _TOL_DEG
-    if not inside:
+    if not region.within(outer, _TOL_DEG):
         raise CoordinateError(
             f"map region {region.as_tuple()} is not inside the region {outer.as_tuple()} of store {store.path} "
             "(S W N E degrees): outside it the store has no meaningful values"

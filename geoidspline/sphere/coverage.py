@@ -230,10 +230,10 @@ class Coverage:
         store updated many times inside its region keeps one part."""
         parts = list(self.parts)
         for part in other.parts:
-            if any(old.lattice is None and _within(part.region, old.region) for old in parts):
+            if any(old.lattice is None and part.region.within(old.region) for old in parts):
                 continue
             if part.lattice is None:
-                parts = [old for old in parts if not _within(old.region, part.region)]
+                parts = [old for old in parts if not old.region.within(part.region)]
             parts.append(part)
         return Coverage(tuple(parts))
 
@@ -264,18 +264,6 @@ def _read_only(array: np.ndarray) -> np.ndarray:
     view = array.view()
     view.flags.writeable = False
     return view
-
-
-def _within(inner: Region, outer: Region, tol: float = 1e-9) -> bool:
-    """Whether ``inner`` lies inside ``outer`` (degrees; longitudes modulo 360)."""
-    if inner.south < outer.south - tol or inner.north > outer.north + tol:
-        return False
-    if outer.longitude_span >= 360.0:
-        return True
-    offset = (inner.west - outer.west) % 360.0
-    if offset > 360.0 - tol:
-        offset -= 360.0
-    return offset >= -tol and offset + inner.longitude_span <= outer.longitude_span + tol
 
 
 def _spacing(axis, name):

@@ -113,6 +113,18 @@ class Region:
     def as_tuple(self):
         return (self.south, self.west, self.north, self.east)
 
+    def within(self, outer: "Region", tol: float = 1e-9) -> bool:
+        """Whether this region lies inside ``outer`` (degrees; longitudes modulo 360;
+        ``tol`` degrees of round-off allowed at the edges)."""
+        if self.south < outer.south - tol or self.north > outer.north + tol:
+            return False
+        if outer.longitude_span >= 360.0:
+            return True
+        offset = (self.west - outer.west) % 360.0
+        if offset > 360.0 - tol:
+            offset -= 360.0
+        return offset >= -tol and offset + self.longitude_span <= outer.longitude_span + tol
+
     def bounds_text(self) -> str:
         """``"S -42 W -77 N -18 E -53"``: the bounds in degrees for messages, without the
         float noise of bounds computed from a grid's nodes."""

@@ -68,7 +68,7 @@ def value_step(tolerance_m: float, levels: int) -> float:
     return max(1, int(np.floor(budget / 1e-6 + 1e-6))) * 1e-6
 
 
-def node_safe_step(spline, node_directions, node_errors, tolerance_m: float):
+def node_safe_step(spline, node_directions, node_errors, tolerance_m: float, start_step: float | None = None):
     """(step, node errors of the stored spline): the largest step, from :func:`value_step`
     halving down to 1 µm, at which the quantised spline's largest |error| at the fit's
     nodes is at most ``max(tolerance_m, the fit's own node max)``.
@@ -82,15 +82,20 @@ def node_safe_step(spline, node_directions, node_errors, tolerance_m: float):
     ``node_errors − (quantised − fit)``, exactly. More levels give a smaller start
     (:func:`value_step` divides the share by the level count); more halvings follow where
     the fit left no room (:func:`slack_step` when the nodes are not at hand).
+
+    ``start_step``: start there and halve exactly instead (a regional update's tiles,
+    whose step must nest in the store's: :func:`geoidspline.store.format.steps_nest`).
     """
     errors = np.asarray(node_errors, dtype=np.float64)
     target = max(float(tolerance_m), float(np.abs(errors).max()) if errors.size else 0.0)
-    step = value_step(tolerance_m, len(spline.levels))
+    step = value_step(tolerance_m, len(spline.levels)) if start_step is None else float(start_step)
     while True:
         stored_errors = errors - quantisation_change(spline, step, node_directions)
-        if step <= 1e-6 or not stored_errors.size or np.abs(stored_errors).max() <= target:
+        following = max(1, int(round(step / 1e-6)) // 2) * 1e-6 if start_step is None else step / 2.0
+        if following < 1e-6 or following >= step or not stored_errors.size \
+                or np.abs(stored_errors).max() <= target:
             return step, stored_errors
-        step = max(1, int(round(step / 1e-6)) // 2) * 1e-6
+        step = following
 
 
 def slack_step(tolerance_m: float, node_max_error_m: float, levels: int) -> float:

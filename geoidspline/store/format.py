@@ -255,14 +255,7 @@ class TileDirectory:
             problem = size_problem(path, entry, st.st_size)
             if problem:
                 raise StoreCorruptError(problem)
-            chunks, left = [], st.st_size
-            while left > 0:
-                chunk = os.read(fd, min(left, 1 << 24))
-                if not chunk:
-                    break
-                chunks.append(chunk)
-                left -= len(chunk)
-            data = b"".join(chunks)
+            data = _read_up_to(fd, st.st_size)
         except OSError as exc:
             raise StoreError(f"{path}: tile {entry['tile']} cannot be read ({exc.strerror})") from None
         finally:
@@ -468,6 +461,19 @@ def parse_manifest(path, text: bytes) -> dict:
     return manifest
 
 
+def _read_up_to(fd: int, size: int) -> bytes:
+    """Up to ``size`` bytes of an open file, fewer if it ends first (the caller compares
+    the length with what it expects); OSError is the caller's to name."""
+    chunks, left = [], size
+    while left > 0:
+        chunk = os.read(fd, min(left, 1 << 24))
+        if not chunk:
+            break
+        chunks.append(chunk)
+        left -= len(chunk)
+    return b"".join(chunks)
+
+
 def read_manifest_bytes(root: Path) -> bytes:
     """The bytes of STORE/manifest.json: a regular file (no symlink, FIFO or device) of at
     most :data:`MAX_MANIFEST_BYTES`."""
@@ -495,14 +501,7 @@ def read_manifest_bytes(root: Path) -> bytes:
         if st.st_size > MAX_MANIFEST_BYTES:
             raise StoreCorruptError(f"{path}: manifest is {st.st_size:,} bytes, more than the "
                                     f"{MAX_MANIFEST_BYTES:,} a manifest may have")
-        chunks, left = [], st.st_size
-        while left > 0:
-            chunk = os.read(fd, left)
-            if not chunk:
-                break
-            chunks.append(chunk)
-            left -= len(chunk)
-        return b"".join(chunks)
+        return _read_up_to(fd, st.st_size)
     except OSError as exc:
         raise StoreError(f"{path}: cannot be read ({exc.strerror})") from None
     finally:

@@ -42,7 +42,7 @@ from ..sources.base import NodeSample
 from ..sphere.coordinates import directions
 from ..sphere.coverage import Coverage
 from ..sphere.region import Region
-from .codec import quantised_spline
+from .codec import node_safe_step
 from .coverage import coverage_record
 from .format import FORMAT_VERSION, MANIFEST, TILE_DIR, error_stats, load_manifest, utc_now
 from .reader import TileStore
@@ -86,7 +86,14 @@ def blend_weight(region: Region, blend_deg: float, latitude, longitude):
     distance = np.hypot(dlat, dlon * np.cos(np.radians(latitude)))
     if blend_deg <= 0.0:
         return (distance <= 0.0).astype(float)
-    return np.where(distance >= blend_deg, 0.0, 0.5 * (1.0 + np.cos(np.pi * np.minimum(distance / blend_deg, 1.0))))
+    return _cosine_taper(distance / blend_deg)
+
+
+def _cosine_taper(ratio):
+    """1 at ratio 0 falling to 0 at ratio 1 (and beyond) as ½(1 + cos πr): flat at both
+    ends, so a blend adds no kink."""
+    ratio = np.minimum(np.asarray(ratio, dtype=float), 1.0)
+    return np.where(ratio >= 1.0, 0.0, 0.5 * (1.0 + np.cos(np.pi * ratio)))
 
 
 class _ResidualRefinement(OverlayRefinement):
@@ -121,27 +128,12 @@ def fade_into_no_data(difference, latitude, longitude, blend_width_km: float):
     faded = np.zeros(difference.shape)
     if blend_width_km <= 0.0 or has_data.all() or not has_data.any() or difference.ndim != 2:
         return faded
-    dlat = float(np.mean(np.diff(latitude))) if len(latitude) > 1 else 1.0
-    dlon = float(np.mean(np.diff(longitude))) if len(longitude) > 1 else 1.0
+    dlat, dlon = _step(latitude) or 1.0, _step(longitude) or 1.0
     mid = math.radians(0.5 * (float(latitude[0]) + float(latitude[-1])))
-    sampling = (abs(dlat) * KM_PER_DEGREE, abs(dlon) * KM_PER_DEGREE * max(math.cos(mid), 1e-3))
+    sampling = (dlat * KM_PER_DEGREE, dlon * KM_PER_DEGREE * max(math.cos(mid), 1e-3))
     distance, (rows, cols) = distance_transform_edt(~has_data, sampling=sampling, return_indices=True)
-    taper = np.where(distance >= blend_width_km, 0.0,
-                     0.5 * (1.0 + np.cos(np.pi * np.minimum(distance / blend_width_km, 1.0))))
-    faded[~has_data] = (taper * difference[rows, cols])[~has_data]
+    faded[~has_data] = (_cosine_taper(distance / blend_width_km) * difference[rows, cols])[~has_data]
     return faded
-
-
-def _inside(inner: Region, outer: Region) -> bool:
-    """``inner`` lies inside ``outer`` (longitudes modulo 360)."""
-    if outer.is_global:
-        return True
-    if inner.south < outer.south or inner.north > outer.north:
-        return False
-    if outer.longitude_span >= 360.0:
-        return True
-    start = (inner.west - outer.west + 1e-9) % 360.0 - 1e-9  # equal wests, to rounding, are inside
-    return inner.longitude_span < 360.0 and start + inner.longitude_span <= outer.longitude_span + 1e-9
 
 
 def _shrunk(extent: Region, margin_deg: float) -> Region | None:
@@ -182,12 +174,12 @@ def _check_compatible(store: TileStore, source, region: Region, blend_width_km: 
             "convert the source to the store's tide system first"
         )
     extent = source.extent
-    if not _inside(region, extent):
+    if not region.within(extent):
         raise CoordinateError(
             f"update region {region.bounds_text()} is not inside the extent of {new.source} ({extent.bounds_text()})"
         )
     zone = region.expanded(blend_deg) if blend_deg > 0 else region
-    if not _inside(zone, extent):
+    if not zone.within(extent):
         inner = _shrunk(extent, blend_deg)
         hint = (f"give a region at least {blend_width_km:g} km inside it (the largest is "
                 f"{inner.bounds_text()}) or a smaller --blend-width"
@@ -307,8 +299,10 @@ def _update(root, store, source, region, blend_width_km, executor, progress, att
         # to its step; the rewritten tiles take the store's step halved as often as the
         # update's tolerance needs at its nodes (the untouched tiles' coefficients are
         # multiples of every such step, so they keep their values)
-        step, errors = _update_step(merged, store_step, sample.undulation[inside],
-                                    directions(lat2[inside], lon2[inside]), params.tolerance_m)
+        node_directions = directions(lat2[inside], lon2[inside])
+        step, errors = node_safe_step(merged, node_directions,
+                                      sample.undulation[inside] - merged.evaluate_points(node_directions),
+                                      params.tolerance_m, start_step=store_step)
         encoding = dict(encoding, value_step_m=step)
         old_levels = {lv.level for lv in store.spline.levels}
         # each level's rounding: at most half its coarsest step anywhere (partition of unity)
@@ -379,22 +373,6 @@ def _update(root, store, source, region, blend_width_km, executor, progress, att
         "history": manifest.get("history", []) + [record],
     })
     return record, new_manifest
-
-
-def _update_step(merged: AmbientSpline, store_step: float, truth, node_directions, tolerance_m: float):
-    """(step, errors): the store's step halved until the quantised ``merged`` spline is
-    within ``tolerance_m`` of ``truth`` at ``node_directions`` (or the fit's own largest
-    error there, if that is more), down to 1 µm; and its errors there (truth − stored)."""
-    target = None
-    step = float(store_step)
-    while True:
-        errors = truth - quantised_spline(merged, step).evaluate_points(node_directions)
-        if target is None:
-            fitted = truth - merged.evaluate_points(node_directions)
-            target = max(float(tolerance_m), float(np.abs(fitted).max()) if fitted.size else 0.0)
-        if not errors.size or np.abs(errors).max() <= target or step / 2.0 < 1e-6:
-            return step, errors
-        step /= 2.0
 
 
 def _merge(old: AmbientSpline, delta: AmbientSpline) -> AmbientSpline:
