@@ -12,7 +12,18 @@ nodes thinned to ``rays_per_cell`` per cell width of the leaf's level, at radii
 least-squares problem over all levels (no residual fitting, no ridge): the normal
 equations of each leaf level (:func:`geoidspline.hierarchy.hierarchical.normal_matrix`),
 a second-difference penalty per level that only decides coefficients the data leave
-free, solved whole (qdldl) or in local blocks (:func:`block_problems`, §5.3.3).
+free. Small problems are solved by one factorisation (qdldl); larger ones by conjugate
+gradients on the same whole problem, preconditioned by local problems on overlapping
+cubes (§5.3.3's local solves, :class:`SchwarzPreconditioner`) and started from the
+previous refinement step's spline (:func:`carry_over`).
+
+Local solves alone (each cube keeping the coefficients whose support lay inside its
+problem, the thesis's recipe) were tried first and left seams: with sites on the sphere
+only, the thin basis has combinations that vanish on the sphere, which the whole
+problem leaves to the penalty but each local problem decides its own way, so margins
+had to reach two levels up (global EGM96 at 0.1 m: 8 times the basis in local unknowns,
+over 30 minutes). As a preconditioner the local problems need only a narrow overlap,
+and the iteration makes the pieces one spline (benchmarks/README.md).
 
 The result is a normal :class:`geoidspline.fitting.result.FitResult`: each active B-spline of
 level ℓ is a coefficient of level ℓ, and the sum of the levels is the spline, so stores
@@ -310,7 +321,8 @@ def schwarz_blocks(basis: HierarchicalBasis, size: float, overlap: float):
 
 class SchwarzPreconditioner:
     """Additive Schwarz: ``z = Σ_b R_bᵀ S_bb⁻¹ R_b r`` over overlapping subdomains, each
-    principal block of the whole matrix factorised once (qdldl)."""
+    principal block of the whole matrix factorised once (qdldl; dense LAPACK Cholesky of
+    the nearly full blocks was slower: benchmarks/README.md)."""
 
     def __init__(self, system, index_sets, advance=None):
         system = system.tocsr()
