@@ -120,6 +120,29 @@ def test_a_grid_is_fitted_as_the_andes_headline_down_to_its_resolution(synthetic
     assert "data spacing" in choice.reasons["max_level"]
 
 
+def test_a_grid_takes_the_hierarchical_basis_where_its_memory_is_bounded(synthetic_grid):
+    """The hierarchical basis (fewer coefficients) is the default for a grid whose fit
+    could not outgrow the memory budget even at one unknown per node; a global 15'
+    grid (a million nodes) could, so it keeps overlays; an expert's full command too."""
+    from geoidspline.fitting.hierarchical import BYTES_PER_UNKNOWN
+
+    andes = choose_parameters(synthetic_grid, 0.5, Region.from_bounds(-60, -90, 15, -30))
+    assert andes.parameters.refinement == "hierarchical"
+    assert andes.reasons["refinement"].startswith("hierarchical") and "budget" in andes.reasons["refinement"]
+    quarter_degree = SimpleNamespace(latitude_spacing=0.25, longitude_spacing=0.25, extent=GLOBAL,
+                                     provenance=SimpleNamespace(kind="grid"))
+    world = choose_parameters(quarter_degree, 0.1)
+    nodes = 4 * math.pi / math.radians(0.25) ** 2
+    assert nodes * BYTES_PER_UNKNOWN > choose.HIERARCHICAL_MEMORY_BUDGET_BYTES
+    assert world.parameters.refinement == "overlays" and "budget" in world.reasons["refinement"]
+    # the same grid over a small region: few nodes, so the hierarchical basis
+    small = choose_parameters(quarter_degree, 0.1, Region.from_bounds(-35, -80, -10, -60))
+    assert small.parameters.refinement == "hierarchical"
+    everything = {"method": "least-squares", "order": 4, "h0": 0.1, "max_level": 2, "sample_spacing_deg": None}
+    expert = choose_parameters(synthetic_grid, 0.5, Region.from_bounds(-60, -90, 15, -30), given=everything)
+    assert expert.parameters.refinement == "overlays"
+
+
 # -- the command line ---------------------------------------------------------------
 
 
@@ -167,7 +190,8 @@ def test_a_model_file_fit_chooses_quasi_interpolation(toy24, tmp_path):
 
 
 def test_no_progress_on_a_non_terminal_without_v_and_stage_lines_with_v(synthetic_gtx, tmp_path):
-    args = [synthetic_gtx, "--region", 10, 20, 30, 40, "--tolerance", 0.002, "--h0", 0.2, "--max-level", 1]
+    args = [synthetic_gtx, "--region", 10, 20, 30, 40, "--tolerance", 0.002, "--h0", 0.2, "--max-level", 1,
+            "--refinement", "overlays"]  # the stages of overlays' levels
     quiet = fit([*args, "--store", tmp_path / "a"])
     assert quiet.exit_code in (0, 3), quiet.output
     assert "progress" not in quiet.stderr and "blocks" not in quiet.stderr
