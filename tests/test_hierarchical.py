@@ -385,6 +385,23 @@ def test_local_problems_as_preconditioner_reach_the_whole_problems_fit():
     assert np.abs(spline_at_sites(again - whole)).max() < SOLVE_FRACTION * params.tolerance_m
 
 
+def test_a_step_beyond_the_memory_available_is_refused_before_it_is_built(monkeypatch):
+    """The whole problem is held at once: a step that would not fit in the memory the
+    system has left is refused with the numbers and the way out, not killed by the OOM killer."""
+    import geoidspline.fitting.hierarchical as fitting_hierarchical
+    from geoidspline.errors import FitError
+
+    rng = np.random.default_rng(4)
+    basis = random_hierarchy(plane_domain(10, 10, h0=0.125), 4, 2, rng, per_step=3)
+    pts, lvl = leaf_points(basis, 25, rng)
+    points = [pts[lvl == lv] for lv in range(basis.levels)]
+    data = [np.ones(p.shape[0]) for p in points]
+    monkeypatch.setattr(fitting_hierarchical, "available_bytes",
+                        lambda: 0.5 * basis.coefficient_count * fitting_hierarchical.BYTES_PER_UNKNOWN)
+    with pytest.raises(FitError, match=r"GB are available.*--refinement overlays"):
+        fitting_hierarchical.solve_basis(basis, points, data, FitParameters(h0=0.125), force_tiles=True)
+
+
 def test_carry_over_keeps_the_spline_through_refinement():
     """The start of a refinement step is the previous step's spline in the new basis:
     a refined B-spline's coefficient passes to its children by the refinement relation,
