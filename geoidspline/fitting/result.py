@@ -14,6 +14,12 @@ from .parameters import FitParameters
 
 @dataclass
 class LevelReport:
+    """One level of a fit: its coefficients, sites and solves, and the node errors after
+    it. A data-limited finest level may be fitted in more than one pass (the residual its
+    first pass left, :func:`geoidspline.fitting.driver.fit_nodes`): the counts are the
+    passes' totals, the errors those after the last, and ``pass_max_error_m`` /
+    ``pass_nodes_above_tolerance`` the errors after each pass."""
+
     level: int
     h: float
     coefficients: int
@@ -24,6 +30,9 @@ class LevelReport:
     rms_error_m: float
     nodes_above_tolerance: int
     seconds: float
+    passes: int = 1
+    pass_max_error_m: list = field(default_factory=list)
+    pass_nodes_above_tolerance: list = field(default_factory=list)
 
 
 @dataclass
