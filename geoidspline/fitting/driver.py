@@ -104,10 +104,6 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
                 "(%.4g on the unit sphere); sample a model source finer with sample_spacing_deg",
                 level - 1, level, h, MIN_H_PER_DATA_SPACING, data_spacing,
             )
-            if levels and levels[-1].level == level - 1 and violating.size:
-                violating, converged = _finest_level_passes(
-                    nodes, levels, reports, errors, region_dirs, violating, refinement, region, params,
-                    force_tiles, base_is_overlay, executor, progress)
             break
         if level == 0 and first_level is not None:
             lv, seconds_before, site_count = first_level
@@ -141,6 +137,13 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
         if not above.any():
             converged = True
             break
+    if not converged and levels and params.spacing(levels[-1].level + 1) < MIN_H_PER_DATA_SPACING * data_spacing:
+        # the last level is the finest the data determine (whether the next was refused
+        # or max_level was chosen there): it takes the residual it left again
+        data_limited = True
+        violating, converged = _finest_level_passes(
+            nodes, levels, reports, errors, region_dirs, violating, refinement, region, params,
+            force_tiles, executor, progress)
     spline = AmbientSpline(levels)
     return FitResult(
         spline=spline, parameters=params, region=region, levels=reports,
@@ -159,11 +162,13 @@ ON_THE_SPHERE = (0.0,)
 
 
 def fit_level(nodes, levels, level, h, keys, site_cells, params: FitParameters, force_tiles, overlay,
-              executor, progress, radial_offsets=None, name=None):
+              executor, progress, node_mask=None, radial_offsets=None, name=None):
     """Least squares of ``keys`` (one level, spacing ``h``) to the residual of ``levels``
-    at the rays of the nodes (``radial_offsets``: the parameters' unless given); (the
-    level's :class:`LevelSpline`, sites, blocks solved)."""
+    at the rays of the nodes (those of ``node_mask`` only, when given; ``radial_offsets``:
+    the parameters' unless given); (the level's :class:`LevelSpline`, sites, blocks solved)."""
     ray_mask = nodes.thinned(h, params.rays_per_cell)
+    if node_mask is not None:
+        ray_mask &= node_mask
     offsets = params.radial_offsets if radial_offsets is None else radial_offsets
     points, node_of_site = sites_for_level(nodes, ray_mask, h, params.order, keys, offsets, site_cells)
     values = nodes.values[node_of_site] - AmbientSpline(levels).evaluate_points(points) if levels \
@@ -178,7 +183,7 @@ def fit_level(nodes, levels, level, h, keys, site_cells, params: FitParameters, 
 
 
 def _finest_level_passes(nodes, levels, reports, errors, region_dirs, violating, refinement, region,
-                         params: FitParameters, force_tiles, base_is_overlay, executor, progress):
+                         params: FitParameters, force_tiles, executor, progress):
     """Fit the finest level the data determine again to the residual it left, where nodes
     are still above the tolerance, and add each pass to that level (same h and order: the
     union of keys, coefficients summed), so the fit keeps one spline per level.
@@ -186,28 +191,31 @@ def _finest_level_passes(nodes, levels, reports, errors, region_dirs, violating,
     A finer level would not be determined between the nodes; what the finest level's
     first pass leaves at a few nodes (a small island, a narrow peak) is taken by the same
     level again, on the keys its own rule admits there (``refinement.level_keys``: a
-    regional update's stay inside its blend zone). A pass's sites are the nodes on the
-    sphere only (:data:`ON_THE_SPHERE`): off the sphere the residual also holds the
-    radial variation of the coarser levels, which at this spacing pulls the least squares
-    away from the values at the nodes, where the tolerance is measured (with the level's
-    own rays a second pass raised the largest error). Stops when no node is above the
+    regional update's stay inside its blend zone). A pass's sites are the region's nodes,
+    on the sphere (:data:`ON_THE_SPHERE`), where the tolerance is measured: off the sphere
+    the residual also holds the coarser levels' radial variation, which at this spacing
+    pulled a pass away from the values at the nodes (with the level's own rays a second
+    pass raised the largest error); and beyond the region the nodes are never refined, so
+    their residual (decimetres, for a grid fitted over part of it) made a pass straddling
+    the region's edge oscillate between the edge rows. Stops when no node is above the
     tolerance, when a pass does not lower the largest error (that pass is dropped), or
     after :data:`FINEST_LEVEL_PASSES` passes in all. Updates ``levels[-1]``,
     ``reports[-1]`` and ``errors`` in place; returns (violating directions, converged).
     """
     finest = levels[-1]
     report = reports[-1]
-    report.pass_max_error_m = [report.max_error_m]
-    report.pass_nodes_above_tolerance = [report.nodes_above_tolerance]
     while report.passes < FINEST_LEVEL_PASSES:
         t0 = time.perf_counter()
         name = f"level {finest.level} pass {report.passes + 1}"
         keys, marked, site_cells = refinement.level_keys(finest.level, finest.h, params.order, region, violating)
         if keys.size == 0:
             break
+        if not report.pass_max_error_m:  # a pass is tried: the errors after the first
+            report.pass_max_error_m = [report.max_error_m]
+            report.pass_nodes_above_tolerance = [report.nodes_above_tolerance]
         extra, site_count, solved = fit_level(nodes, levels, finest.level, finest.h, keys, site_cells, params,
-                                              force_tiles, finest.level > 0 or base_is_overlay, executor,
-                                              progress, radial_offsets=ON_THE_SPHERE, name=name)
+                                              force_tiles, True, executor, progress, node_mask=nodes.in_region,
+                                              radial_offsets=ON_THE_SPHERE, name=name)
         trial = errors.copy()
         subtract_level(trial, extra, region_dirs, progress, f"{name} node errors")
         largest = float(np.abs(trial).max())

@@ -18,7 +18,8 @@ class LevelReport:
     it. A data-limited finest level may be fitted in more than one pass (the residual its
     first pass left, :func:`geoidspline.fitting.driver.fit_nodes`): the counts are the
     passes' totals, the errors those after the last, and ``pass_max_error_m`` /
-    ``pass_nodes_above_tolerance`` the errors after each pass."""
+    ``pass_nodes_above_tolerance`` the errors after each pass kept (empty when no second
+    pass was tried; one entry when it was tried and dropped, not lowering the largest error)."""
 
     level: int
     h: float
