@@ -145,6 +145,13 @@ def test_a_data_limited_finest_level_takes_what_it_left_again(island_fits):
     assert np.all(np.diff(finest.pass_max_error_m) < 0) and finest.pass_max_error_m[-1] == more.node_max_error_m
     assert finest.pass_nodes_above_tolerance == [1, 1, 0]
     assert one.levels[-1].passes == 1 and one.levels[-1].pass_max_error_m == []  # no pass tried
+    # the same when max_level stops at that finest level (as geoid-fit chooses it): the
+    # passes follow whether the next level was refused or never asked for
+    at_max = fit_nodes(sample, REGION, FitParameters(h0=0.1, max_level=4, tolerance_m=0.01))
+    assert at_max.data_limited and at_max.levels[-1].pass_max_error_m == finest.pass_max_error_m
+    # with max_level below it, no pass: a finer level may still come
+    coarser = fit_nodes(sample, REGION, FitParameters(h0=0.1, max_level=3, tolerance_m=0.01))
+    assert not coarser.data_limited and coarser.levels[-1].passes == 1
     # the reported error is the real one at the nodes
     lat2, lon2 = np.meshgrid(sample.latitude, sample.longitude, indexing="ij")
     nodes = REGION.contains(lat2, lon2) & np.isfinite(sample.undulation)
