@@ -116,7 +116,7 @@ def island_field(lat, lon):
 def island_fits():
     """The island fitted to 1 cm with one pass of the data-limited finest level and with
     the default passes (level 5 would be finer than half the 0.5° spacing: level 4 is the finest)."""
-    import geoidspline.fitting.driver as driver
+    from geoidspline.fitting import driver
 
     sample = lattice(island_field, 0.5, -60, 60, -90, 90)
     params = FitParameters(h0=0.1, max_level=8, tolerance_m=0.01)

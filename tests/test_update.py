@@ -527,7 +527,7 @@ def test_the_finest_level_the_national_data_determine_takes_its_residual_again(s
     zone, bring them within 1 cm, and outside the zone the store is still unchanged."""
     import shutil
 
-    import geoidspline.fitting.driver as driver
+    from geoidspline.fitting import driver
 
     source = national_grid(REGION, BLEND_KM)
     lat2, lon2 = np.meshgrid(source.latitude, source.longitude, indexing="ij")
