@@ -518,3 +518,39 @@ def test_cli_update_and_verify(store, tmp_path):
                          capture_output=True, text=True, timeout=120)
     assert run.returncode == 1 and victim.name in run.stdout and "truncated" in run.stdout
     assert "Traceback" not in run.stderr
+
+
+def test_the_finest_level_the_national_data_determine_takes_its_residual_again(store, tmp_path, monkeypatch):
+    """A national grid (0.25°) with a 0.5 m peak as narrow as its spacing: the update's
+    finest level (6, level 7 being finer than half the spacing) leaves 11.8 mm at its
+    nodes in one pass; further passes of that level, on its B-splines inside the blend
+    zone, bring them within 1 cm, and outside the zone the store is still unchanged."""
+    import shutil
+
+    from geoidspline.fitting import driver
+
+    source = national_grid(REGION, BLEND_KM)
+    lat2, lon2 = np.meshgrid(source.latitude, source.longitude, indexing="ij")
+    peak = 0.5 * np.exp(-((lat2 - 10) ** 2 + (lon2 - 20) ** 2) / 0.25**2)
+    source = GeoidGrid(source.latitude, source.longitude, source.values + peak, source.provenance)
+    one_pass = Path(shutil.copytree(store, tmp_path / "one_pass"))
+    with monkeypatch.context() as patch:
+        patch.setattr(driver, "FINEST_LEVEL_PASSES", 1)
+        before = update_store(one_pass, source, REGION, blend_width_km=BLEND_KM, tolerance_m=0.01)
+    assert before["max_error_m"] == pytest.approx(0.0118, abs=0.0005)  # at the national nodes in the region
+    original = geoidspline.open_store(store)
+    record = update_store(store, source, REGION, blend_width_km=BLEND_KM, tolerance_m=0.01)
+    assert record["max_error_m"] <= 0.01
+    finest = record["levels"][-1]
+    assert finest["level"] == 6 and finest["passes"] > 1
+    assert finest["pass_max_error_m"][0] == before["levels"][-1]["max_error_m"]
+    assert [lv["level"] for lv in record["levels"]] == [lv["level"] for lv in before["levels"]]
+    levels = [lv["level"] for lv in json.loads((store / "manifest.json").read_text())["spline"]["levels"]]
+    assert levels == sorted(set(levels))  # one spline per level: the passes are in level 6
+    after = geoidspline.open_store(store)
+    zone = REGION.expanded(BLEND_KM / KM_PER_DEGREE)
+    lat, lon = np.meshgrid(np.arange(-40, 60, 0.7), np.arange(-30, 70, 0.7), indexing="ij")
+    outside = ~zone.contains(lat, lon)
+    assert np.abs(after.undulation(lat[outside], lon[outside])
+                  - original.undulation(lat[outside], lon[outside])).max() <= 1e-12
+    assert verify_store(store) == []

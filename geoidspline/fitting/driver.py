@@ -116,20 +116,8 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
                     converged = True
                     break
                 continue  # no B-spline of this level may be used there (a regional update's zone)
-            ray_mask = nodes.thinned(h, params.rays_per_cell)
-            points, node_of_site = sites_for_level(
-                nodes, ray_mask, h, params.order, keys, params.radial_offsets, site_cells
-            )
-            values = nodes.values[node_of_site] - AmbientSpline(levels).evaluate_points(points) if levels \
-                else nodes.values[node_of_site].copy()
-            problems = list(local_problems(level, h, params, keys, points, values, force_tiles,
-                                            overlay=level > 0 or base_is_overlay))
-            with progress.stage(f"level {level} blocks", len(problems), "block") as advance:
-                own_keys, own_coefs, solved = solve_level(problems, executor, advance)
-            if own_keys.size != keys.size:
-                raise FitError(f"level {level}: tiles returned {own_keys.size} of {keys.size} coefficients")
-            lv = LevelSpline(level, h, params.order, own_keys, own_coefs)
-            site_count = points.shape[0]
+            lv, site_count, solved = fit_level(nodes, levels, level, h, keys, site_cells, params, force_tiles,
+                                               level > 0 or base_is_overlay, executor, progress)
         levels.append(lv)
         subtract_level(errors, lv, region_dirs, progress, f"level {level} node errors")
         above = np.abs(errors) > params.tolerance_m
@@ -149,6 +137,13 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
         if not above.any():
             converged = True
             break
+    if not converged and levels and params.spacing(levels[-1].level + 1) < MIN_H_PER_DATA_SPACING * data_spacing:
+        # the last level is the finest the data determine (whether the next was refused
+        # or max_level was chosen there): it takes the residual it left again
+        data_limited = True
+        violating, converged = _finest_level_passes(
+            nodes, levels, reports, errors, region_dirs, violating, refinement, region, params,
+            force_tiles, executor, progress)
     spline = AmbientSpline(levels)
     return FitResult(
         spline=spline, parameters=params, region=region, levels=reports,
@@ -157,6 +152,110 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
         seconds=time.perf_counter() - start, node_directions=region_dirs, node_errors=errors,
         data_limited=data_limited, coverage=coverage,
     )
+
+
+#: Passes a data-limited finest level may take in all (the first included).
+FINEST_LEVEL_PASSES = 3
+
+#: Radial offsets of an extra pass's sites: the nodes themselves (see :func:`_finest_level_passes`).
+ON_THE_SPHERE = (0.0,)
+
+
+def fit_level(nodes, levels, level, h, keys, site_cells, params: FitParameters, force_tiles, overlay,
+              executor, progress, node_mask=None, radial_offsets=None, name=None):
+    """Least squares of ``keys`` (one level, spacing ``h``) to the residual of ``levels``
+    at the rays of the nodes (those of ``node_mask`` only, when given; ``radial_offsets``:
+    the parameters' unless given); (the level's :class:`LevelSpline`, sites, blocks solved)."""
+    ray_mask = nodes.thinned(h, params.rays_per_cell)
+    if node_mask is not None:
+        ray_mask &= node_mask
+    offsets = params.radial_offsets if radial_offsets is None else radial_offsets
+    points, node_of_site = sites_for_level(nodes, ray_mask, h, params.order, keys, offsets, site_cells)
+    values = nodes.values[node_of_site] - AmbientSpline(levels).evaluate_points(points) if levels \
+        else nodes.values[node_of_site].copy()
+    problems = list(local_problems(level, h, params, keys, points, values, force_tiles, overlay=overlay))
+    name = name or f"level {level}"
+    with progress.stage(f"{name} blocks", len(problems), "block") as advance:
+        own_keys, own_coefs, solved = solve_level(problems, executor, advance)
+    if own_keys.size != keys.size:
+        raise FitError(f"{name}: tiles returned {own_keys.size} of {keys.size} coefficients")
+    return LevelSpline(level, h, params.order, own_keys, own_coefs), points.shape[0], solved
+
+
+def _finest_level_passes(nodes, levels, reports, errors, region_dirs, violating, refinement, region,
+                         params: FitParameters, force_tiles, executor, progress):
+    """Fit the finest level the data determine again to the residual it left, where nodes
+    are still above the tolerance, and add each pass to that level (same h and order: the
+    union of keys, coefficients summed), so the fit keeps one spline per level.
+
+    A finer level would not be determined between the nodes; what the finest level's
+    first pass leaves at a few nodes (a small island, a narrow peak) is taken by the same
+    level again, on the keys its own rule admits there (``refinement.level_keys``: a
+    regional update's stay inside its blend zone). A pass's sites are the region's nodes,
+    on the sphere (:data:`ON_THE_SPHERE`), where the tolerance is measured: off the sphere
+    the residual also holds the coarser levels' radial variation, which at this spacing
+    pulled a pass away from the values at the nodes (with the level's own rays a second
+    pass raised the largest error); and beyond the region the nodes are never refined, so
+    their residual (decimetres, for a grid fitted over part of it) made a pass straddling
+    the region's edge oscillate between the edge rows. Stops when no node is above the
+    tolerance, when a pass does not lower the largest error (that pass is dropped), or
+    after :data:`FINEST_LEVEL_PASSES` passes in all. Updates ``levels[-1]``,
+    ``reports[-1]`` and ``errors`` in place; returns (violating directions, converged).
+    """
+    finest = levels[-1]
+    report = reports[-1]
+    while report.passes < FINEST_LEVEL_PASSES:
+        t0 = time.perf_counter()
+        name = f"level {finest.level} pass {report.passes + 1}"
+        keys, marked, site_cells = refinement.level_keys(finest.level, finest.h, params.order, region, violating)
+        if keys.size == 0:
+            break
+        if not report.pass_max_error_m:  # a pass is tried: the errors after the first
+            report.pass_max_error_m = [report.max_error_m]
+            report.pass_nodes_above_tolerance = [report.nodes_above_tolerance]
+        extra, site_count, solved = fit_level(nodes, levels, finest.level, finest.h, keys, site_cells, params,
+                                              force_tiles, True, executor, progress, node_mask=nodes.in_region,
+                                              radial_offsets=ON_THE_SPHERE, name=name)
+        trial = errors.copy()
+        subtract_level(trial, extra, region_dirs, progress, f"{name} node errors")
+        largest = float(np.abs(trial).max())
+        if not largest < report.max_error_m:
+            log.info("%s: max |error| %.4f m, not below %.4f m: pass dropped", name, largest, report.max_error_m)
+            break
+        errors[:] = trial
+        levels[-1] = add_levels(levels[-1], extra)
+        above = np.abs(errors) > params.tolerance_m
+        violating = region_dirs[above]
+        report.passes += 1
+        report.coefficients = len(levels[-1])
+        report.marked_cells += int(marked)
+        report.sites += int(site_count)
+        report.blocks_solved += solved
+        report.max_error_m = largest
+        report.rms_error_m = float(np.sqrt(np.mean(errors**2)))
+        report.nodes_above_tolerance = int(above.sum())
+        report.pass_max_error_m.append(largest)
+        report.pass_nodes_above_tolerance.append(report.nodes_above_tolerance)
+        report.seconds += time.perf_counter() - t0
+        log.info("%s: %d coefficients, %d sites, max |error| %.4f m, %d nodes above %.4g m (%.1f s)",
+                 name, len(extra), site_count, largest, report.nodes_above_tolerance, params.tolerance_m,
+                 time.perf_counter() - t0)
+        if not above.any():
+            return violating, True
+    return violating, False
+
+
+def add_levels(first: LevelSpline, second: LevelSpline) -> LevelSpline:
+    """The sum of two splines of the same level (spacing and order) as one: the union of
+    their keys, coefficients added."""
+    if (first.level, first.h, first.order) != (second.level, second.h, second.order):
+        raise ValueError(f"cannot add level {second.level} (h={second.h}, order {second.order}) to level "
+                         f"{first.level} (h={first.h}, order {first.order})")
+    keys = np.union1d(first.keys, second.keys)
+    values = np.zeros(keys.size)
+    values[np.searchsorted(keys, first.keys)] += first.coefficients
+    values[np.searchsorted(keys, second.keys)] += second.coefficients
+    return LevelSpline(first.level, first.h, first.order, keys, values)
 
 
 #: Nodes a step of the node-error stage evaluates (large enough for the compiled path).

@@ -14,6 +14,13 @@ from .parameters import FitParameters
 
 @dataclass
 class LevelReport:
+    """One level of a fit: its coefficients, sites and solves, and the node errors after
+    it. A data-limited finest level may be fitted in more than one pass (the residual its
+    first pass left, :func:`geoidspline.fitting.driver.fit_nodes`): the counts are the
+    passes' totals, the errors those after the last, and ``pass_max_error_m`` /
+    ``pass_nodes_above_tolerance`` the errors after each pass kept (empty when no second
+    pass was tried; one entry when it was tried and dropped, not lowering the largest error)."""
+
     level: int
     h: float
     coefficients: int
@@ -24,6 +31,9 @@ class LevelReport:
     rms_error_m: float
     nodes_above_tolerance: int
     seconds: float
+    passes: int = 1
+    pass_max_error_m: list = field(default_factory=list)
+    pass_nodes_above_tolerance: list = field(default_factory=list)
 
 
 @dataclass

@@ -30,9 +30,8 @@ import numpy as np
 
 from ..bspline.domain import supports_inside
 from ..bspline.keys import unpack_keys
-from ..bspline.level import LevelSpline
 from ..errors import CoordinateError, FitError, StoreCorruptError, StoreError
-from ..fitting.driver import clip_to_extent, fit_nodes
+from ..fitting.driver import add_levels, clip_to_extent, fit_nodes
 from ..fitting.executors import Executor
 from ..fitting.parameters import FitParameters, finest_level
 from ..geodesy.ellipsoids import KM_PER_DEGREE
@@ -379,13 +378,5 @@ def _merge(old: AmbientSpline, delta: AmbientSpline) -> AmbientSpline:
     """old + delta as one set of levels (the union of keys, coefficients added)."""
     by_level = {lv.level: lv for lv in old.levels}
     for lv in delta.levels:
-        if lv.level in by_level:
-            base = by_level[lv.level]
-            keys = np.union1d(base.keys, lv.keys)
-            values = np.zeros(keys.size)
-            values[np.searchsorted(keys, base.keys)] += base.coefficients
-            values[np.searchsorted(keys, lv.keys)] += lv.coefficients
-            by_level[lv.level] = LevelSpline(lv.level, lv.h, lv.order, keys, values)
-        else:
-            by_level[lv.level] = lv
+        by_level[lv.level] = add_levels(by_level[lv.level], lv) if lv.level in by_level else lv
     return AmbientSpline([by_level[k] for k in sorted(by_level)])
