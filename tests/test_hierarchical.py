@@ -387,10 +387,11 @@ def test_local_problems_as_preconditioner_reach_the_whole_problems_fit():
 
 def test_a_step_beyond_the_memory_available_is_refused_before_it_is_built(monkeypatch):
     """The whole problem is held at once: a step that would not fit in the memory the
-    system has left is refused with the numbers and the way out, not killed by the OOM killer."""
+    system has left is refused with the numbers (a FitError), not killed by the OOM killer."""
     import geoidspline.fitting.hierarchical as fitting_hierarchical
     from geoidspline.errors import FitError
 
+    assert issubclass(fitting_hierarchical.BasisTooLarge, FitError)
     rng = np.random.default_rng(4)
     basis = random_hierarchy(plane_domain(10, 10, h0=0.125), 4, 2, rng, per_step=3)
     pts, lvl = leaf_points(basis, 25, rng)
@@ -398,7 +399,7 @@ def test_a_step_beyond_the_memory_available_is_refused_before_it_is_built(monkey
     data = [np.ones(p.shape[0]) for p in points]
     monkeypatch.setattr(fitting_hierarchical, "available_bytes",
                         lambda: 0.5 * basis.coefficient_count * fitting_hierarchical.BYTES_PER_UNKNOWN)
-    with pytest.raises(FitError, match=r"GB are available.*--refinement overlays"):
+    with pytest.raises(fitting_hierarchical.BasisTooLarge, match=r"GB are available; overlays"):
         fitting_hierarchical.solve_basis(basis, points, data, FitParameters(h0=0.125), force_tiles=True)
 
 
