@@ -180,7 +180,7 @@ def choose_parameters(source, tolerance_m: float, region: Region | None = None, 
         values, reasons = _for_model(source, tolerance_m, region, given)
     else:
         values, reasons = _for_grid(source, tolerance_m, region, given)
-        if not everything_given:
+        if not everything_given and given.get("method", "least-squares") == "least-squares":
             values["refinement"], reasons["refinement"] = "hierarchical", HIERARCHICAL_REASON
     for name in given:
         reasons[name] = "given"
