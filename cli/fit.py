@@ -42,7 +42,7 @@ _FIT_ONLY = ("h0", "max_level", "order", "method", "refinement", "sample_spacing
               show_default=True, help="Largest |error| in metres accepted. The options below that are not "
                                       "given are chosen from it for the fewest coefficients (the summary says why).")
 @click.option("--h0", type=float, default=None, help="Level-0 grid spacing on the unit sphere [default: chosen].")
-@click.option("--max-level", type=int, default=None, help="Finest overlay level (h = h0 / 2**level) [default: chosen].")
+@click.option("--max-level", type=int, default=None, help="Finest level (h = h0 / 2**level) [default: chosen].")
 @click.option("--order", type=int, default=None, help="Spline order (4 = cubic, C²) [default: chosen].")
 @click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
               help="Worker processes solving blocks (same coefficients, not stored).")
@@ -62,7 +62,7 @@ _FIT_ONLY = ("h0", "max_level", "order", "method", "refinement", "sample_spacing
 @click.option("--refinement", type=click.Choice(REFINEMENTS), default=None,
               help="How levels are added: hierarchical overlays (each level fitted to the residual, thesis "
                    "5.2) or one linearly independent hierarchical B-spline basis over all levels (5.3; least "
-                   "squares) [default: chosen: overlays].")
+                   "squares) [default: chosen: hierarchical for least squares, overlays after quasi-interpolation].")
 @click.option("--overwrite", is_flag=True, help="Replace an existing store at --store.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @verbosity_options
@@ -132,11 +132,21 @@ def main(ctx, source, store_path, update, blend_width, region, tolerance, h0, ma
         reason = choice.reasons[field]
         label = "given " if reason.startswith("given") else "chosen"
         echo(f"{label}     {field} = {value if value is not None else '-'}: {reason}")
-    echo("level  h          coefficients  max|err| m  nodes>tol  seconds")
-    for r in result.levels:
-        echo(f"{r.level:5d}  {r.h:<9.6g}  {r.coefficients:12,d}  {r.max_error_m:10.4f}  "
-                   f"{r.nodes_above_tolerance:9d}  {r.seconds:7.1f}")
-    state = "reached" if result.converged else "NOT reached (raise --max-level)"
+    if result.basis is not None:  # hierarchical: a row per refinement step, every level refitted
+        echo("step  finest level  h          coefficients  max|err| m  nodes>tol  seconds")
+        for step, r in enumerate(result.levels):
+            echo(f"{step:4d}  {r.level:12d}  {r.h:<9.6g}  {r.coefficients:12,d}  {r.max_error_m:10.4f}  "
+                 f"{r.nodes_above_tolerance:9d}  {r.seconds:7.1f}")
+    else:
+        echo("level  h          coefficients  max|err| m  nodes>tol  seconds")
+        for r in result.levels:
+            echo(f"{r.level:5d}  {r.h:<9.6g}  {r.coefficients:12,d}  {r.max_error_m:10.4f}  "
+                 f"{r.nodes_above_tolerance:9d}  {r.seconds:7.1f}")
+    if result.refinement_fallback:
+        echo(f"fallback   {result.refinement_fallback}")
+    state = ("reached" if result.converged else
+             "NOT reached (the finest level the data determine was reached)" if result.data_limited else
+             "NOT reached (raise --max-level)")
     echo(f"total      {info['coefficients']:,} coefficients; tolerance {params.tolerance_m:.3g} m at the nodes {state}")
     echo(f"nodes      {info['nodes']:,}: max |error| {info['node_max_error_m']:.4f} m, "
                f"RMS {info['node_rms_error_m']:.4f} m")

@@ -42,3 +42,16 @@ def pin_mmap_threshold() -> bool:
             except (OSError, AttributeError):
                 _pinned = None
         return bool(_pinned)
+
+
+def available_bytes() -> float | None:
+    """Memory the system can give this process without swapping (Linux's
+    ``MemAvailable``), in bytes; ``None`` where it is not known."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return float(line.split()[1]) * 1024.0
+    except OSError:
+        pass
+    return None

@@ -44,6 +44,8 @@ def build_store(source, path, region: Region | None = None, params: FitParameter
     params = params or FitParameters()
     progress = as_progress(progress)
     result = fit_source(source, region, params, progress=progress, executor=executor)
+    if result.refinement_fallback:
+        extra = {**(extra or {}), "refinement_fallback": result.refinement_fallback}
     check = check_points(source, region, count=check_count, progress=progress)
     with progress.stage("write", 1, "store") as advance:
         write_store(path, result, source.provenance, check=check, overwrite=overwrite, extra=extra)

@@ -127,7 +127,8 @@ def test_fit_prints_levels_and_coefficients(synthetic_gtx, tmp_path, small_store
     out = tmp_path / "store"
     p = small_store.params
     result = invoke(fit_main, [synthetic_gtx, "--out", out, "--region", *small_store.region.as_tuple(),
-                               "--h0", p.h0, "--max-level", p.max_level, "--tolerance", p.tolerance_m])
+                               "--h0", p.h0, "--max-level", p.max_level, "--tolerance", p.tolerance_m,
+                               "--refinement", "overlays"])
     assert result.exit_code == 0, result.output
     info = geoidspline.open_store(out).info()
     lines = result.stdout.splitlines()
@@ -140,6 +141,24 @@ def test_fit_prints_levels_and_coefficients(synthetic_gtx, tmp_path, small_store
     assert f"total      {info['coefficients']:,} coefficients" in result.stdout
     assert "reached" in result.stdout and "NOT reached" not in result.stdout
     assert "progress" not in result.stderr  # stderr is not a terminal: progress only with -v
+
+
+def test_a_hierarchical_fit_prints_one_row_per_refinement_step(synthetic_gtx, tmp_path, small_store):
+    """The default for a grid: every step refits all levels, so the table has a row per
+    step, its finest level and the whole basis's coefficients, ending at the store's."""
+    out = tmp_path / "store"
+    p = small_store.params
+    result = invoke(fit_main, [synthetic_gtx, "--out", out, "--region", *small_store.region.as_tuple(),
+                               "--h0", p.h0, "--max-level", p.max_level, "--tolerance", p.tolerance_m])
+    assert result.exit_code == 0, result.output
+    assert "refinement = hierarchical" in result.stdout
+    info = geoidspline.open_store(out).info()
+    assert "step  finest level" in result.stdout
+    table = [ln.split() for ln in result.stdout.splitlines() if re.match(r"^\s+\d+\s", ln)]
+    assert [int(row[0]) for row in table] == list(range(len(table)))
+    assert int(table[-1][1]) == max(lv["level"] for lv in info["levels"])
+    assert int(table[-1][3].replace(",", "")) == info["coefficients"]
+    assert "reached" in result.stdout and "NOT reached" not in result.stdout
 
 
 def test_fit_quiet_has_no_progress_bar(synthetic_gtx, tmp_path):

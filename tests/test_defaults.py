@@ -120,6 +120,38 @@ def test_a_grid_is_fitted_as_the_andes_headline_down_to_its_resolution(synthetic
     assert "data spacing" in choice.reasons["max_level"]
 
 
+def test_a_grid_takes_the_hierarchical_basis_a_model_and_an_experts_command_overlays(synthetic_grid):
+    """The hierarchical basis (fewer coefficients, closer between the nodes) is the
+    default for least squares; a model's quasi-interpolated level 0 is an overlay base;
+    an expert's full command keeps the overlays it always had."""
+    andes = choose_parameters(synthetic_grid, 0.5, Region.from_bounds(-60, -90, 15, -30))
+    assert andes.parameters.refinement == "hierarchical"
+    assert andes.reasons["refinement"] == choose.HIERARCHICAL_REASON
+    assert choose_parameters(model(360), 0.002).parameters.refinement == "overlays"
+    everything = {"method": "least-squares", "order": 4, "h0": 0.1, "max_level": 2, "sample_spacing_deg": None}
+    expert = choose_parameters(synthetic_grid, 0.5, Region.from_bounds(-60, -90, 15, -30), given=everything)
+    assert expert.parameters.refinement == "overlays" and "expert" in expert.reasons["refinement"]
+
+
+def test_a_hierarchical_fit_beyond_the_memory_available_is_fitted_by_overlays(synthetic_grid, tmp_path,
+                                                                               monkeypatch):
+    """Rather than no result (the OOM killer), a hierarchical fit whose step would not
+    fit in memory is fitted by overlays, and the store says so."""
+    import geoidspline.fitting.hierarchical as fitting_hierarchical
+    from geoidspline.api import build_store
+    from geoidspline.fitting.parameters import FitParameters
+
+    monkeypatch.setattr(fitting_hierarchical, "WHOLE_MAX_UNKNOWNS", 0)  # every step takes the memory check
+    monkeypatch.setattr(fitting_hierarchical, "available_bytes", lambda: 1.0)
+    params = FitParameters(tolerance_m=0.5, max_level=1, refinement="hierarchical")
+    result, info = build_store(synthetic_grid, tmp_path / "s", Region.from_bounds(10, 20, 30, 40), params)
+    assert result.parameters.refinement == "overlays" and result.levels[0].level == 0
+    assert "GB are available" in result.refinement_fallback
+    fit_section = load_manifest(tmp_path / "s")["fit"]
+    assert fit_section["parameters"]["refinement"] == "overlays"
+    assert fit_section["refinement_fallback"] == result.refinement_fallback
+
+
 # -- the command line ---------------------------------------------------------------
 
 
@@ -167,7 +199,8 @@ def test_a_model_file_fit_chooses_quasi_interpolation(toy24, tmp_path):
 
 
 def test_no_progress_on_a_non_terminal_without_v_and_stage_lines_with_v(synthetic_gtx, tmp_path):
-    args = [synthetic_gtx, "--region", 10, 20, 30, 40, "--tolerance", 0.002, "--h0", 0.2, "--max-level", 1]
+    args = [synthetic_gtx, "--region", 10, 20, 30, 40, "--tolerance", 0.002, "--h0", 0.2, "--max-level", 1,
+            "--refinement", "overlays"]  # the stages of overlays' levels
     quiet = fit([*args, "--store", tmp_path / "a"])
     assert quiet.exit_code in (0, 3), quiet.output
     assert "progress" not in quiet.stderr and "blocks" not in quiet.stderr

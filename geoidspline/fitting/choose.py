@@ -114,15 +114,14 @@ MAX_LEVEL0_COEFFICIENTS = 12_000_000
 NODE_SPACING_DEG = 1.0 / 12.0
 
 
-#: Why overlays stay the default refinement (benchmarks/README.md, "Hierarchical
-#: B-splines (§5.3) against overlays (§5.2)").
-REFINEMENT_REASON = (
-    "overlays (§5.2): the hierarchical basis (§5.3, --refinement hierarchical) needs fewer coefficients "
-    "(Andes, 0.5 m: 21,472 against 28,968, in 1.6 times the time; global 0.1 m: 353,763 against 796,487) "
-    "but a global fit is solved in local blocks, which took 3.5 times as long or more and did not reach "
-    "0.1 m (benchmarks/README.md)"
+#: Why a refinement is chosen (benchmarks/README.md, "Hierarchical B-splines (§5.3)
+#: against overlays (§5.2)").
+HIERARCHICAL_REASON = (
+    "hierarchical (§5.3): fewer coefficients and closer to the grid between its nodes than overlays "
+    "(Andes, 0.5 m: 21,472 against 28,968; global 0.1 m: 280,230 against 796,487, in 0.54 times the time); "
+    "it holds each step's whole problem in memory, and a step that would not fit is fitted by overlays instead"
 )
-
+OVERLAYS_REASON = "overlays (§5.2)"
 
 @dataclass(frozen=True)
 class Choice:
@@ -181,12 +180,14 @@ def choose_parameters(source, tolerance_m: float, region: Region | None = None, 
         values, reasons = _for_model(source, tolerance_m, region, given)
     else:
         values, reasons = _for_grid(source, tolerance_m, region, given)
+        if not everything_given and given.get("method", "least-squares") == "least-squares":
+            values["refinement"], reasons["refinement"] = "hierarchical", HIERARCHICAL_REASON
     for name in given:
         reasons[name] = "given"
     if everything_given:
         reasons["tolerance_m"] = "given (with every other parameter: used at the nodes as it is)"
     values.setdefault("refinement", "overlays")
-    reasons.setdefault("refinement", REFINEMENT_REASON)
+    reasons.setdefault("refinement", OVERLAYS_REASON + (": the expert's command as before" if everything_given else ""))
     values.update(given)
     fields = {f.name for f in dataclasses.fields(FitParameters)}
     return Choice(FitParameters(**{k: v for k, v in values.items() if k in fields}), reasons, tolerance_m)

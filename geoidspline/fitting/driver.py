@@ -17,6 +17,7 @@ The algorithm (Lehmann 2013, §3-4 and §5.2; summarised in METHOD.md):
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -81,10 +82,16 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
         raise FitError(str(exc)) from None
     if not np.any(nodes.in_region):
         raise FitError(f"no data nodes inside the region {region.as_tuple()}")
+    fallback = None
     if hierarchical:
-        from .hierarchical import fit_hierarchical  # §5.3: one basis over all levels
+        from .hierarchical import BasisTooLarge, fit_hierarchical  # §5.3: one basis over all levels
 
-        return fit_hierarchical(nodes, coverage, region, params, progress, force_tiles, executor, start)
+        try:
+            return fit_hierarchical(nodes, coverage, region, params, progress, force_tiles, executor, start)
+        except BasisTooLarge as exc:  # a result in bounded memory rather than none
+            fallback = f"{exc}: fitted by overlays instead"
+            log.warning("%s", fallback)
+            params = dataclasses.replace(params, refinement="overlays")
     region_dirs = nodes.directions[nodes.in_region]
     errors = nodes.values[nodes.in_region].copy()  # residual N - S at region nodes
     levels: list[LevelSpline] = []
@@ -150,7 +157,7 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
         node_count=int(errors.size), node_max_error_m=float(np.abs(errors).max()),
         node_rms_error_m=float(np.sqrt(np.mean(errors**2))), converged=converged,
         seconds=time.perf_counter() - start, node_directions=region_dirs, node_errors=errors,
-        data_limited=data_limited, coverage=coverage,
+        data_limited=data_limited, coverage=coverage, refinement_fallback=fallback,
     )
 
 

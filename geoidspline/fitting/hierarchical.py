@@ -12,7 +12,18 @@ nodes thinned to ``rays_per_cell`` per cell width of the leaf's level, at radii
 least-squares problem over all levels (no residual fitting, no ridge): the normal
 equations of each leaf level (:func:`geoidspline.hierarchy.hierarchical.normal_matrix`),
 a second-difference penalty per level that only decides coefficients the data leave
-free, solved whole (qdldl) or in local blocks (:func:`block_problems`, §5.3.3).
+free. Small problems are solved by one factorisation (qdldl); larger ones by conjugate
+gradients on the same whole problem, preconditioned by local problems on overlapping
+cubes (§5.3.3's local solves, :class:`SchwarzPreconditioner`) and started from the
+previous refinement step's spline (:func:`carry_over`).
+
+Local solves alone (each cube keeping the coefficients whose support lay inside its
+problem, the thesis's recipe) were tried first and left seams: with sites on the sphere
+only, the thin basis has combinations that vanish on the sphere, which the whole
+problem leaves to the penalty but each local problem decides its own way, so margins
+had to reach two levels up (global EGM96 at 0.1 m: 8 times the basis in local unknowns,
+over 30 minutes). As a preconditioner the local problems need only a narrow overlap,
+and the iteration makes the pieces one spline (benchmarks/README.md).
 
 The result is a normal :class:`geoidspline.fitting.result.FitResult`: each active B-spline of
 level ℓ is a coefficient of level ℓ, and the sum of the levels is the spline, so stores
@@ -22,17 +33,16 @@ of either method are written, queried, updated and exported the same way.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import logging
 import math
 import time
-from dataclasses import dataclass
 
 import numpy as np
 import qdldl
 import scipy.sparse as sp
 
 from ..bspline.keys import covered_cell_keys, cube_offsets, isin_sorted, pack_keys, unpack_keys
+from .._memory import available_bytes
 from ..errors import FitError
 from ..hierarchy.ambient import AmbientSpline
 from ..hierarchy.hierarchical import Domain, HierarchicalBasis, HierarchicalRefinement, normal_matrix
@@ -45,7 +55,8 @@ from .result import FitResult, LevelReport
 from .sites import DataNodes, sites_for_level
 
 
-__all__ = ["fit_hierarchical", "leaf_sites", "solve_basis", "block_problems", "HierarchicalProblem"]
+__all__ = ["fit_hierarchical", "leaf_sites", "solve_basis", "schwarz_blocks", "SchwarzPreconditioner",
+           "conjugate_gradients", "carry_over", "BasisTooLarge"]
 
 log = logging.getLogger(__name__)
 
@@ -75,37 +86,40 @@ SHELL = 1.0
 #: Measured in benchmarks/README.md.
 RADIAL_OFFSETS = (0.0,)
 
-#: Up to this many coefficients the whole basis is one problem (one sparse LDLᵀ
-#: factorisation); above, local problems per block (:func:`block_problems`). The
-#: factorisation grows about as n^1.7 (global EGM96 at 0.1 m: 15,082 unknowns 14 s,
-#: 60,298 unknowns 151 s), the blocks about linearly (238,165 unknowns: 131 blocks of
-#: 983,795 unknowns in all, 388 s of solves, 197 s on two workers), so blocks would be
-#: faster from about 40,000 on; but blocks leave seams between the nodes (global 0.1 m:
-#: 1.37 m at cell centres on the plane x = 0.4 between two blocks, nodes within 0.114 m),
-#: so the whole problem is kept as long as it is affordable.
-WHOLE_MAX_UNKNOWNS = 100_000
+#: Up to this many coefficients the whole basis is one problem solved by one sparse
+#: LDLᵀ factorisation (qdldl); above, by conjugate gradients preconditioned by local
+#: solves (:func:`solve_basis`). The factorisation grows about as n^1.7 (global EGM96 at
+#: 0.1 m: 15,082 unknowns 14 s, 60,298 unknowns 151 s); measured in benchmarks/README.md.
+WHOLE_MAX_UNKNOWNS = 20_000
 
-#: The margin of a local problem is one support of the level this many above the
-#: coarsest level its block owns a B-spline of. On a leaf of level ℓ the B-splines of
-#: level ℓ - 1 are non-zero too, and theirs couple to level ℓ - 2: with one level up,
-#: blocks needed a ridge of 1e-4 to agree and then refined more than the whole problem
-#: (55..72N 30..5W at 0.1 m: 5,594 coefficients and 0.144 m at cell centres against
-#: 3,729 and 0.078 m); with two levels up and a ridge of 1e-8 they give the whole
-#: problem's fit (3,729 and 0.078 m; the Andes part at 0.5 m: 5,323 and 0.319 m both).
-MARGIN_LEVELS_UP = 2
+#: Side (unit-sphere units) of the cubes whose local problems precondition conjugate
+#: gradients, and how far each problem reaches beyond its cube (its B-splines' supports
+#: already reach beyond it). Andes at 0.1 m, last step, 35,000 unknowns: cubes of 0.1
+#: with no extra reach 97,000 local unknowns, 31 iterations, 650 MB; reaching 0.0125
+#: further 158,000, 15 iterations, 890 MB, no faster; cubes of 0.05 slower either way.
+SCHWARZ_BLOCK = 0.1
+SCHWARZ_OVERLAP = 0.0
+
+#: Conjugate gradients stop when the fitted values at the sites are within this
+#: fraction of the tolerance (RMS over the sites) of the whole problem's solution.
+SOLVE_FRACTION = 0.01
+MAX_ITERATIONS = 1_000
+
+#: Peak memory of a fit per unknown of its largest step (bytes): the whole problem
+#: (about 300 non-zeros a row), the local factorisations and the normal equations' table
+#: (global EGM96 at 0.1 m: 5.93 GB peak resident for 280,230 unknowns, 21,200 bytes each).
+#: A step needing more than the memory available is not built (:class:`BasisTooLarge`).
+BYTES_PER_UNKNOWN = 22_000
 
 #: Ridge relative to the mean diagonal of AᵀA: keeps B-splines no site sees decided.
 RIDGE = 1e-10
 
-#: The ridge of a local problem. With sites on the sphere only, the thin basis has
-#: combinations that vanish on the sphere (a null space the penalty decides); a block
-#: whose margin is too narrow decides them its own way, and the coefficients kept from
-#: different blocks then no longer cancel on the sphere (Andes, level 0 alone, margin
-#: one level-0 support: 99 m at the nodes against 15 m). With the margin of
-#: :data:`MARGIN_LEVELS_UP` a tiny ridge suffices (1e-4 biased the fit: see above).
-BLOCK_RIDGE = 1e-8
-
 _EMPTY = np.empty(0, dtype=np.int64)
+
+
+class BasisTooLarge(FitError):
+    """A refinement step's whole problem would need more memory than the system has left
+    (:func:`geoidspline.fitting.driver.fit_nodes` then fits by overlays instead)."""
 
 
 def leaf_sites(nodes: DataNodes, basis: HierarchicalBasis, params: FitParameters):
@@ -144,51 +158,20 @@ def _penalty(basis: HierarchicalBasis, diagonal, weight):
     return sp.block_diag(blocks, format="csc") if blocks else sp.csc_matrix((0, 0))
 
 
-def _solve(basis: HierarchicalBasis, points, values, regularization, ridge=None):
+def _system(basis: HierarchicalBasis, points, values, regularization):
+    """The whole problem's matrix (AᵀA + penalty + ridge, full symmetric CSR) and Aᵀv."""
     matrix, rhs = normal_matrix(basis, [(p, v) for p, v in zip(points, values)])
     diagonal = matrix.diagonal()
     system = matrix + _penalty(basis, diagonal, regularization)
     scale = float(diagonal[diagonal > 0].mean()) if np.any(diagonal > 0) else 1.0
-    system = system + sp.identity(basis.coefficient_count, format="csc") * ((RIDGE if ridge is None else ridge) * scale)
+    system = system + sp.identity(basis.coefficient_count, format="csc") * (RIDGE * scale)
+    return system.tocsr(), rhs
+
+
+def _solve(basis: HierarchicalBasis, points, values, regularization):
+    """The whole problem by one sparse LDLᵀ factorisation."""
+    system, rhs = _system(basis, points, values, regularization)
     return qdldl.Solver(sp.triu(system, format="csc")).solve(rhs)
-
-
-@dataclass
-class HierarchicalProblem:
-    """One block's local problem over the hierarchical basis: every active B-spline (of
-    any level) whose support meets the block's box, the sites and leaves in the box.
-    The B-splines the block keeps (``own``) have their whole support in the box."""
-
-    block: tuple
-    order: int
-    h0: float
-    regularization: float
-    active: tuple  # per level: sorted keys of the local unknowns
-    leaves: tuple  # per level: sorted keys of the leaves meeting the box
-    own: tuple  # per level: bool mask over active[ℓ]
-    points: tuple  # per level: (M, 3) sites in the box
-    values: tuple  # per level: (M,) values at them
-
-    def digest(self) -> bytes:
-        """A hash of everything the solution depends on: equal digests, equal solutions
-        (a refinement step leaves most blocks as they were)."""
-        h = hashlib.blake2b(repr((self.block, self.order, self.h0, self.regularization)).encode(), digest_size=20)
-        for name, part in zip("alopv", (self.active, self.leaves, self.own, self.points, self.values)):
-            for level, array in enumerate(part):
-                if array.size:  # a level added elsewhere (empty here) changes nothing here
-                    h.update(f"|{name}{level}:".encode())
-                    h.update(np.ascontiguousarray(array).tobytes())
-        return h.digest()
-
-    def solve(self):
-        """(own keys per level, own coefficients per level, solve seconds)."""
-        start = time.perf_counter()
-        basis = HierarchicalBasis(Domain(_EMPTY, self.h0), self.order, self.active, self.leaves)
-        coefs = _solve(basis, self.points, self.values, self.regularization, BLOCK_RIDGE)
-        at = basis.offsets()
-        keys = tuple(a[o] for a, o in zip(self.active, self.own))
-        values = tuple(coefs[at[lv]:at[lv + 1]][o] for lv, o in enumerate(self.own))
-        return keys, values, time.perf_counter() - start
 
 
 def _binned(positions, size):
@@ -205,125 +188,52 @@ def _gather(sorted_bins, order, wanted):
     return np.sort(np.concatenate(parts)) if parts else np.empty(0, np.int64)
 
 
-def block_keys(basis: HierarchicalBasis, size: float) -> np.ndarray:
-    """Sorted keys of the blocks (cubes of side ``size``) holding an active support centre."""
-    n = basis.order
-    return np.unique(np.concatenate([
-        pack_keys(np.floor((unpack_keys(keys) + n / 2.0) * basis.spacing(lv) / size).astype(np.int64))
-        for lv, keys in enumerate(basis.active)]))
-
-
-def block_problems(basis: HierarchicalBasis, points, values, params: FitParameters):
-    """Local problems (thesis §5.3.3): blocks of ``tile_size`` (the store's tiles) own
-    the B-splines whose support centre they hold; a block's problem carries every active
-    B-spline whose support meets the block grown by a margin and the sites there.
-
-    The margin is one support, ``order * h``, of the coarsest level the block owns a
-    B-spline of: the support of every B-spline a block keeps lies in its problem (the
-    thesis's condition; half that margin would do) with half a support to spare, which
-    keeps the truncation of the least-squares coupling small (with half the margin,
-    blocks differed from the whole problem by 0.1 m at nodes of the Andes at 0.5 m
-    tolerance). Requirement 5.3 keeps level ℓ - 2 and coarser away from level-ℓ
-    supports, so where a region is refined the margin shrinks with its levels."""
-    n = basis.order
-    size = params.tile_size
-    levels = basis.levels
-    spans, fbins, sbins, cbins = [], [], [], []
-    for lv in range(levels):
-        h = basis.spacing(lv)
-        lo = unpack_keys(basis.active[lv]) * h
-        spans.append((lo, lo + n * h))
-        fbins.append(_binned(lo + n * h / 2.0, size))
-        sbins.append(_binned(points[lv], size) if points[lv].shape[0] else (np.empty(0, np.int64),) * 2)
-        cells = unpack_keys(basis.leaves[lv]) * h
-        cbins.append((cells, _binned(cells + h / 2.0, size)))
-    blocks = block_keys(basis, size)
-    coarsest = np.full(blocks.size, levels - 1)
-    for lv in range(levels - 1, -1, -1):
-        coarsest[isin_sorted(blocks, fbins[lv][0])] = lv
-    reach = int(math.ceil(1.5 * n * params.h0 / size))
-    f_near = cube_offsets(-reach, reach)
-    reach = int(math.ceil(n * params.h0 / size))
-    s_near = cube_offsets(-reach, reach)
-    for key, top in zip(blocks, coarsest):
-        block = unpack_keys(np.array([key]))[0]
-        margin = n * basis.spacing(max(int(top) - MARGIN_LEVELS_UP, 0))
-        box_lo = block * size - margin
-        box_hi = (block + 1) * size + margin
-        active, leaves, own, pts, vals = [], [], [], [], []
-        for lv in range(levels):
-            h = basis.spacing(lv)
-            sorted_bins, order = fbins[lv]
-            cand = _gather(sorted_bins, order, pack_keys(block[None] + f_near))
-            lo, hi = spans[lv]
-            cand = cand[np.all((lo[cand] < box_hi) & (hi[cand] > box_lo), axis=1)]
-            active.append(basis.active[lv][cand])
-            centre = lo[cand] + n * h / 2.0
-            own.append(np.all(np.floor(centre / size).astype(np.int64) == block, axis=1))
-            sorted_bins, order = sbins[lv]
-            chosen = _gather(sorted_bins, order, pack_keys(block[None] + s_near))
-            if chosen.size:
-                p = points[lv][chosen]
-                chosen = chosen[np.all((p >= box_lo) & (p < box_hi), axis=1)]
-            pts.append(points[lv][chosen])
-            vals.append(values[lv][chosen])
-            cells, (sorted_bins, order) = cbins[lv]
-            near = _gather(sorted_bins, order, pack_keys(block[None] + f_near))
-            near = near[np.all((cells[near] < box_hi) & (cells[near] + h > box_lo), axis=1)]
-            leaves.append(basis.leaves[lv][near])
-        yield HierarchicalProblem(
-            block=tuple(int(v) for v in block), order=n, h0=params.h0, regularization=params.regularization,
-            active=tuple(active), leaves=tuple(leaves), own=tuple(own), points=tuple(pts), values=tuple(vals),
-        )
-
-
 def solve_basis(basis: HierarchicalBasis, points, values, params: FitParameters, force_tiles=False,
-                executor: Executor | None = None, progress=None, name="hierarchical fit", cache=None):
+                progress=None, name="hierarchical fit", start=None):
     """Coefficients (all levels, in :meth:`HierarchicalBasis.offsets` order) of the
     least-squares fit of ``values`` at ``points`` (one array each per level) over the
-    whole basis: one problem up to :data:`WHOLE_MAX_UNKNOWNS` unknowns, else local
-    problems per block (:func:`block_problems`) solved by ``executor``; and the number
-    of problems solved. ``progress`` (:mod:`geoidspline.fitting.progress`) is told of
-    each problem solved or reused, as the stage ``name``. ``cache`` (a dict kept across
-    refinement steps) maps a block's :meth:`HierarchicalProblem.digest` to its result:
-    a block whose problem has not changed is not solved again."""
+    whole basis, and the number of local problems factorised.
+
+    Up to :data:`WHOLE_MAX_UNKNOWNS` unknowns: one sparse factorisation. Above (or with
+    ``force_tiles``): the same whole problem by conjugate gradients preconditioned by
+    overlapping local solves (:class:`SchwarzPreconditioner`, §5.3.3's local problems
+    used as a preconditioner rather than as the answer), from ``start`` (the previous
+    refinement step's spline, :func:`carry_over`) until the fitted values at the sites
+    are within :data:`SOLVE_FRACTION` of the tolerance (RMS) of the whole problem's:
+    one spline with no seams between local problems. ``progress`` is told of each
+    local factorisation as the stage ``name``.
+    """
     progress = as_progress(progress)
     if basis.coefficient_count <= WHOLE_MAX_UNKNOWNS and not force_tiles:
         with progress.stage(name, 1, "block") as advance:
             coefs = _solve(basis, points, values, params.regularization)
             advance(1)
         return coefs, 1
-    cache = {} if cache is None else cache
-    reused, digests, sizes = [], [], []
-
-    def changed(problems, advance):
-        for problem in problems:
-            digest = problem.digest()
-            if digest in cache:
-                reused.append((digest, cache[digest]))
-                advance(1)
-            else:
-                digests.append(digest)
-                sizes.append(int(sum(a.size for a in problem.active)))
-                yield problem
-
-    with progress.stage(name, int(block_keys(basis, params.tile_size).size), "block") as advance:
-        solved = (executor or Executor()).solve(changed(block_problems(basis, points, values, params), advance),
-                                                advance)
-    cache.clear()  # only this step's blocks can recur in the next
-    cache.update(reused)
-    cache.update(zip(digests, solved))
-    at = basis.offsets()
-    coefs = np.full(basis.coefficient_count, np.nan)
-    for keys, values_, _ in solved + [r for _, r in reused]:
-        for lv, (k, v) in enumerate(zip(keys, values_)):
-            coefs[at[lv] + np.searchsorted(basis.active[lv], k)] = v
-    if np.isnan(coefs).any():
-        raise FitError(f"blocks returned {int((~np.isnan(coefs)).sum())} of {coefs.size} coefficients")
-    log.info("%s: %d blocks solved (%d unknowns in all, at most %d in one; %.0f s of solves), %d unchanged since "
-             "the last step", name, len(solved), sum(sizes), max(sizes, default=0), sum(r[2] for r in solved),
-             len(reused))
-    return coefs, len(solved)
+    need = basis.coefficient_count * BYTES_PER_UNKNOWN
+    available = available_bytes()
+    if available is not None and need > available:
+        raise BasisTooLarge(f"{name}: the hierarchical basis has grown to {basis.coefficient_count:,} unknowns, "
+                            f"which need about {need / 1e9:.3g} GB at once; {available / 1e9:.3g} GB are available; "
+                            "overlays are fitted level by level in local blocks")
+    t0 = time.perf_counter()
+    system, rhs = _system(basis, points, values, params.regularization)
+    t1 = time.perf_counter()
+    index_sets = schwarz_blocks(basis, SCHWARZ_BLOCK, SCHWARZ_OVERLAP)
+    with progress.stage(name, len(index_sets), "block") as advance:
+        precondition = SchwarzPreconditioner(system, index_sets, advance)
+    t2 = time.perf_counter()
+    sites = int(sum(p.shape[0] for p in points))
+    x0 = np.zeros(basis.coefficient_count) if start is None else start
+    target = SOLVE_FRACTION * params.tolerance_m * math.sqrt(max(sites, 1))
+    coefs, iterations, reached = conjugate_gradients(system, rhs, precondition, x0, target, MAX_ITERATIONS)
+    if reached > target:
+        raise FitError(f"{name}: conjugate gradients did not converge in {iterations} iterations "
+                       f"(RMS change at the sites {reached / math.sqrt(max(sites, 1)):.3g} m)")
+    log.info("%s: assembled in %.1f s; %d local problems (%d unknowns in all, at most %d in one) factorised in "
+             "%.1f s; %d iterations of conjugate gradients in %.1f s", name, t1 - t0, len(index_sets),
+             sum(i.size for i in index_sets), max(i.size for i in index_sets), t2 - t1, iterations,
+             time.perf_counter() - t2)
+    return coefs, len(index_sets)
 
 
 def _finest_level(params: FitParameters, nodes: DataNodes) -> int:
@@ -356,15 +266,17 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
     if basis.coefficient_count == 0:
         raise FitError(f"no cells of spacing {params.h0} meet the sphere over the region {region.as_tuple()}")
     reports = []
-    cache = {}  # block results by problem digest, across steps
+    previous = None  # (basis, coefficients) of the last step: conjugate gradients start there
     converged = data_limited = False
     while True:
         t0 = time.perf_counter()
         step = len(reports)
         sites = leaf_sites(nodes, basis, params)
         points, values = [p for p, _ in sites], [nodes.values[i] for _, i in sites]
-        coefs, solved = solve_basis(basis, points, values, params, force_tiles, executor, progress,
-                                    f"hierarchical step {step} ({basis.coefficient_count:,} unknowns)", cache)
+        x0 = carry_over(*previous, basis) if previous is not None else None
+        coefs, solved = solve_basis(basis, points, values, params, force_tiles, progress,
+                                    f"hierarchical step {step} ({basis.coefficient_count:,} unknowns)", x0)
+        previous = (basis, coefs)
         if on_step is not None:
             on_step(basis, points, values, coefs)
         spline = AmbientSpline(basis.level_splines(coefs))
@@ -397,3 +309,98 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
         seconds=time.perf_counter() - start, node_directions=region_dirs, node_errors=errors,
         data_limited=data_limited, coverage=coverage, basis=basis,
     )
+
+
+# ---------------------------------------------------------------------------------
+# The whole problem by conjugate gradients, preconditioned by overlapping local solves
+
+
+def schwarz_blocks(basis: HierarchicalBasis, size: float, overlap: float):
+    """Index sets (into the vector of all levels) of overlapping subdomains: per cube of
+    side ``size`` holding a support centre, every active B-spline whose support meets the
+    cube grown by ``overlap`` (unit-sphere units)."""
+    n = basis.order
+    lo = np.concatenate([unpack_keys(k) * basis.spacing(lv) for lv, k in enumerate(basis.active)])
+    width = np.concatenate([np.full(k.size, n * basis.spacing(lv)) for lv, k in enumerate(basis.active)])
+    hi = lo + width[:, None]
+    sorted_bins, order = _binned(lo + width[:, None] / 2.0, size)
+    blocks = np.unique(sorted_bins)
+    reach = int(math.ceil((n * basis.spacing(0) / 2.0 + overlap) / size))
+    near = cube_offsets(-reach, reach)
+    out = []
+    for key in blocks:
+        block = unpack_keys(np.array([key]))[0]
+        box_lo, box_hi = block * size - overlap, (block + 1) * size + overlap
+        cand = _gather(sorted_bins, order, pack_keys(block[None] + near))
+        out.append(cand[np.all((lo[cand] < box_hi) & (hi[cand] > box_lo), axis=1)])
+    return out
+
+
+class SchwarzPreconditioner:
+    """Additive Schwarz: ``z = Σ_b R_bᵀ S_bb⁻¹ R_b r`` over overlapping subdomains, each
+    principal block of the whole matrix factorised once (qdldl; dense LAPACK Cholesky of
+    the nearly full blocks was slower: benchmarks/README.md)."""
+
+    def __init__(self, system, index_sets, advance=None):
+        system = system.tocsr()  # no copy when it is CSR already
+        self.index_sets = index_sets
+        self.solvers = []
+        for idx in index_sets:
+            local = system[idx][:, idx]
+            self.solvers.append(qdldl.Solver(sp.triu(local, format="csc")))
+            if advance is not None:
+                advance(1)
+
+    def __call__(self, r):
+        z = np.zeros_like(r)
+        for idx, solver in zip(self.index_sets, self.solvers):
+            z[idx] += solver.solve(r[idx])
+        return z
+
+
+def conjugate_gradients(system, rhs, precondition, x0, tolerance, max_iterations=500):
+    """Preconditioned CG from ``x0`` until ``sqrt(rᵀ M⁻¹ r) <= tolerance`` (≈ the energy
+    norm of the error, i.e. the size of the error of the fitted values at the sites).
+    Returns (x, iterations, final sqrt(rᵀ M⁻¹ r))."""
+    system = system.tocsr()
+    x = x0.copy()
+    r = rhs - system @ x
+    z = precondition(r)
+    p = z.copy()
+    rz = float(r @ z)
+    it = 0
+    while math.sqrt(max(rz, 0.0)) > tolerance and it < max_iterations:
+        q = system @ p
+        alpha = rz / float(p @ q)
+        x += alpha * p
+        r -= alpha * q
+        z = precondition(r)
+        rz_new = float(r @ z)
+        p = z + (rz_new / rz) * p
+        rz = rz_new
+        it += 1
+    return x, it, math.sqrt(max(rz, 0.0))
+
+
+def carry_over(old: HierarchicalBasis, old_coefficients, new: HierarchicalBasis) -> np.ndarray:
+    """A start for the new basis's coefficients: the old spline's coefficients where the
+    same B-spline is still active, and a refined B-spline's coefficient passed to those of
+    its children that are active (the refinement relation); zero elsewhere."""
+    from ..bspline.basis import children
+
+    at_old, at_new = old.offsets(), new.offsets()
+    x = np.zeros(new.coefficient_count)
+    for lv in range(old.levels):
+        keys = old.active[lv]
+        coefs = np.asarray(old_coefficients[at_old[lv]:at_old[lv + 1]])
+        if lv < new.levels and new.active[lv].size:
+            kept = isin_sorted(keys, new.active[lv])
+            pos = np.searchsorted(new.active[lv], keys[kept])
+            x[at_new[lv] + pos] += coefs[kept]
+            keys, coefs = keys[~kept], coefs[~kept]
+        if keys.size and lv + 1 < new.levels and new.active[lv + 1].size:
+            child, parent, weight = children(keys, old.order)
+            hit = isin_sorted(child, new.active[lv + 1])
+            pos = np.searchsorted(new.active[lv + 1], child[hit])
+            np.add.at(x, at_new[lv + 1] + pos, coefs[parent[hit]] * weight[hit])
+    return x

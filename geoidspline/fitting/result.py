@@ -57,3 +57,5 @@ class FitResult:
     # refinement "hierarchical": the basis the spline is written in
     # (:class:`geoidspline.hierarchy.hierarchical.HierarchicalBasis`), for inspection
     basis: object = None
+    # why a hierarchical fit was fitted by overlays instead (its basis outgrew the memory)
+    refinement_fallback: str | None = None
