@@ -231,7 +231,7 @@ def _patch_coefficients(basis, lv, residual, ridge):
 
 #: Ridge added to a patch's normal equations scaled to a unit diagonal (0: the exact
 #: functional of Lemma 5.5).
-PATCH_RIDGE = 0.0
+PATCH_RIDGE = 1e-4
 
 #: Reciprocal condition below which a patch's normal equations are not trusted (their
 #: rounding error, eps / rcond, would show in the coefficients): its least squares is
