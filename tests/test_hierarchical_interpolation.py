@@ -18,14 +18,14 @@ import pytest
 from hypothesis import HealthCheck, Phase, given, settings, strategies as st
 from test_hierarchical import PLANE_Z, box_domain, leaf_points, plane_domain, random_hierarchy
 
+from geoidspline.bspline.basis import bspline_weights
+from geoidspline.bspline.keys import unpack_keys
 from geoidspline.fitting.hierarchical_interpolation import (
     PATCH_MARGIN_ORDERS, PATCH_ORDERS, dual_functional, functional_cells, functional_norms, quasi_interpolate,
 )
 from geoidspline.fitting.parameters import FitParameters
 from geoidspline.hierarchy.ambient import AmbientSpline
 from geoidspline.hierarchy.hierarchical import Domain, initial_basis, violations_53
-from geoidspline.bspline.basis import bspline_weights
-from geoidspline.bspline.keys import unpack_keys
 from geoidspline.sphere.region import Region
 
 THEOREM = settings(max_examples=8, deadline=None, derandomize=True, phases=(Phase.explicit, Phase.generate),

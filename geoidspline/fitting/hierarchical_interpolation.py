@@ -5,17 +5,23 @@ Over the linearly independent hierarchical basis (:mod:`geoidspline.hierarchy.hi
     Q^L G = Σ_ℓ Σ_{k ∈ B^ℓ} λ^ℓ_k (G − Q^{ℓ−1} G) B^ℓ_k,        Q^{−1} G = 0,
 
 level by level, coarse to fine: the coefficients of the active B-splines of level ℓ
-are a dual functional of order n applied to the residual of the levels before, no
-linear solve. Here λ^ℓ_k is the local interpolant on one leaf cell ``c ∈ ω^ℓ ∩ σ^ℓ_k``:
-on a cell the n³ B-splines of its level that are non-zero there are a basis of the
-polynomials of coordinate order n, so a function sampled at n³ points of the cell
-(a tensor grid, :func:`dual_functional`) has one such polynomial through the samples and
-λ^ℓ_k takes its coefficient of B^ℓ_k. Per axis that is the inverse of an n x n
-collocation matrix, the same for every cell: a coefficient is a fixed weighted sum of
-n³ samples. It is dual to the B-splines on the cell (λ_k B_j = δ_kj for the B-splines
-non-zero there), so it reproduces Π_n, and it only reads the cell. The cell is the
-leaf of ℓ closest to the centre of σ^ℓ_k (:func:`functional_cells`), where the weights
-are smallest (the functional's norm: :func:`functional_norms`).
+are local linear functionals of the residual of the levels before, reading only leaves
+of level ℓ (Definition 5.4); no linear solve beyond a patch. Two functionals:
+
+- ``"cell"``, the thesis's: λ^ℓ_k interpolates on one leaf cell ``c ∈ ω^ℓ ∩ σ^ℓ_k``
+  (on a cell the n³ B-splines non-zero there are a basis of the polynomials of
+  coordinate order n): n³ samples of the cell, the inverse of the n x n collocation
+  matrix per axis (:func:`dual_functional`), the leaf nearest the centre of σ^ℓ_k
+  (:func:`functional_cells`). Exact, but its norm is 36.7 per axis for cubics at the
+  central offsets and 146 at the ends (:func:`functional_norms`): the part of G a cubic
+  misses on a cell comes back multiplied by up to 49,000-3,000,000, thousands of metres
+  on EGM96 at level 0.
+- ``"patch"`` (default, :data:`FUNCTIONAL`): least squares on the leaves of level ℓ in a
+  patch of cells (:func:`_patch_coefficients`): every coefficient a patch owns is a
+  fixed linear functional of the residual on leaves of its level in the patch, dual to
+  the B-splines there; with ``ridge=0`` it satisfies Lemma 5.5 exactly, the fit adds a
+  small ridge (:data:`PATCH_RIDGE`) against the near-dependence of the B-splines that
+  only reach into a corner of the shell of leaves.
 
 What Lemma 5.5 needs of the cell, and the basis: on a leaf of level ℓ the B-splines
 of levels finer than ℓ vanish and those of ℓ − 2 and coarser too (requirement 5.3),
@@ -133,8 +139,8 @@ FUNCTIONALS = ("cell", "patch")
 #: in a patch of cells (:func:`_patch_coefficients`). ``"cell"``, interpolation on one
 #: leaf cell (the thesis's choice of an evaluation point in one active cell), has
 #: norms of 36.7 per axis for cubics even at the central offsets (49,000 in 3-D,
-#: :func:`functional_norms`), so the part of G a cubic misses on a cell comes back
-#: multiplied by that: measured in benchmarks/README.md.
+#: :func:`functional_norms`): on EGM96 over the Andes level 0 alone misses by
+#: 14,138 m against the patch's 16.6 m (benchmarks/README.md).
 FUNCTIONAL = "patch"
 
 #: Width (cells of the level, per axis) of the patches of the ``"patch"`` functional, in
@@ -230,14 +236,19 @@ def _patch_coefficients(basis, lv, residual, ridge):
 
 
 #: Ridge added to a patch's normal equations scaled to a unit diagonal (0: the exact
-#: functional of Lemma 5.5).
+#: functional of Lemma 5.5). On the shell of leaves the Ω basis is nearly dependent
+#: (patches' reciprocal condition 1e-11..1e-7): without a ridge the coefficients of the
+#: B-splines that reach only into a corner of the shell are large and, non-zero on the
+#: leaves of the next level, throw it off (EGM96, 25° x 20° of the Andes at 0.5 m:
+#: 1e-6 let the node max jump from 3.3 to 15.3 m in one step and ended at 1.17 m with
+#: 50,904 coefficients; 1e-4: 1.01 m with 44,875; benchmarks/README.md).
 PATCH_RIDGE = 1e-4
 
 #: Reciprocal condition below which a patch's normal equations are not trusted (their
 #: rounding error, eps / rcond, would show in the coefficients): its least squares is
-#: solved from the design matrix instead (SVD), with the square root of their condition. Only patches of very few cells need it (B-splines of order 5-6 on
-#: one or two cells: the restriction to a cell is the inverse of the one-cell
-#: functional, norms 10^3-10^4 per axis).
+#: solved from the design matrix instead (SVD), with the square root of their
+#: condition. With the ridge of a fit none needs it; the exact functional (``ridge=0``)
+#: does on the shell of leaves and on the few cells of the tests' small domains.
 PATCH_RCOND = 1e-9
 
 
