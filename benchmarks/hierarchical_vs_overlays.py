@@ -5,7 +5,9 @@
         [--condition-region S W N E] [--out-dir DIR]
 
 Part 1, fits: each scenario runs ``geoid-fit ... --refinement overlays`` and then
-``--refinement hierarchical`` as subprocesses (``python -m geoidspline fit ... --json
+``--refinement hierarchical`` (a ``-model`` scenario, EGM96 from its coefficients in
+../shared/data, each with ``--method least-squares`` and ``--method interpolation``:
+four fits) as subprocesses (``python -m geoidspline fit ... --json
 -q``; wall time by ``time.perf_counter()`` around each, interpreter start included) and
 records the coefficients, the node max |error| the store reports, whether the tolerance
 was reached and the fit's own seconds. The two fits of a scenario run back to back so
@@ -55,18 +57,31 @@ REPO = HERE.parent
 RESULTS = HERE / "results" / "hierarchical.jsonl"
 DEFAULT_OUT = HERE / "out"
 
+SHARED = REPO.parent / "shared" / "data" / "egm96"
+#: EGM96 from its coefficients (F477 + CORRCOEF), every parameter fixed so that the four
+#: fits of a model scenario share h0, order, levels and the 5' node lattice.
+MODEL = [str(SHARED / "egm96_to360.ascii.gz"), "--correction", str(SHARED / "CORRCOEF.gz"),
+         "--h0", "0.1", "--order", "4", "--max-level", "6", "--sample-spacing", str(1 / 12)]
+#: The fits of a model scenario: (refinement, method); a grid scenario has only the first two.
+MODEL_FITS = (("overlays", "least-squares"), ("hierarchical", "least-squares"), ("overlays", "interpolation"),
+              ("hierarchical", "interpolation"))
+
 SCENARIOS = {
     "andes": ["egm96-15", "--region", "-60", "-90", "15", "-30", "--tolerance", "0.5"],
+    "andes-model": [*MODEL, "--region", "-60", "-90", "15", "-30", "--tolerance", "0.5"],
+    "andes-part-model": [*MODEL, "--region", "-35", "-80", "-10", "-60", "--tolerance", "0.5"],
     "andes-part": ["egm96-15", "--region", "-35", "-80", "-10", "-60", "--tolerance", "0.5"],
     "global-0.1": ["egm96-15", "--tolerance", "0.1"],
 }
 TARGETS = {"andes": {"coefficients": 22_000}, "global-0.1": {"coefficients": 600_000}}
 
 
-def run_fit(scenario, refinement, out_dir, workers):
-    out = out_dir / f"{scenario}-{refinement}"
+def run_fit(scenario, refinement, out_dir, workers, method=None):
+    out = out_dir / f"{scenario}-{refinement}" if method is None else out_dir / f"{scenario}-{refinement}-{method}"
     cmd = [sys.executable, "-m", "geoidspline", "fit", *SCENARIOS[scenario], "--refinement", refinement,
            "--workers", str(workers), "--store", str(out), "--overwrite", "--json", "-q"]
+    if method is not None:
+        cmd += ["--method", method]
     load = os.getloadavg()
     start = time.perf_counter()
     run = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO)
@@ -75,7 +90,7 @@ def run_fit(scenario, refinement, out_dir, workers):
         raise SystemExit(f"{' '.join(cmd)} failed:\n{run.stderr}")
     info = json.loads(run.stdout)
     return {
-        "scenario": scenario, "refinement": refinement, "command": " ".join(cmd[1:]),
+        "scenario": scenario, "refinement": refinement, "method": method, "command": " ".join(cmd[1:]),
         "coefficients": info["coefficients"], "node_max_error_m": info["node_max_error_m"],
         "node_rms_error_m": info["node_rms_error_m"], "check_max_error_m": info.get("max_error_m"),
         "converged": run.returncode == 0, "wall_seconds": round(wall, 1),
@@ -215,17 +230,21 @@ def main():
     args.out_dir.mkdir(parents=True, exist_ok=True)
     row = {"date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
            "commit": git_commit(REPO), "machine": machine_info(), "fits": []}
-    print("| scenario | refinement | coefficients | node max \\|error\\| | reached | wall s | per level |")
-    print("|---|---|---:|---:|---|---:|---|")
+    print("| scenario | refinement | method | coefficients | node max \\|error\\| | check max | reached | wall s "
+          "| per level |")
+    print("|---|---|---|---:|---:|---:|---|---:|---|")
     for scenario in args.scenarios:
-        for refinement in ("overlays", "hierarchical"):
-            fit = run_fit(scenario, refinement, args.out_dir, args.workers)
+        fits = MODEL_FITS if scenario.endswith("-model") else (("overlays", None), ("hierarchical", None))
+        for refinement, method in fits:
+            fit = run_fit(scenario, refinement, args.out_dir, args.workers, method)
             target = TARGETS.get(scenario, {}).get("coefficients")
             if target and refinement == "hierarchical":
                 fit["target_coefficients"] = target
                 fit["target_met"] = fit["coefficients"] <= target and fit["converged"]
             row["fits"].append(fit)
-            print(f"| {scenario} | {refinement} | {fit['coefficients']:,} | {fit['node_max_error_m']:.3f} m | "
+            check = fit["check_max_error_m"]
+            print(f"| {scenario} | {refinement} | {method or ''} | {fit['coefficients']:,} | "
+                  f"{fit['node_max_error_m']:.3f} m | {'' if check is None else f'{check:.3f} m'} | "
                   f"{'yes' if fit['converged'] else 'no'} | {fit['wall_seconds']} | "
                   f"{' / '.join(f'{c:,}' for c in fit['levels'])} |", flush=True)
     if not args.no_condition:

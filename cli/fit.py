@@ -62,7 +62,8 @@ _FIT_ONLY = ("h0", "max_level", "order", "method", "refinement", "sample_spacing
 @click.option("--refinement", type=click.Choice(REFINEMENTS), default=None,
               help="How levels are added: hierarchical overlays (each level fitted to the residual, thesis "
                    "5.2) or one linearly independent hierarchical B-spline basis over all levels (5.3; least "
-                   "squares) [default: chosen: hierarchical for least squares, overlays after quasi-interpolation].")
+                   "squares, or with --method interpolation its quasi-interpolant for a model SOURCE) "
+                   "[default: chosen: hierarchical for least squares, overlays after quasi-interpolation].")
 @click.option("--overwrite", is_flag=True, help="Replace an existing store at --store.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @verbosity_options

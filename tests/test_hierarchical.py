@@ -474,7 +474,7 @@ def test_stores_of_either_refinement_fit_query_update_verify_and_export(syntheti
 
 
 def test_refinement_is_checked_where_parameters_are(synthetic_gtx, tmp_path):
-    """An unknown refinement, or the hierarchical basis with quasi-interpolation, is a
+    """An unknown refinement, or the hierarchical basis quasi-interpolating a grid, is a
     user's mistake: one ERROR line, exit status 1 (click refuses an unknown name: 2)."""
     from click.testing import CliRunner
 
@@ -483,9 +483,8 @@ def test_refinement_is_checked_where_parameters_are(synthetic_gtx, tmp_path):
 
     with pytest.raises(FitError, match="refinement must be one of"):
         FitParameters(refinement="octree")
-    with pytest.raises(FitError, match="least squares"):
-        FitParameters(refinement="hierarchical", method="interpolation")
+    FitParameters(refinement="hierarchical", method="interpolation")  # for exact sources (§5.3.1)
     args = [str(synthetic_gtx), "--store", str(tmp_path / "s"), "--region", "10", "20", "30", "40"]
     run = CliRunner().invoke(fit_main, args + ["--refinement", "hierarchical", "--method", "interpolation"])
-    assert run.exit_code == 1 and run.stderr.startswith("ERROR:") and "least squares" in run.stderr
+    assert run.exit_code == 1 and run.stderr.startswith("ERROR:") and "exact everywhere" in run.stderr
     assert CliRunner().invoke(fit_main, args + ["--refinement", "octree"]).exit_code == 2

@@ -8,6 +8,8 @@
 - :mod:`.driver`: level after level until the tolerance holds (§5.2);
 - :mod:`.hierarchical`: one least-squares fit over the hierarchical basis, refined until
   the tolerance holds (§5.3, ``refinement="hierarchical"``);
+- :mod:`.hierarchical_interpolation`: the hierarchical quasi-interpolant of an exact
+  source over that basis, no solve (§5.3.1, with ``method="interpolation"``);
 - :mod:`.result`: what a fit returns (either way);
 - :mod:`.check_points`: where a fit is measured besides its sites.
 """

@@ -319,8 +319,13 @@ def check_method(source, params: FitParameters):
 
 
 def _fit_by_interpolation(source, region, params, spacing, progress, force_tiles, executor):
-    """Level 0 by quasi-interpolation of an exact source, then least-squares overlays."""
+    """Level 0 by quasi-interpolation of an exact source, then least-squares overlays;
+    or, with the hierarchical basis, every level by its quasi-interpolant (§5.3.1)."""
     check_method(source, params)
+    if params.refinement == "hierarchical":
+        from .hierarchical_interpolation import fit_hierarchical_by_interpolation
+
+        return fit_hierarchical_by_interpolation(source, region, params, spacing, progress, executor)
     start = time.perf_counter()
     h = params.h0
     cells = active_cells(h, region)

@@ -245,14 +245,17 @@ def _finest_level(params: FitParameters, nodes: DataNodes) -> int:
 
 
 def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitParameters, progress=None,
-                     force_tiles=False, executor: Executor | None = None, start=None, on_step=None) -> FitResult:
+                     force_tiles=False, executor: Executor | None = None, start=None, on_step=None,
+                     interpolant=None) -> FitResult:
     """Fit ``nodes`` (:class:`~geoidspline.fitting.sites.DataNodes`) over ``region`` with
     the hierarchical basis; :func:`geoidspline.fitting.driver.fit_nodes` calls it for
     ``params.refinement == "hierarchical"``. ``coverage`` goes into the result as it is.
 
     ``on_step(basis, points, values, coefficients)``, when given, is called after each
     refinement step's fit (points and values per leaf level), e.g. to measure the
-    normal matrices (benchmarks/hierarchical_vs_overlays.py).
+    normal matrices (benchmarks/hierarchical_vs_overlays.py). ``interpolant`` (an exact
+    source's :class:`~geoidspline.fitting.hierarchical_interpolation.HierarchicalQuasiInterpolant`)
+    gives each step's coefficients, on its basis (``shell``), instead of least squares.
     """
     start = time.perf_counter() if start is None else start
     progress = as_progress(progress)
@@ -261,7 +264,8 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
     region_dirs = nodes.directions[nodes.in_region]
     region_values = nodes.values[nodes.in_region]
     finest = _finest_level(params, nodes)
-    strategy = HierarchicalRefinement(params.order, params.h0, MARK_RADIUS, SHELL)
+    strategy = HierarchicalRefinement(params.order, params.h0, MARK_RADIUS,
+                                      SHELL if interpolant is None else interpolant.shell)
     basis = strategy.initial(region)
     if basis.coefficient_count == 0:
         raise FitError(f"no cells of spacing {params.h0} meet the sphere over the region {region.as_tuple()}")
@@ -271,12 +275,15 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
     while True:
         t0 = time.perf_counter()
         step = len(reports)
-        sites = leaf_sites(nodes, basis, params)
-        points, values = [p for p, _ in sites], [nodes.values[i] for _, i in sites]
-        x0 = carry_over(*previous, basis) if previous is not None else None
-        coefs, solved = solve_basis(basis, points, values, params, force_tiles, progress,
-                                    f"hierarchical step {step} ({basis.coefficient_count:,} unknowns)", x0)
-        previous = (basis, coefs)
+        if interpolant is None:
+            sites = leaf_sites(nodes, basis, params)
+            points, values = [p for p, _ in sites], [nodes.values[i] for _, i in sites]
+            x0 = carry_over(*previous, basis) if previous is not None else None
+            coefs, solved = solve_basis(basis, points, values, params, force_tiles, progress,
+                                        f"hierarchical step {step} ({basis.coefficient_count:,} unknowns)", x0)
+            previous = (basis, coefs)
+        else:  # §5.3.1: the hierarchical quasi-interpolant, no solve
+            (coefs, points, values), solved = interpolant.coefficients(basis, progress), 0
         if on_step is not None:
             on_step(basis, points, values, coefs)
         spline = AmbientSpline(basis.level_splines(coefs))
@@ -285,7 +292,7 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
         top = basis.levels - 1
         reports.append(LevelReport(
             level=top, h=basis.spacing(top), coefficients=basis.coefficient_count,
-            marked_cells=int(basis.leaves[top].size), sites=int(sum(p.shape[0] for p, _ in sites)),
+            marked_cells=int(basis.leaves[top].size), sites=int(sum(p.shape[0] for p in points)),
             blocks_solved=solved, max_error_m=float(np.abs(errors).max()),
             rms_error_m=float(np.sqrt(np.mean(errors ** 2))), nodes_above_tolerance=int(above.sum()),
             seconds=time.perf_counter() - t0,

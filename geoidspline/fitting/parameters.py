@@ -55,8 +55,10 @@ class FitParameters:
     least squares either way.
     ``refinement`` says how levels are added: ``"overlays"`` (thesis §5.2) or
     ``"hierarchical"``, the linearly independent hierarchical B-splines of §5.3
-    (:mod:`geoidspline.fitting.hierarchical`; with least squares: level 0 is part of
-    the one basis, so it is not quasi-interpolated).
+    (:mod:`geoidspline.fitting.hierarchical`): with least squares the one basis is
+    fitted at once; with ``"interpolation"`` every level's coefficients come from the
+    hierarchical quasi-interpolant of §5.3.1
+    (:mod:`geoidspline.fitting.hierarchical_interpolation`), no solve at all.
     Where the blocks are solved is not a parameter of the fit: see
     :class:`geoidspline.fitting.executors.Executor` (it never goes into a store).
     """
@@ -100,8 +102,6 @@ class FitParameters:
             raise FitError(f"fit method must be one of {FIT_METHODS}, got {self.method!r}")
         if self.refinement not in REFINEMENTS:
             raise FitError(f"refinement must be one of {REFINEMENTS}, got {self.refinement!r}")
-        if self.refinement == "hierarchical" and self.method != "least-squares":
-            raise FitError("refinement 'hierarchical' fits by least squares (use method 'least-squares')")
 
     def spacing(self, level: int) -> float:
         return self.h0 / 2.0 ** level
