@@ -270,8 +270,8 @@ def test_stages_in_chunks_give_the_values_of_one_call(toy24, monkeypatch):
     np.testing.assert_array_equal(banded.latitude, whole.latitude)
     np.testing.assert_array_equal(banded.undulation, whole.undulation)
 
-    from geoidspline.bspline.keys import touching_keys
     from geoidspline.bspline.domain import active_cells
+    from geoidspline.bspline.keys import touching_keys
     from geoidspline.bspline.level import LevelSpline
 
     keys = touching_keys(active_cells(0.3, GLOBAL), 4)

@@ -11,22 +11,30 @@ independence on Ω = ∪ ω^ℓ.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, Phase, assume, given, settings, strategies as st
+from hypothesis import HealthCheck, Phase, assume, given, settings
+from hypothesis import strategies as st
 
 from geoidspline.bspline.basis import children, refinement_weights
 from geoidspline.bspline.evaluate import evaluate_levels
-from geoidspline.bspline.keys import covered_cell_keys, pack_keys, touching_cell_keys, unpack_keys
+from geoidspline.bspline.keys import pack_keys, touching_cell_keys, unpack_keys
 from geoidspline.bspline.level import LevelSpline
 from geoidspline.fitting.driver import fit_nodes
 from geoidspline.fitting.parameters import FitParameters
 from geoidspline.hierarchy.ambient import AmbientSpline
 from geoidspline.hierarchy.hierarchical import (
-    Domain, HierarchicalBasis, coarsen_cells, design_matrix, down, initial_basis, marked_functions, normal_matrix,
-    refine, up, violations_53,
+    Domain,
+    HierarchicalBasis,
+    coarsen_cells,
+    design_matrix,
+    down,
+    initial_basis,
+    marked_functions,
+    normal_matrix,
+    refine,
+    up,
+    violations_53,
 )
 from geoidspline.sources.base import NodeSample
 from geoidspline.sphere.coordinates import directions

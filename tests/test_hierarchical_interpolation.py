@@ -15,13 +15,19 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, Phase, given, settings, strategies as st
+from hypothesis import HealthCheck, Phase, given, settings
+from hypothesis import strategies as st
 from test_hierarchical import PLANE_Z, box_domain, leaf_points, plane_domain, random_hierarchy
 
 from geoidspline.bspline.basis import bspline_weights
 from geoidspline.bspline.keys import unpack_keys
 from geoidspline.fitting.hierarchical_interpolation import (
-    PATCH_MARGIN_ORDERS, PATCH_ORDERS, dual_functional, functional_cells, functional_norms, quasi_interpolate,
+    PATCH_MARGIN_ORDERS,
+    PATCH_ORDERS,
+    dual_functional,
+    functional_cells,
+    functional_norms,
+    quasi_interpolate,
 )
 from geoidspline.fitting.parameters import FitParameters
 from geoidspline.hierarchy.ambient import AmbientSpline

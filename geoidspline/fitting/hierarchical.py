@@ -41,11 +41,11 @@ import numpy as np
 import qdldl
 import scipy.sparse as sp
 
-from ..bspline.keys import covered_cell_keys, cube_offsets, isin_sorted, pack_keys, unpack_keys
 from .._memory import available_bytes
+from ..bspline.keys import covered_cell_keys, cube_offsets, isin_sorted, pack_keys, unpack_keys
 from ..errors import FitError
 from ..hierarchy.ambient import AmbientSpline
-from ..hierarchy.hierarchical import Domain, HierarchicalBasis, HierarchicalRefinement, normal_matrix
+from ..hierarchy.hierarchical import HierarchicalBasis, HierarchicalRefinement, normal_matrix
 from ..sphere.region import Region
 from .executors import Executor
 from .least_squares import _second_difference_penalty
@@ -53,7 +53,6 @@ from .parameters import MIN_H_PER_DATA_SPACING, FitParameters
 from .progress import as_progress
 from .result import FitResult, LevelReport
 from .sites import DataNodes, sites_for_level
-
 
 __all__ = ["fit_hierarchical", "leaf_sites", "solve_basis", "schwarz_blocks", "SchwarzPreconditioner",
            "conjugate_gradients", "carry_over", "BasisTooLarge"]
