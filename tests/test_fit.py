@@ -178,8 +178,7 @@ def test_the_finest_level_passes_add_no_wiggle_between_the_nodes(island_fits):
 
 
 def test_add_levels_is_the_sum_of_the_two_splines():
-    from geoidspline.bspline.level import LevelSpline
-    from geoidspline.fitting.driver import add_levels
+    from geoidspline.bspline.level import LevelSpline, add_levels
     from geoidspline.hierarchy.ambient import AmbientSpline
 
     rng = np.random.default_rng(11)

@@ -61,3 +61,16 @@ class LevelSpline:
 
     def __len__(self):
         return int(self.keys.size)
+
+
+def add_levels(first: LevelSpline, second: LevelSpline) -> LevelSpline:
+    """The sum of two splines of the same level (spacing and order) as one: the union of
+    their keys, coefficients added."""
+    if (first.level, first.h, first.order) != (second.level, second.h, second.order):
+        raise ValueError(f"cannot add level {second.level} (h={second.h}, order {second.order}) to level "
+                         f"{first.level} (h={first.h}, order {first.order})")
+    keys = np.union1d(first.keys, second.keys)
+    values = np.zeros(keys.size)
+    values[np.searchsorted(keys, first.keys)] += first.coefficients
+    values[np.searchsorted(keys, second.keys)] += second.coefficients
+    return LevelSpline(first.level, first.h, first.order, keys, values)

@@ -123,6 +123,7 @@ HIERARCHICAL_REASON = (
 )
 OVERLAYS_REASON = "overlays (§5.2)"
 
+
 @dataclass(frozen=True)
 class Choice:
     """The chosen parameters and, per field, why (``given`` when the caller fixed it)."""

@@ -26,7 +26,7 @@ import numpy as np
 
 from ..bspline.domain import active_cells
 from ..bspline.keys import touching_keys
-from ..bspline.level import LevelSpline
+from ..bspline.level import LevelSpline, add_levels
 from ..errors import FitError
 from ..hierarchy.ambient import AmbientSpline
 from ..hierarchy.overlays import OverlayRefinement
@@ -55,7 +55,7 @@ def solve_level(problems, executor: Executor, progress=None):
 
 def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, progress=None,
               force_tiles=False, base_is_overlay=False, first_level=None,
-              executor: Executor | None = None) -> FitResult:
+              executor: Executor | None = None, interpolant=None, started=None) -> FitResult:
     """Fit the nodes of a :class:`~geoidspline.sources.NodeSample` over ``region``.
 
     ``sample`` must cover the region plus the support margin of level 0 (see
@@ -65,7 +65,11 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
     ``base_is_overlay`` the sample holds residuals of an existing spline (a regional
     update) and level 0 is refined and regularised like any overlay. ``first_level``, a
     :class:`LevelSpline` computed already (by quasi-interpolation), stands as level 0;
-    ``(level, seconds, lattice points)`` of it go into its report.
+    ``(level, seconds, lattice points)`` of it go into its report. ``interpolant``: the
+    hierarchical quasi-interpolant of an exact source
+    (:mod:`geoidspline.fitting.hierarchical_interpolation`) gives the hierarchical basis's
+    coefficients instead of least squares. ``started``: the ``time.perf_counter()`` the
+    fit's seconds count from (work done before this call, e.g. synthesising the sample).
     """
     # the hierarchical basis (§5.3) replaces the overlays of a new fit; an update (a
     # strategy given, or residuals on a base) adds overlays to any store
@@ -74,7 +78,8 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
     refinement = refinement or OverlayRefinement(params.refine_radius)
     executor = executor or Executor()
     progress = as_progress(progress)
-    start = time.perf_counter() - (first_level[1] if first_level is not None else 0.0)
+    start = started if started is not None else \
+        time.perf_counter() - (first_level[1] if first_level is not None else 0.0)
     nodes = DataNodes.from_sample(sample, region)
     try:
         coverage = Coverage.from_sample(sample, region)
@@ -87,7 +92,8 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
         from .hierarchical import BasisTooLarge, fit_hierarchical  # §5.3: one basis over all levels
 
         try:
-            return fit_hierarchical(nodes, coverage, region, params, progress, force_tiles, executor, start)
+            return fit_hierarchical(nodes, coverage, region, params, progress, force_tiles, start,
+                                    interpolant=interpolant)
         except BasisTooLarge as exc:  # a result in bounded memory rather than none
             fallback = f"{exc}: fitted by overlays instead"
             log.warning("%s", fallback)
@@ -252,19 +258,6 @@ def _finest_level_passes(nodes, levels, reports, errors, region_dirs, violating,
     return violating, False
 
 
-def add_levels(first: LevelSpline, second: LevelSpline) -> LevelSpline:
-    """The sum of two splines of the same level (spacing and order) as one: the union of
-    their keys, coefficients added."""
-    if (first.level, first.h, first.order) != (second.level, second.h, second.order):
-        raise ValueError(f"cannot add level {second.level} (h={second.h}, order {second.order}) to level "
-                         f"{first.level} (h={first.h}, order {first.order})")
-    keys = np.union1d(first.keys, second.keys)
-    values = np.zeros(keys.size)
-    values[np.searchsorted(keys, first.keys)] += first.coefficients
-    values[np.searchsorted(keys, second.keys)] += second.coefficients
-    return LevelSpline(first.level, first.h, first.order, keys, values)
-
-
 #: Nodes a step of the node-error stage evaluates (large enough for the compiled path).
 ERROR_CHUNK = 1_000_000
 
@@ -322,15 +315,17 @@ def _fit_by_interpolation(source, region, params, spacing, progress, force_tiles
     """Level 0 by quasi-interpolation of an exact source, then least-squares overlays;
     or, with the hierarchical basis, every level by its quasi-interpolant (§5.3.1)."""
     check_method(source, params)
-    if params.refinement == "hierarchical":
-        from .hierarchical_interpolation import fit_hierarchical_by_interpolation
-
-        return fit_hierarchical_by_interpolation(source, region, params, spacing, progress, executor)
     start = time.perf_counter()
     h = params.h0
     cells = active_cells(h, region)
     if cells.size == 0:
         raise FitError(f"no cells of spacing {h} meet the sphere over the region {region.as_tuple()}")
+    if params.refinement == "hierarchical":  # §5.3.1: every level by the quasi-interpolant, no solve
+        from .hierarchical_interpolation import hierarchical_interpolant
+
+        band, interpolant = hierarchical_interpolant(source, cells, params, spacing, as_progress(progress))
+        return fit_nodes(band, region, params, progress=progress, force_tiles=force_tiles, executor=executor,
+                         interpolant=interpolant, started=start)
     keys = touching_keys(cells, params.order)
     spacing = lattice_spacing(source, h, spacing)
     coefficients, band, lattice_points = interpolate_level(source, keys, h, params.order, spacing,

@@ -42,12 +42,12 @@ import qdldl
 import scipy.sparse as sp
 
 from .._memory import available_bytes
+from ..bspline.basis import children
 from ..bspline.keys import covered_cell_keys, cube_offsets, isin_sorted, pack_keys, unpack_keys
 from ..errors import FitError
 from ..hierarchy.ambient import AmbientSpline
 from ..hierarchy.hierarchical import HierarchicalBasis, HierarchicalRefinement, normal_matrix
 from ..sphere.region import Region
-from .executors import Executor
 from .least_squares import _second_difference_penalty
 from .parameters import MIN_H_PER_DATA_SPACING, FitParameters
 from .progress import as_progress
@@ -244,8 +244,7 @@ def _finest_level(params: FitParameters, nodes: DataNodes) -> int:
 
 
 def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitParameters, progress=None,
-                     force_tiles=False, executor: Executor | None = None, start=None, on_step=None,
-                     interpolant=None) -> FitResult:
+                     force_tiles=False, start=None, on_step=None, interpolant=None) -> FitResult:
     """Fit ``nodes`` (:class:`~geoidspline.fitting.sites.DataNodes`) over ``region`` with
     the hierarchical basis; :func:`geoidspline.fitting.driver.fit_nodes` calls it for
     ``params.refinement == "hierarchical"``. ``coverage`` goes into the result as it is.
@@ -348,7 +347,7 @@ class SchwarzPreconditioner:
     the nearly full blocks was slower: benchmarks/README.md)."""
 
     def __init__(self, system, index_sets, advance=None):
-        system = system.tocsr()  # no copy when it is CSR already
+        """``system``: the whole matrix, CSR (its rows are sliced)."""
         self.index_sets = index_sets
         self.solvers = []
         for idx in index_sets:
@@ -364,11 +363,11 @@ class SchwarzPreconditioner:
         return z
 
 
-def conjugate_gradients(system, rhs, precondition, x0, tolerance, max_iterations=500):
-    """Preconditioned CG from ``x0`` until ``sqrt(rᵀ M⁻¹ r) <= tolerance`` (≈ the energy
-    norm of the error, i.e. the size of the error of the fitted values at the sites).
-    Returns (x, iterations, final sqrt(rᵀ M⁻¹ r))."""
-    system = system.tocsr()
+def conjugate_gradients(system, rhs, precondition, x0, tolerance, max_iterations=MAX_ITERATIONS):
+    """Preconditioned CG on ``system`` (CSR) from ``x0`` until ``sqrt(rᵀ M⁻¹ r) <= tolerance``
+    (≈ the energy norm of the error, i.e. the size of the error of the fitted values at
+    the sites: scipy's ``cg`` stops on the plain residual norm instead, which says
+    nothing in metres). Returns (x, iterations, final sqrt(rᵀ M⁻¹ r))."""
     x = x0.copy()
     r = rhs - system @ x
     z = precondition(r)
@@ -392,8 +391,6 @@ def carry_over(old: HierarchicalBasis, old_coefficients, new: HierarchicalBasis)
     """A start for the new basis's coefficients: the old spline's coefficients where the
     same B-spline is still active, and a refined B-spline's coefficient passed to those of
     its children that are active (the refinement relation); zero elsewhere."""
-    from ..bspline.basis import children
-
     at_old, at_new = old.offsets(), new.offsets()
     x = np.zeros(new.coefficient_count)
     for lv in range(old.levels):

@@ -36,7 +36,7 @@ benchmarks/README.md, which is why :data:`INTERPOLANT_SHELL` is ``None``.
 
 The source is the radially constant extension ``G(x) = N(x / |x|)`` of an exact model,
 read from a latitude/longitude lattice of its synthesis by the 6 x 6-point Lagrange
-lookups of :mod:`geoidspline.fitting.interpolation` (:class:`LatticeLookup`); the fit
+lookups of :mod:`geoidspline.fitting.interpolation` (its :class:`LatticeLookup`); the fit
 measures its error at that lattice's nodes and refines where it is above the
 tolerance, as the least-squares driver (:func:`geoidspline.fitting.hierarchical.fit_hierarchical`) does.
 """
@@ -47,22 +47,20 @@ import hashlib
 import logging
 import math
 import time
-from dataclasses import dataclass
 
 import numpy as np
 
-from .._kernels.interpolation import lattice_lookup
 from ..bspline.basis import bspline_weights
 from ..bspline.keys import cube_offsets, isin_sorted, pack_keys, unpack_keys
 from ..errors import FitError
 from ..hierarchy.ambient import AmbientSpline
 from ..hierarchy.hierarchical import HierarchicalBasis
 from ..sphere.coordinates import latlon_of
-from ..sphere.region import Region
+from .interpolation import LatticeLookup, lattice_spacing, sample_band
 from .progress import as_progress
 
-__all__ = ["dual_functional", "functional_cells", "functional_norms", "quasi_interpolate", "LatticeLookup",
-           "HierarchicalQuasiInterpolant", "INTERPOLANT_SHELL", "fit_hierarchical_by_interpolation"]
+__all__ = ["dual_functional", "functional_cells", "functional_norms", "quasi_interpolate",
+           "HierarchicalQuasiInterpolant", "INTERPOLANT_SHELL", "hierarchical_interpolant"]
 
 log = logging.getLogger(__name__)
 
@@ -343,28 +341,6 @@ def _evaluate_chunked(evaluate, points):
     return out
 
 
-@dataclass(frozen=True)
-class LatticeLookup:
-    """``G(x) = N(x / |x|)`` by 6 x 6-point Lagrange lookups on a padded latitude band of an
-    exact synthesis (:func:`geoidspline.fitting.interpolation.sample_band`); metres."""
-
-    grid: np.ndarray
-    lat0: float
-    step: float
-
-    def __call__(self, points):
-        from .interpolation import _PAD
-
-        latitude, longitude = latlon_of(np.asarray(points, dtype=float).reshape(-1, 3))
-        out = np.empty(latitude.size)
-        low, high = self.lat0 + 2 * self.step, self.lat0 + (self.grid.shape[0] - 4) * self.step
-        if latitude.size and (latitude.min() < low - 1e-9 or latitude.max() > high + 1e-9):
-            raise FitError(f"latitudes {latitude.min():.4f}..{latitude.max():.4f} outside the synthesised band")
-        lattice_lookup(self.grid, self.lat0, self.step, -180.0 - _PAD * self.step, self.step,
-                       np.ascontiguousarray(latitude), np.ascontiguousarray(longitude), out)
-        return out
-
-
 class HierarchicalQuasiInterpolant:
     """The coefficients of one refinement step of
     :func:`geoidspline.fitting.hierarchical.fit_hierarchical` by :func:`quasi_interpolate`
@@ -401,38 +377,17 @@ def cells_latitude_range(cells, h: float, pad_deg: float = 0.5):
     return max(-90.0, south), min(90.0, north)
 
 
-def fit_hierarchical_by_interpolation(source, region: Region, params, spacing_deg=None, progress=None,
-                                      executor=None, shell=INTERPOLANT_SHELL, functional=None):
-    """Fit an exact ``source`` (a harmonic model) over ``region`` with the hierarchical
-    basis, each refinement step's coefficients by the hierarchical quasi-interpolant;
-    :func:`geoidspline.fitting.driver.fit_source` calls it for ``method="interpolation"``
-    with ``refinement="hierarchical"``. ``shell``: the basis (:data:`INTERPOLANT_SHELL`),
+def hierarchical_interpolant(source, cells, params, spacing_deg=None, progress=None, shell=INTERPOLANT_SHELL,
+                             functional=None):
+    """The hierarchical quasi-interpolant of an exact ``source`` (a harmonic model) over the
+    level-0 domain ``cells`` (M, 3 indices of spacing ``params.h0``), and the band of its
+    synthesis, whose lattice (5' for degree 360,
+    :func:`~geoidspline.fitting.interpolation.lattice_spacing`) the lookups read and whose
+    nodes measure the fit's error: ``(band, interpolant)``, for
+    :func:`geoidspline.fitting.driver.fit_nodes` (``method="interpolation"`` with
+    ``refinement="hierarchical"``). ``shell``: the basis (:data:`INTERPOLANT_SHELL`),
     ``functional`` the local functional (:data:`FUNCTIONAL`).
-
-    The nodes measuring the error are the lattice the lookups read (5' for degree 360,
-    :func:`~geoidspline.fitting.interpolation.lattice_spacing`), a latitude band
-    holding every level-0 domain cell (:func:`cells_latitude_range`).
     """
-    from ..bspline.domain import active_cells
-    from ..sphere.coverage import Coverage
-    from .hierarchical import fit_hierarchical
-    from .interpolation import lattice_spacing, sample_band
-    from .sites import DataNodes
-
-    start = time.perf_counter()
-    progress = as_progress(progress)
-    cells = active_cells(params.h0, region)
-    if cells.size == 0:
-        raise FitError(f"no cells of spacing {params.h0} meet the sphere over the region {region.as_tuple()}")
     spacing_deg = lattice_spacing(source, params.h0, spacing_deg)
     grid, lat0, step, band = sample_band(source, *cells_latitude_range(cells, params.h0), spacing_deg, progress)
-    nodes = DataNodes.from_sample(band, region)
-    if not np.any(nodes.in_region):
-        raise FitError(f"no data nodes inside the region {region.as_tuple()}")
-    try:
-        coverage = Coverage.from_sample(band, region)
-    except ValueError as exc:
-        raise FitError(str(exc)) from None
-    interpolant = HierarchicalQuasiInterpolant(LatticeLookup(grid, lat0, step), shell, functional)
-    return fit_hierarchical(nodes, coverage, region, params, progress, executor=executor, start=start,
-                            interpolant=interpolant)
+    return band, HierarchicalQuasiInterpolant(LatticeLookup(grid, lat0, step), shell, functional)

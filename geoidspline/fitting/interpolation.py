@@ -30,6 +30,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -38,9 +39,10 @@ from ..bspline.basis import centred_bspline_samples
 from ..bspline.keys import AXIS_STEPS, KEY_BITS, KEY_OFFSET, union_of_shifts
 from ..errors import FitError
 from ..sources.base import NodeSample
+from ..sphere.coordinates import latlon_of
 from ..sphere.region import Region
 
-__all__ = ["prefilter_taps", "sample_band", "sample_nodes", "lattice_spacing", "interpolate_level",
+__all__ = ["prefilter_taps", "sample_band", "LatticeLookup", "sample_nodes", "lattice_spacing", "interpolate_level",
            "prefilter_terms"]
 
 
@@ -155,6 +157,33 @@ def sample_band(source, latitude_south: float, latitude_north: float, spacing_de
     return np.ascontiguousarray(grid), lat0, step, NodeSample(lat, sample.longitude, sample.undulation)
 
 
+@dataclass(frozen=True)
+class LatticeLookup:
+    """``N`` (metres) by 6 x 6-point Lagrange lookups on the padded latitude band of an
+    exact synthesis that :func:`sample_band` returns (``grid``, ``lat0``, ``step``): the
+    one place that knows the band's layout (longitudes from -180 - ``_PAD`` steps)."""
+
+    grid: np.ndarray
+    lat0: float
+    step: float
+
+    def at(self, latitude, longitude, out):
+        """``out[:] = N`` at contiguous ``latitude``, ``longitude`` (degrees)."""
+        kern.lattice_lookup(self.grid, self.lat0, self.step, -180.0 - _PAD * self.step, self.step,
+                            latitude, longitude, out)
+
+    def __call__(self, points):
+        """``G(x) = N(x / |x|)`` at points (M, 3) of the shell; a point outside the band is
+        an error (its lookup would read the padding)."""
+        latitude, longitude = latlon_of(np.asarray(points, dtype=float).reshape(-1, 3))
+        out = np.empty(latitude.size)
+        low, high = self.lat0 + 2 * self.step, self.lat0 + (self.grid.shape[0] - 4) * self.step
+        if latitude.size and (latitude.min() < low - 1e-9 or latitude.max() > high + 1e-9):
+            raise FitError(f"latitudes {latitude.min():.4f}..{latitude.max():.4f} outside the synthesised band")
+        self.at(np.ascontiguousarray(latitude), np.ascontiguousarray(longitude), out)
+        return out
+
+
 def lattice_spacing(source, h: float, spacing_deg: float | None = None) -> float:
     """Spacing (degrees) of the lattice the lookups read: ``spacing_deg`` when given,
     else 30/N degrees for degree N (5' for degree 360: 6-point Lagrange error ~1e-7
@@ -193,14 +222,15 @@ def interpolate_level(source, keys, h: float, order: int, spacing_deg: float,
     kern.key_directions(lattice, KEY_OFFSET, KEY_BITS, order / 2.0, h, lat, lon)
     grid, lat0, step, band = sample_band(source, float(lat.min()), float(lat.max()), spacing_deg, progress)
     t_synth = time.perf_counter()
+    lookup = LatticeLookup(grid, lat0, step)
     values = np.empty(lattice.size)
     # each point's lookup is independent: chunks give the values of one call
     bounds = list(range(0, lattice.size, LOOKUP_CHUNK)) + [lattice.size]
     with progress.stage("lookups", len(bounds) - 1, "chunk") as advance:
         for a, b in zip(bounds[:-1], bounds[1:]):
-            kern.lattice_lookup(grid, lat0, step, -180.0 - _PAD * step, step, lat[a:b], lon[a:b], values[a:b])
+            lookup.at(lat[a:b], lon[a:b], values[a:b])
             advance(1)
-    del lat, lon, grid
+    del lat, lon, grid, lookup
     with progress.stage("prefilter", len(steps), "axis") as advance:
         for axis, step_key in enumerate(steps):
             in_keys = sets[3 - axis]

@@ -30,8 +30,9 @@ import numpy as np
 
 from ..bspline.domain import supports_inside
 from ..bspline.keys import unpack_keys
+from ..bspline.level import add_levels
 from ..errors import CoordinateError, FitError, StoreCorruptError, StoreError
-from ..fitting.driver import add_levels, clip_to_extent, fit_nodes
+from ..fitting.driver import clip_to_extent, fit_nodes
 from ..fitting.executors import Executor
 from ..fitting.parameters import FitParameters, finest_level
 from ..geodesy.ellipsoids import KM_PER_DEGREE
