@@ -12,6 +12,10 @@ derived quantities), :mod:`.geodesy` (ellipsoids); see README's "Architecture".
 
 from __future__ import annotations
 
+import importlib.util as _importlib_util
+import sys as _sys
+import pathlib as _pathlib
+
 from ._version import __version__
 from .errors import CoordinateError, FitError, GeoidSplineError, InputFileError, StoreCorruptError, StoreError
 from .sphere.region import GLOBAL, Region
@@ -44,3 +48,29 @@ def update(store, source, region, **options):
     from .api import update as _update
 
     return _update(store, source, region, **options)
+
+
+class _CheckoutPackages:
+    """Finds ``geoidspline.cli`` and ``geoidspline.grids`` in a source checkout.
+
+    They live at the repository's top level (``cli/``, ``grids/``) and join the package
+    through the install's package-dir mapping; a program run from the checkout root imports
+    this source tree instead, where the mapping does not exist. Appended last to
+    ``sys.meta_path``, so an install's own finders always win.
+    """
+
+    _root = _pathlib.Path(__file__).resolve().parent.parent
+
+    @classmethod
+    def find_spec(cls, name, path=None, target=None):
+        if name not in ("geoidspline.cli", "geoidspline.grids"):
+            return None
+        folder = cls._root / name.rpartition(".")[2]
+        if not (folder / "__init__.py").is_file():
+            return None
+        return _importlib_util.spec_from_file_location(name, folder / "__init__.py",
+                                                       submodule_search_locations=[str(folder)])
+
+
+if not any(finder is _CheckoutPackages for finder in _sys.meta_path):
+    _sys.meta_path.append(_CheckoutPackages)

@@ -288,3 +288,20 @@ def test_replay_docker(tmp_path):
                           timeout=1800, env=env, stdin=subprocess.DEVNULL)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "replay ok:" in proc.stdout
+
+
+def test_python_m_geoidspline_runs_from_the_checkout_root():
+    """From the repository root the source tree is imported, not the install: cli/ must
+    still be found as geoidspline.cli."""
+    done = subprocess.run([sys.executable, "-m", "geoidspline", "--help"], cwd=REPO, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert "fit" in done.stdout and "query" in done.stdout
+
+
+def test_the_checkout_finder_maps_cli_and_grids_to_the_top_level_folders():
+    import geoidspline
+
+    for name in ("cli", "grids"):
+        spec = geoidspline._CheckoutPackages.find_spec(f"geoidspline.{name}")
+        assert Path(spec.origin) == REPO / name / "__init__.py"
+    assert geoidspline._CheckoutPackages.find_spec("geoidspline.store") is None
