@@ -217,7 +217,8 @@ class StoreLock:
                         waited = f" (waited {self.wait_seconds:g} s)" if self.wait_seconds > 0 else ""
                         raise StoreError(
                             f"{self.root}: another writer{f' (pid {holder})' if holder else ''} is writing this "
-                            f"store{waited}; try again when it has finished, or wait longer"
+                            f"store{waited}; try again when it has finished, or let this command wait for it "
+                            f"(geoid-update --wait SECONDS; wait_seconds= in Python)"
                         ) from None
                     _pause(min(LOCK_POLL_SECONDS, left))
                 except OSError as exc:
