@@ -8,6 +8,8 @@ import time
 
 import click
 
+from geoidspline.sources.reference import TIDE_SYSTEM_NAMES as TIDE_CHOICES
+
 from ._common import command, echo, store_options, user_errors, verbosity_options
 
 log = logging.getLogger("geoidspline.cli")
@@ -20,10 +22,12 @@ log = logging.getLogger("geoidspline.cli")
 @click.option("--spacing", type=float, required=True, help="Node spacing in degrees (latitude and longitude).")
 @click.option("--region", nargs=4, type=float, metavar="S W N E", default=None,
               help="Region in degrees: south west north east [default: the store's region].")
+@click.option("--tide-system", type=click.Choice(TIDE_CHOICES), default=None,
+              help="Tide system of the grid written: the store's values are converted to it [default: the store's].")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @verbosity_options
 @user_errors
-def main(store_path, out, spacing, region, as_json, quiet, verbose):
+def main(store_path, out, spacing, region, tide_system, as_json, quiet, verbose):
     """Evaluate the tile store at --store every --spacing degrees and write the grid to --out.
 
     Nodes run from the south edge of the region northward and from its west edge
@@ -41,7 +45,7 @@ def main(store_path, out, spacing, region, as_json, quiet, verbose):
 
     store = geoidspline.open_store(store_path)
     started = time.perf_counter()
-    grid = export_grid(store, out, spacing, Region.from_bounds(*region) if region else None)
+    grid = export_grid(store, out, spacing, Region.from_bounds(*region) if region else None, tide_system=tide_system)
     nlat, nlon = grid.shape
     summary = {
         "file": str(out),
@@ -53,6 +57,7 @@ def main(store_path, out, spacing, region, as_json, quiet, verbose):
         "north": float(grid.latitude[-1]),
         "west": float(grid.longitude[0]),
         "east": float(grid.longitude[-1]),
+        "tide_system": grid.provenance.tide_system,
         "seconds": round(time.perf_counter() - started, 3),
     }
     if as_json:
@@ -60,7 +65,8 @@ def main(store_path, out, spacing, region, as_json, quiet, verbose):
         return
     echo(f"wrote {out}: {nlat} x {nlon} nodes every {spacing:g} degrees, "
                f"latitude {summary['south']:g}..{summary['north']:g}, "
-               f"longitude {summary['west']:g}..{summary['east']:g}")
+               f"longitude {summary['west']:g}..{summary['east']:g}"
+               + (f", tide system {grid.provenance.tide_system}" if tide_system else ""))
 
 
 if __name__ == "__main__":  # pragma: no cover

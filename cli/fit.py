@@ -11,6 +11,7 @@ import click
 
 from geoidspline.fitting.parameters import FIT_METHODS, REFINEMENTS, FitParameters
 from geoidspline.sources.harmonics.presets import PRESETS
+from geoidspline.sources.reference import TIDE_SYSTEM_NAMES as TIDE_CHOICES
 
 from ._common import command, echo, store_options, user_errors, verbosity_options
 
@@ -64,13 +65,25 @@ _FIT_ONLY = ("h0", "max_level", "order", "method", "refinement", "sample_spacing
                    "5.2) or one linearly independent hierarchical B-spline basis over all levels (5.3; least "
                    "squares, or with --method interpolation its quasi-interpolant for a model SOURCE) "
                    "[default: chosen: hierarchical for least squares, overlays after quasi-interpolation].")
+@click.option("--band", type=click.IntRange(min=1), default=None, metavar="N",
+              help="The band of a GeoTIFF SOURCE with several (1-based); required for such a file.")
+@click.option("--variable", default=None, metavar="NAME",
+              help="The variable of a netCDF SOURCE with several 2-D candidates; required for such a file.")
+@click.option("--tide-system", type=click.Choice(TIDE_CHOICES), default=None,
+              help="Tide system of the store: SOURCE is converted to it [default: SOURCE's own].")
+@click.option("--accept-datum", is_flag=True,
+              help="Take a SOURCE on another datum that PROJ cannot convert well (e.g. NAD27, Bessel without a "
+                   "datum) as it is, or with PROJ's less accurate transformation.")
+@click.option("--accept-quasi-geoid", is_flag=True,
+              help="Fit a quasi-geoid SOURCE (height anomalies): the store then says it holds a quasi-geoid.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing store at --store.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @verbosity_options
 @user_errors
 @click.pass_context
 def main(ctx, source, store_path, update, blend_width, region, tolerance, h0, max_level, order, workers, scheduler,
-         correction, preset, sample_spacing, method, refinement, overwrite, as_json, quiet, verbose):
+         correction, preset, sample_spacing, method, refinement, band, variable, tide_system, accept_datum,
+         accept_quasi_geoid, overwrite, as_json, quiet, verbose):
     """Fit SOURCE into ambient B-spline tiles stored at --store.
 
     SOURCE is a grid file (.gtx, .nc, WW15MGH.DAC, .pgm), a catalogue name such as
@@ -92,8 +105,13 @@ def main(ctx, source, store_path, update, blend_width, region, tolerance, h0, ma
             raise click.UsageError("give --update STORE or --store STORE, not both")
         from .update import run_update
 
+        if tide_system is not None:
+            raise click.UsageError("a regional update converts SOURCE to the store's own tide system: drop "
+                                   "--tide-system (use geoid-update)")
         return run_update(source, update, region, blend_width, workers, correction, preset, as_json, quiet,
-                          tolerance if ctx.get_parameter_source("tolerance") is not ParameterSource.DEFAULT else None)
+                          tolerance if ctx.get_parameter_source("tolerance") is not ParameterSource.DEFAULT else None,
+                          band=band, variable=variable, accept_datum=accept_datum,
+                          accept_quasi_geoid=accept_quasi_geoid)
     if store_path is None:
         raise click.UsageError("give --store DIR, the store to write (or use geoid-update for a regional update)")
     out = store_path
@@ -107,7 +125,11 @@ def main(ctx, source, store_path, update, blend_width, region, tolerance, h0, ma
 
     executor = Executor(workers=workers, scheduler=scheduler)
     fit_region = Region.from_bounds(*region) if region else GLOBAL
-    src = open_source(source, correction, preset)
+    from geoidspline.sources.reference import for_new_store
+
+    src = open_source(source, correction, preset, band=band, variable=variable)
+    src, conversions = for_new_store(src, tide_system=tide_system, accept_datum=accept_datum,
+                                     accept_quasi_geoid=accept_quasi_geoid)
     options = {"method": method, "refinement": refinement, "order": order, "h0": h0, "max_level": max_level,
                "sample_spacing": sample_spacing, "tolerance": tolerance}
     given = {field: options[name] for name, field in _CHOSEN.items()
@@ -122,11 +144,14 @@ def main(ctx, source, store_path, update, blend_width, region, tolerance, h0, ma
     info["wall_seconds"] = round(time.perf_counter() - started, 2)
     info["converged"] = bool(result.converged)
     info["choices"] = choice.as_manifest()
+    info["source_notes"] = conversions
     if as_json:
         echo(json.dumps(info, indent=1))
         sys.exit(0 if result.converged else 3)
     echo(f"store      {out}  ({info['tiles']} tiles, {info['bytes']:,} bytes)")
     echo(f"source     {src.provenance.source} ({src.provenance.model})")
+    for note in conversions:
+        echo(f"source     {note}")
     echo(f"region     S {fit_region.south:g}  W {fit_region.west:g}  N {fit_region.north:g}  E {fit_region.east:g}")
     for field in _CHOSEN.values():
         value = getattr(params, field)

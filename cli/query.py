@@ -14,6 +14,7 @@ import sys
 import click
 
 from geoidspline.sources.harmonics.presets import PRESETS
+from geoidspline.sources.reference import TIDE_SYSTEM_NAMES as TIDE_CHOICES
 
 from geoidspline.sphere.region import MAX_ABS_POINT_LONGITUDE_DEG
 
@@ -217,8 +218,9 @@ class Query:
     """
 
     def __init__(self, source, *, is_store, deflection=False, height_in=None, height_column=None,
-                 crs=None, with_error=False, precision=4, fmt="csv", outside="error"):
+                 crs=None, with_error=False, precision=4, fmt="csv", outside="error", tide=None):
         self.source = source
+        self.tide = tide  # (own tide system, asked one) or None
         self.is_store = is_store
         self.deflection = deflection
         self.height_in = height_in
@@ -404,12 +406,22 @@ class Query:
         idx = np.flatnonzero(good)
         la, lo = lat[idx], lon[idx]
         undulation = np.asarray(self.source.undulation(la, lo), dtype=float).reshape(-1)
+        if self.tide is not None:  # --tide-system: N in the asked system
+            from geoidspline.sources.reference import tide_offset_m
+
+            undulation = undulation + tide_offset_m(la, *self.tide)
         values = {"undulation_m": undulation, "latitude_deg": la, "longitude_deg": lo}
         if self.deflection:
             from geoidspline.query.derived import deflection
 
             d = deflection(self.source, la, lo)
             values.update(zip(DEFLECTION_COLUMNS, (np.asarray(v).reshape(-1) for v in d)))
+            if self.tide is not None:  # the tide term's slope: ξ = −dN/dnorth
+                from geoidspline.sources.reference import tide_slope_north
+
+                slope = tide_slope_north(la, *self.tide)
+                values[DEFLECTION_COLUMNS[2]] = values[DEFLECTION_COLUMNS[2]] + slope
+                values[DEFLECTION_COLUMNS[0]] = values[DEFLECTION_COLUMNS[0]] - np.degrees(slope) * 3600.0
         if self.height_in:
             from geoidspline.query.derived import convert_height
 
@@ -551,11 +563,13 @@ is one ERROR line on stderr, exit 1; a closed pipe (| head) ends quietly.
               help="Output format.")
 @click.option("--precision", type=click.IntRange(0, 15), default=4, show_default=True,
               help="Decimals of metres and arcseconds.")
+@click.option("--tide-system", type=click.Choice(TIDE_CHOICES), default=None,
+              help="Answer in this tide system: converted from the store's (or model's) own [default: its own].")
 @click.argument("coordinates", nargs=-1, type=float, required=False, metavar="[LAT LON]")
 @verbosity_options
 @user_errors
 def main(store_path, model_path, correction_path, preset, input_path, deflection, height_in, height_column,
-         crs, with_error, outside, fmt, precision, coordinates, quiet, verbose):
+         crs, with_error, outside, fmt, precision, tide_system, coordinates, quiet, verbose):
     coordinates = tuple(coordinates) or None
     if (input_path is None) == (coordinates is None):
         raise click.UsageError("give either LAT LON or --input FILE (use '-' for stdin)")
@@ -593,9 +607,13 @@ def main(store_path, model_path, correction_path, preset, input_path, deflection
         source = load_synthesis(model_path, correction_path, preset)
         log.info("model %s, preset %s, degree %d", source.model.name, source.preset, source.max_degree)
 
+    from geoidspline.sources.reference import store_tide_target
+
+    own_tide = source.manifest["provenance"].get("tide_system") if store_path is not None else \
+        source.provenance.tide_system
     q = Query(source, is_store=store_path is not None, deflection=deflection, height_in=height_in,
               height_column=height_column, crs=crs, with_error=with_error, precision=precision, fmt=fmt,
-              outside=outside)
+              outside=outside, tide=store_tide_target(own_tide, tide_system, store_path or model_path))
     if coordinates is not None:
         if len(coordinates) != q.width:
             raise click.UsageError(f"expected {q.width} coordinate values ({q._layout()}), got {len(coordinates)}")

@@ -33,11 +33,23 @@ from ._common import command, echo, store_options, user_errors, verbosity_option
               help="Synthesis conventions for a model SOURCE [default: chosen from the model].")
 @click.option("--wait", "wait_seconds", type=click.FloatRange(min=0.0), default=0.0, show_default=True,
               metavar="SECONDS", help="Wait this long for another process writing the store, then give up.")
+@click.option("--band", type=click.IntRange(min=1), default=None, metavar="N",
+              help="The band of a GeoTIFF SOURCE with several (1-based); required for such a file.")
+@click.option("--variable", default=None, metavar="NAME",
+              help="The variable of a netCDF SOURCE with several 2-D candidates; required for such a file.")
+@click.option("--accept-datum", is_flag=True,
+              help="Take a SOURCE on another datum that PROJ cannot convert well as it is (or with PROJ's less "
+                   "accurate transformation).")
+@click.option("--accept-quasi-geoid", is_flag=True,
+              help="Take height anomalies into a geoid store (or undulations into a quasi-geoid one).")
+@click.option("--accept-implausible", is_flag=True,
+              help="Skip the plausibility check (a change beyond 10 m from the store, or a slope beyond 2e-3 m/m "
+                   "between SOURCE's nodes, is refused otherwise).")
 @click.option("--json", "as_json", is_flag=True, help="Print the update's history record as JSON.")
 @verbosity_options
 @user_errors
-def main(source, store_path, region, blend_width, tolerance, workers, correction, preset, wait_seconds, as_json, quiet,
-         verbose):
+def main(source, store_path, region, blend_width, tolerance, workers, correction, preset, wait_seconds, band, variable,
+         accept_datum, accept_quasi_geoid, accept_implausible, as_json, quiet, verbose):
     """Replace the geoid of the store at --store by SOURCE inside --region.
 
     The update fits overlays to w·(N_new − N_store) with the store's own parameters (w
@@ -46,20 +58,23 @@ def main(source, store_path, region, blend_width, tolerance, workers, correction
     result is still one C² spline with no step at the region's edge or the coast. The
     new B-splines lie inside the blend zone: outside it the store is unchanged, and
     only the tiles owning them are rewritten. Refused before anything is written when the store
-    is read-only or being written by another process (after --wait), the source's ellipsoid or tide
-    system differs from the store's, or the region with its blend zone lies outside the
-    source's extent (the message names the largest region that fits), or outside the
-    store's region. Exit status 3: written, but the tolerance was not reached
+    is read-only or being written by another process (after --wait), the source's datum or
+    quantity differs from the store's without a well-defined conversion (tide systems and
+    datums PROJ transforms well are converted, and said), the source is implausible
+    against the store (a change beyond 10 m, a slope beyond 2e-3 m/m), or the region with
+    its blend zone lies outside the source's extent (the message names the largest region
+    that fits), or outside the store's region. Exit status 3: written, but the tolerance was not reached
     inside the region.
     """
     if store_path is None:
         raise click.UsageError("give --store DIR, the store to update")
     run_update(source, store_path, region, blend_width, workers, correction, preset, as_json, quiet, tolerance,
-               wait_seconds)
+               wait_seconds, band=band, variable=variable, accept_datum=accept_datum,
+               accept_quasi_geoid=accept_quasi_geoid, accept_implausible=accept_implausible)
 
 
 def run_update(source, store, region, blend_width, workers, correction, preset, as_json, quiet, tolerance=None,
-               wait_seconds=0.0):
+               wait_seconds=0.0, **choices):
     from geoidspline.fitting.executors import Executor
     from geoidspline.sources.resolve import open_source
     from geoidspline.sphere.region import Region
@@ -67,16 +82,21 @@ def run_update(source, store, region, blend_width, workers, correction, preset, 
 
     if region is None:
         raise click.UsageError("a regional update needs --region S W N E")
-    src = open_source(source, correction, preset)
+    src = open_source(source, correction, preset, band=choices.get("band"), variable=choices.get("variable"))
+    bounds = {"max_change_m": None, "max_slope": None} if choices.get("accept_implausible") else {}
     started = time.perf_counter()
     record = update_store(store, src, Region.from_bounds(*region), blend_width_km=blend_width,
-                          executor=Executor(workers=workers), tolerance_m=tolerance, wait_seconds=wait_seconds)
+                          executor=Executor(workers=workers), tolerance_m=tolerance, wait_seconds=wait_seconds,
+                          accept_datum=choices.get("accept_datum", False),
+                          accept_quasi_geoid=choices.get("accept_quasi_geoid", False), **bounds)
     record["wall_seconds"] = round(time.perf_counter() - started, 2)
     if as_json:
         echo(json.dumps(record, indent=1))
         sys.exit(0 if record["converged"] else 3)
     echo(f"store      {store}  version {record['previous_version']} -> {record['store_version']}")
     echo(f"source     {record['source']} ({record['model']})")
+    for note in record.get("source_notes", []):
+        echo(f"source     {note}")
     s, w, n, e = record["region"]
     echo(f"region     S {s:g}  W {w:g}  N {n:g}  E {e:g}, blend {record['blend_width_km']:g} km")
     echo(f"tiles      {record['tiles_rewritten']} rewritten, {record['coefficients_added']:+,d} coefficients")

@@ -61,7 +61,8 @@ def _as_region(region) -> Region:
 
 def fit(source, store, *, region=None, overwrite: bool = False, workers: int = 1, scheduler: str | None = None,
         correction=None, preset: str | None = None, progress=None, choose: bool = False,
-        **parameters) -> TileStore:
+        band: int | None = None, variable: str | None = None, tide_system: str | None = None,
+        accept_datum: bool = False, accept_quasi_geoid: bool = False, **parameters) -> TileStore:
     """Fit a geoid source into a new tile store at ``store`` and open it.
 
     ``source``: a grid or model file path, a catalogue name (``"egm96-15"``) or a source
@@ -76,11 +77,19 @@ def fit(source, store, *, region=None, overwrite: bool = False, workers: int = 1
     the fewest coefficients, as ``geoid-fit`` does
     (:func:`~geoidspline.fitting.choose.choose_parameters`; the reasons go into the
     manifest's ``fit.choices``); otherwise they keep FitParameters' defaults.
+    ``band``/``variable``: the GeoTIFF band or netCDF variable of a file with several.
+    The source is taken into the store by the one rule of
+    :func:`geoidspline.sources.reference.for_new_store`: converted to ``tide_system``
+    (default: its own) and to WGS 84 where a well-defined conversion exists, else
+    refused unless ``accept_datum`` / ``accept_quasi_geoid``.
     """
+    from .sources.reference import for_new_store
     from .sources.resolve import open_source
 
     if isinstance(source, (str, bytes)) or hasattr(source, "__fspath__"):
-        source = open_source(source, correction, preset)
+        source = open_source(source, correction, preset, band=band, variable=variable)
+    source, _ = for_new_store(source, tide_system=tide_system, accept_datum=accept_datum,
+                              accept_quasi_geoid=accept_quasi_geoid)
     extra = None
     if choose:
         from .fitting.choose import choose_parameters
@@ -97,17 +106,21 @@ def fit(source, store, *, region=None, overwrite: bool = False, workers: int = 1
 
 def update(store, source, region, *, blend_width_km: float = 100.0, tolerance_m: float | None = None,
            workers: int = 1, correction=None, preset: str | None = None, progress=None,
-           wait_seconds: float = 0.0) -> dict:
+           wait_seconds: float = 0.0, band: int | None = None, variable: str | None = None,
+           accept_datum: bool = False, accept_quasi_geoid: bool = False, accept_implausible: bool = False) -> dict:
     """Replace the store's geoid inside ``region`` by ``source`` (a regional update,
     :func:`geoidspline.store.update.update_store`); returns the update's history record.
 
     ``tolerance_m``: this update's tolerance in metres (default: the store's);
-    ``wait_seconds``: how long to wait for another process writing the store."""
+    ``wait_seconds``: how long to wait for another process writing the store;
+    ``accept_implausible``: skip the plausibility check against the store."""
     from .sources.resolve import open_source
     from .store.update import update_store
 
     if isinstance(source, (str, bytes)) or hasattr(source, "__fspath__"):
-        source = open_source(source, correction, preset)
+        source = open_source(source, correction, preset, band=band, variable=variable)
+    bounds = {"max_change_m": None, "max_slope": None} if accept_implausible else {}
     return update_store(store, source, _as_region(region), blend_width_km=blend_width_km,
                         executor=Executor(workers=workers), tolerance_m=tolerance_m, progress=progress,
-                        wait_seconds=wait_seconds)
+                        wait_seconds=wait_seconds, accept_datum=accept_datum, accept_quasi_geoid=accept_quasi_geoid,
+                        **bounds)

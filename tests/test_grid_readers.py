@@ -316,12 +316,19 @@ def test_dac_of_wrong_size(tmp_path):
 
 def test_netcdf_two_candidate_variables(tmp_path):
     path = _nc(tmp_path / "two.nc", LAT, LON, expected_values(), var="a", extra_vars={"b": expected_values()})
-    with pytest.raises(InputFileError, match=r"two\.nc: cannot tell which variable holds the undulations: candidates a, b"):
+    with pytest.raises(InputFileError, match=r"two\.nc: cannot tell which variable holds the undulations: "
+                       r"candidates a, b; name one with --variable NAME"):
         read_grid(path)
-    # a conventional name settles it
+    # a conventional name does not settle it (N and its error, N and zeta): the user names it
     path = _nc(tmp_path / "named.nc", LAT, LON, expected_values() * 2, var="geoid_height",
                extra_vars={"error": expected_values()})
-    np.testing.assert_allclose(read_grid(path).values, 2 * expected_values(), atol=1e-12)
+    with pytest.raises(InputFileError, match=r"candidates error, geoid_height; name one with --variable"):
+        read_grid(path)
+    np.testing.assert_allclose(read_grid(path, variable="geoid_height").values, 2 * expected_values(), atol=1e-12)
+    np.testing.assert_allclose(read_grid(path, variable="error").values, expected_values(), atol=1e-12)
+    with pytest.raises(InputFileError, match=r"--variable 'N' is not a 2-D data variable .* the candidates are "
+                                             r"error, geoid_height"):
+        read_grid(path, variable="N")
 
 
 def test_netcdf_unknown_units(tmp_path):

@@ -84,8 +84,11 @@ def export_lattice(store, spacing_deg, region=None):
     return latitude, longitude, region
 
 
-def export_grid(store, path, spacing_deg, region=None):
+def export_grid(store, path, spacing_deg, region=None, tide_system=None):
     """Evaluate ``store`` on a latitude/longitude lattice and write it to ``path``.
+
+    ``tide_system`` (default: the store's own) converts the values to another tide
+    system (:func:`geoidspline.sources.reference.tide_offset_m`); the file then states it.
 
     The lattice is :func:`export_lattice` (every ``spacing_deg`` degrees from the south
     and west edges of ``region``, default the store's region). The format follows the
@@ -125,6 +128,10 @@ def export_grid(store, path, spacing_deg, region=None):
             ) from None
     if not path.parent.is_dir():
         raise InputFileError(path, "the output directory does not exist")
+    from ..sources.reference import store_tide_target, tide_offset_m
+
+    prov = store.manifest.get("provenance", {})
+    conversion = store_tide_target(prov.get("tide_system"), tide_system, store.path)
     latitude, longitude, used = export_lattice(store, spacing_deg, region)
     lat2, lon2 = np.meshgrid(latitude, longitude, indexing="ij")
     values, covered = _covered_values(store, lat2, lon2, used)
@@ -135,11 +142,13 @@ def export_grid(store, path, spacing_deg, region=None):
     if not covered.all():
         log.warning("%s: %d of %d nodes lie where the store has no data; written as no data",
                     path, int((~covered).sum()), covered.size)
-    prov = store.manifest.get("provenance", {})
     notes = (
         f"sampled from geoidspline store {store.path} (version {store.manifest.get('store_version')}) "
         f"every {float(spacing_deg):g} degrees over S W N E {used.as_tuple()}",
     )
+    if conversion is not None:
+        values = values + tide_offset_m(lat2, *conversion)
+        notes += (f"converted from {conversion[0]} to {conversion[1]} (Ekman 1989; IERS 2010 §6.2.2)",)
     grid = GeoidGrid(
         latitude, longitude, values,
         Provenance(
@@ -148,8 +157,10 @@ def export_grid(store, path, spacing_deg, region=None):
             model=prov.get("model", "unknown"),
             kind="grid",
             ellipsoid=prov.get("ellipsoid", "WGS84"),
-            tide_system=prov.get("tide_system"),
+            tide_system=conversion[1] if conversion else prov.get("tide_system"),
             zero_degree_term_m=prov.get("zero_degree_term_m"),
+            datum=prov.get("datum"),
+            quantity=prov.get("quantity") or "geoid",
             notes=notes,
         ),
     )

@@ -30,6 +30,15 @@ class Provenance:
     ``zero_degree_term_m`` is the N0 already contained in the values (for NGA's EGM96
     products -0.53 m), ``None`` when unknown. ``tide_system`` is one of
     ``"tide_free"``, ``"zero_tide"``, ``"mean_tide"`` or ``None`` when unknown.
+
+    What the values are, as the file (or the catalogue) states it:
+    ``ellipsoid`` the reference ellipsoid's name; ``datum`` the geographic CRS of the
+    nodes as PROJ understands it (``"EPSG:4267"``, WKT), ``None`` when the file states
+    none (then ``ellipsoid`` alone speaks, and a file that says nothing is taken as on
+    WGS 84); ``quantity`` ``"geoid"`` (undulations N) or ``"quasi-geoid"`` (height
+    anomalies ζ); ``unit`` always ``"metre"`` (readers convert or refuse other units).
+    :func:`geoidspline.sources.reference.conform` applies the one rule for a mismatch
+    with a store.
     """
 
     source: str
@@ -39,6 +48,9 @@ class Provenance:
     ellipsoid: str = "WGS84"
     tide_system: str | None = None
     zero_degree_term_m: float | None = None
+    datum: str | None = None
+    quantity: str = "geoid"
+    unit: str = "metre"
     notes: tuple[str, ...] = field(default_factory=tuple)
 
     def as_dict(self) -> dict:

@@ -1,15 +1,15 @@
 """Readers and writers of geoid grid files.
 
 :func:`read_grid` reads PROJ GTX, CF netCDF, NGA ``WW15MGH.DAC``, GeographicLib PGM, ISG,
-PROJ GeoTIFF and GSI ASCII files into a :class:`~geoidspline.sources.grid.GeoidGrid`
+PROJ GeoTIFF, GSI ASCII and NGS ``.bin`` files into a :class:`~geoidspline.sources.grid.GeoidGrid`
 (latitude ascending, longitude ascending, metres). Every check is strict, and a failure raises
 :class:`~geoidspline.errors.InputFileError` whose message names the file and the rule
 it breaks, e.g. ``"egm.gtx: GTX file is 4152000 bytes, header says 721 x 1440 float32
 nodes need 4153000"``.
 
 The format is decided by the content, never by the name: magic bytes (netCDF/HDF5,
-TIFF, PGM), then a header (ISG keys, a GSI header line, a GTX header that agrees with
-the file size), then size (NGA's DAC). The extension only chooses which format's rule to quote when the content matches
+TIFF, PGM), then a header (ISG keys, a GSI header line, an NGS header plausible in one
+byte order, a GTX header that agrees with the file size), then size (NGA's DAC). The extension only chooses which format's rule to quote when the content matches
 none. A spherical-harmonic model given as a grid is named as such.
 
 :func:`write_gtx` and :func:`write_netcdf` write a grid back (tests, fixtures, export).
@@ -32,6 +32,7 @@ from .grid import GeoidGrid
 from .gsi import looks_like_gsi, read_gsi
 from .gtx import GTX_NODATA, gtx_header, looks_like_gtx, read_gtx, write_gtx
 from .isg import looks_like_isg, read_isg
+from .ngs import looks_like_ngs, ngs_header, read_ngs
 from .netcdf import NETCDF_MAGIC, NETCDF_SUFFIXES, check_netcdf_header, read_netcdf, write_netcdf
 from .pgm import check_pgm_header, looks_like_pgm, pgm_header, read_pgm
 
@@ -74,6 +75,7 @@ GRID_FORMATS = (
     GridFormat("pgm", "GeographicLib PGM", (".pgm",), looks_like_pgm, read_pgm, check_pgm_header),
     GridFormat("isg", "ISG", (".isg",), lambda head, size: looks_like_isg(head), read_isg),
     GridFormat("gsi", "GSI ASCII", (".asc",), lambda head, size: looks_like_gsi(head), read_gsi),
+    GridFormat("ngs", "NGS .bin", (".bin",), looks_like_ngs, read_ngs, ngs_header),
     GridFormat("gtx", "PROJ GTX", (".gtx",), looks_like_gtx, read_gtx, gtx_header),
     GridFormat("dac", "NGA WW15MGH.DAC", (".dac",), looks_like_dac, read_dac, check_dac_size),
 )
@@ -106,14 +108,34 @@ def _unrecognised(path: Path) -> InputFileError:
     return InputFileError(
         path, f"unrecognised grid format: the content matches none of {formats} "
         "(recognised by content: netCDF/HDF5, TIFF and PGM magic bytes, an ISG header, a GSI header line, "
+        "an NGS .bin header that agrees with the file size in one byte order, "
         "a GTX header that agrees with the file size, the exact size of WW15MGH.DAC)",
     )
 
 
+def _choice(path, fmt: GridFormat, band, variable) -> dict:
+    """The band/variable keyword of ``fmt``'s reader, refusing one the format has not."""
+    if band is not None and fmt.name != "geotiff":
+        raise InputFileError(path, f"is a {fmt.label} grid, which has one band: --band applies to GeoTIFF files")
+    if variable is not None and fmt.name != "netcdf":
+        raise InputFileError(path, f"is a {fmt.label} grid, which has no variables: --variable applies to netCDF files")
+    if fmt.name == "geotiff":
+        return {"band": band}
+    if fmt.name == "netcdf":
+        return {"variable": variable}
+    return {}
+
+
 # -- dispatch ------------------------------------------------------------------------
-def read_grid(path, *, complete: bool = False, allow_unknown_copy: bool = False) -> GeoidGrid:
+def read_grid(path, *, complete: bool = False, allow_unknown_copy: bool = False, band: int | None = None,
+              variable: str | None = None) -> GeoidGrid:
     """Read a geoid grid file (PROJ .gtx, CF netCDF, NGA .DAC, GeographicLib .pgm, ISG,
-    PROJ GeoTIFF, GSI ASCII).
+    PROJ GeoTIFF, GSI ASCII, NGS .bin).
+
+    ``band`` (1-based) picks the band of a GeoTIFF with several, ``variable`` the
+    variable of a netCDF file with several candidates; either is refused for a format
+    that has no such choice, and a file with several is refused without it, the
+    message listing the choices.
 
     The format is taken from the content (see the module documentation); the extension
     only picks the rule quoted when the content matches no format. Nodes without data
@@ -143,10 +165,11 @@ def read_grid(path, *, complete: bool = False, allow_unknown_copy: bool = False)
                 raise _unrecognised(path)
         if fmt.check_header is not None:
             fmt.check_header(path, head, size)  # raises before the body is read
+        choice = _choice(path, fmt, band, variable)
         if fmt.by_path:
             sha256 = sha256_file(path)
             check_catalogue_copy(path, sha256, allow_unknown_copy)
-            return fmt.read(path, sha256, complete)
+            return fmt.read(path, sha256, complete, **choice)
         if size > MAX_GRID_FILE_BYTES:
             raise InputFileError(path, f"{fmt.label} file is {size:,} bytes, more than the {MAX_GRID_FILE_BYTES:,} "
                                  "geoidspline reads for a grid")

@@ -27,6 +27,7 @@ import numpy as np
 
 from ..errors import GeoidSplineError, InputFileError
 from .files import finish_grid, provenance_of
+from .reference import crs_datum
 from .grid import GeoidGrid
 
 __all__ = ["GEOTIFF_NODATA", "GTG_TYPE", "looks_like_geotiff", "read_geotiff", "write_geotiff"]
@@ -41,7 +42,9 @@ _METRE_UNITS = {"", "metre", "metres", "meter", "meters", "m"}
 _INSTALL = "pip install 'geoidspline[geotiff]' (or: pip install rasterio)"
 # Vertical CRS of the global models, for GTG's target_crs_epsg_code.
 _VERTICAL_EPSG = {"EGM84": 5798, "EGM96": 5773, "EGM2008": 3855}
-_PROVENANCE_TAGS = ("model", "ellipsoid", "tide_system", "zero_degree_term_m")
+_PROVENANCE_TAGS = ("model", "tide_system", "zero_degree_term_m")
+#: Band descriptions and tags that say the values are height anomalies.
+_QUASI = ("quasi-geoid", "quasi_geoid", "quasigeoid", "height_anomaly", "height anomaly", "zeta")
 #: Largest raster read (2.5e8 nodes, 2 GB as float64; a global 1' grid has 2.3e8),
 #: checked before allocating.
 MAX_RASTER_NODES = 250_000_000
@@ -75,8 +78,12 @@ def _axis(start: float, step: float, count: int, period: float) -> np.ndarray:
     return start + step * np.arange(count)
 
 
-def read_geotiff(path, sha256: str, complete: bool = False) -> GeoidGrid:
-    """Read a GeoTIFF geoid grid (band 1, metres) into a :class:`GeoidGrid`.
+def read_geotiff(path, sha256: str, complete: bool = False, band: int | None = None) -> GeoidGrid:
+    """Read a GeoTIFF geoid grid (one band, metres) into a :class:`GeoidGrid`.
+
+    A file of one band needs no ``band``; a file of several is refused unless ``band``
+    (1-based) names one, the message listing the bands with their descriptions. The
+    file's CRS (GeoKeys/WKT) becomes the provenance's ``datum`` and ``ellipsoid``.
 
     Checks: a plain GeoTIFF (not several subgrids), a geographic CRS in degrees, no
     rotation, a GTG ``TYPE`` (when present) of a geoid model, units metres (or none),
@@ -85,14 +92,28 @@ def read_geotiff(path, sha256: str, complete: bool = False) -> GeoidGrid:
     naming ``path`` and the rule broken.
     """
     try:
-        return _read_geotiff(Path(path), sha256, complete)
+        return _read_geotiff(Path(path), sha256, complete, band)
     except (GeoidSplineError, MemoryError, OSError):
         raise
     except Exception as exc:  # rasterio/GDAL on a damaged file, e.g. UnicodeDecodeError in a tag
         raise InputFileError(path, f"cannot be read as GeoTIFF: {type(exc).__name__}: {exc}") from None
 
 
-def _read_geotiff(path: Path, sha256: str, complete: bool) -> GeoidGrid:
+def _pick_band(path, ds, band: int | None) -> int:
+    """The 1-based band to read: the only one, or the one asked for."""
+    count = ds.count
+    listing = ", ".join(f"{i}" + (f" '{d}'" if d else "") for i, d in enumerate(ds.descriptions, start=1))
+    if band is None:
+        if count == 1:
+            return 1
+        raise InputFileError(path, f"GeoTIFF has {count} bands ({listing}): name the one holding the undulations "
+                             "with --band N (band=N)")
+    if not 1 <= band <= count:
+        raise InputFileError(path, f"--band {band} is not a band of this GeoTIFF; its bands are {listing}")
+    return band
+
+
+def _read_geotiff(path: Path, sha256: str, complete: bool, band: int | None = None) -> GeoidGrid:
     rasterio = _rasterio(path, "reading")
     from rasterio.errors import RasterioError
 
@@ -128,29 +149,33 @@ def _read_geotiff(path: Path, sha256: str, complete: bool) -> GeoidGrid:
             raise InputFileError(
                 path, f"GeoTIFF grid TYPE is {grid_type}; a geoid model is {GTG_TYPE} (geoid undulations)"
             )
-        unit = (ds.units[0] or "").strip()
+        index = _pick_band(path, ds, band)
+        b = index - 1
+        unit = (ds.units[b] or "").strip()
         if unit.lower() not in _METRE_UNITS:
-            raise InputFileError(path, f"GeoTIFF band 1 unit is '{unit}'; geoid undulations must be in metres (metre)")
-        dtype = np.dtype(ds.dtypes[0])
+            raise InputFileError(path, f"GeoTIFF band {index} unit is '{unit}'; geoid undulations must be in metres "
+                                 "(metre)")
+        dtype = np.dtype(ds.dtypes[b])
         if dtype.kind not in "fiu" or dtype.itemsize > 8:
-            raise InputFileError(path, f"GeoTIFF band 1 has data type {dtype}; expected float32/64 or integers")
+            raise InputFileError(path, f"GeoTIFF band {index} has data type {dtype}; expected float32/64 or integers")
         if ds.width * ds.height > MAX_RASTER_NODES:
             raise InputFileError(
                 path, f"GeoTIFF declares {ds.height} x {ds.width} nodes, more than {MAX_RASTER_NODES:,}"
             )
-        raw = ds.read(1)
-        nodata = ds.nodata
-        scale, offset = ds.scales[0], ds.offsets[0]
+        raw = ds.read(index)
+        nodata = ds.nodatavals[b]
+        scale, offset = ds.scales[b], ds.offsets[b]
         pixel_is = tags.get("AREA_OR_POINT", "Area")
-        description = ds.descriptions[0]
-        ellipsoid_name = ds.crs.to_dict().get("ellps") or ds.crs.to_dict().get("datum")
+        description = ds.descriptions[b]
+        band_tags = ds.tags(index)
+        crs_wkt = ds.crs.to_wkt()
         rows, cols = ds.height, ds.width
     values = raw.astype(np.float64)
     missing = np.isnan(values)
     if nodata is not None:
         missing |= np.isnan(values) if np.isnan(nodata) else (raw == np.asarray(nodata).astype(raw.dtype))
     if np.isinf(values).any():
-        raise InputFileError(path, f"GeoTIFF band 1 has {int(np.isinf(values).sum())} infinite values")
+        raise InputFileError(path, f"GeoTIFF band {index} has {int(np.isinf(values).sum())} infinite values")
     values = offset + scale * values
     values[missing] = np.nan
     # GDAL's transform is area-based for both conventions: node (i, j) is the centre of pixel (i, j).
@@ -160,13 +185,15 @@ def _read_geotiff(path: Path, sha256: str, complete: bool) -> GeoidGrid:
     else:  # north row first (GTG): flip to ascending latitude
         lat = _axis(transform.f + transform.e * (rows - 0.5), -transform.e, rows, 180.0)
         values = values[::-1]
-    notes = [f"GeoTIFF, pixel is {pixel_is.lower()} (nodes at pixel centres), band 1"
+    notes = [f"GeoTIFF, pixel is {pixel_is.lower()} (nodes at pixel centres), band {index}"
              + (f" '{description}'" if description else "")]
     if grid_type is None:
-        notes.append("no GTG TYPE in the metadata: band 1 read as geoid undulations")
+        notes.append(f"no GTG TYPE in the metadata: band {index} read as geoid undulations")
     if dtype.kind != "f" or scale != 1.0 or offset != 0.0:
         notes.append(f"{dtype} values with scale {scale:g}, offset {offset:g}")
     known = {key: tags[key] for key in _PROVENANCE_TAGS if tags.get(key)}
+    datum, ellipsoid_name = crs_datum(crs_wkt)
+    quantity = _quantity(tags, band_tags, description)
     try:
         zero = float(known["zero_degree_term_m"]) if "zero_degree_term_m" in known else None
     except ValueError:
@@ -175,7 +202,9 @@ def _read_geotiff(path: Path, sha256: str, complete: bool) -> GeoidGrid:
     prov = provenance_of(
         path, sha256,
         model=known.get("model"),
-        ellipsoid=known.get("ellipsoid") or ("WGS84" if str(ellipsoid_name).upper() in ("WGS84", "WGS 84") else None),
+        ellipsoid=ellipsoid_name,
+        datum=datum,
+        quantity=quantity,
         tide_system=tide if tide in ("tide_free", "zero_tide", "mean_tide") else None,
         zero_degree_term_m=zero,
         notes=tuple(notes),
@@ -183,8 +212,15 @@ def _read_geotiff(path: Path, sha256: str, complete: bool) -> GeoidGrid:
     return finish_grid(path, lat, lon, values, prov, complete=complete)
 
 
+def _quantity(tags: dict, band_tags: dict, description) -> str:
+    """"quasi-geoid" when the metadata (a ``quantity``/``data_type`` tag, the band
+    description) says height anomalies, else "geoid"."""
+    said = [str(t.get(k, "")) for t in (tags, band_tags) for k in ("quantity", "data_type")] + [str(description or "")]
+    return "quasi-geoid" if any(s.strip().lower() in _QUASI for s in said) else "geoid"
+
+
 # -- writer --------------------------------------------------------------------------
-def write_geotiff(path, grid: GeoidGrid, *, crs_epsg: int = 4979, pixel_is: str = "point",
+def write_geotiff(path, grid: GeoidGrid, *, crs_epsg: int | str = 4979, pixel_is: str = "point",
                   nodata: float = GEOTIFF_NODATA, block_size: int = 256) -> Path:
     """Write ``grid`` as a PROJ GeoTIFF grid (GTG): float32 metres, deflate + predictor 3.
 
@@ -209,7 +245,8 @@ def write_geotiff(path, grid: GeoidGrid, *, crs_epsg: int = 4979, pixel_is: str 
     # The area-based transform GDAL expects: the outer corner of the north-west node's pixel.
     transform = Affine(dlon, 0.0, grid.longitude[0] - dlon / 2.0, 0.0, -dlat, grid.latitude[-1] + dlat / 2.0)
     profile = dict(
-        driver="GTiff", width=cols, height=rows, count=1, dtype="float32", crs=CRS.from_epsg(crs_epsg),
+        driver="GTiff", width=cols, height=rows, count=1, dtype="float32",
+        crs=CRS.from_epsg(crs_epsg) if isinstance(crs_epsg, int) else CRS.from_user_input(crs_epsg),
         transform=transform, nodata=nodata, compress="deflate", predictor=3, interleave="band",
         photometric="minisblack", geotiff_version="1.1",
     )
@@ -221,7 +258,7 @@ def write_geotiff(path, grid: GeoidGrid, *, crs_epsg: int = 4979, pixel_is: str 
     tags = dict(TYPE=GTG_TYPE, AREA_OR_POINT="Point" if pixel_is == "point" else "Area",
                 source=prov.source, TIFFTAG_IMAGEDESCRIPTION=(
                     f"Geoid undulation N (metres) of {prov.model}, written by geoidspline from {prov.source}"))
-    for key in _PROVENANCE_TAGS:
+    for key in _PROVENANCE_TAGS + ("quantity",):
         value = getattr(prov, key)
         if value is not None:
             tags[key] = str(value)

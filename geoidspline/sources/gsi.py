@@ -30,6 +30,8 @@ __all__ = ["GSI_NODATA", "looks_like_gsi", "read_gsi", "write_gsi"]
 
 #: GSI's no-data value (metres).
 GSI_NODATA = 999.0
+#: The datum of GSI's geoid grids (GSIGEO2011 is on JGD2011, GRS80): EPSG's JGD2011.
+JGD2011 = "EPSG:6668"
 #: Values per line in GSI's files.
 GSI_VALUES_PER_LINE = 28
 
@@ -103,7 +105,7 @@ def read_gsi(path, data: bytes, sha256: str, complete: bool = False) -> GeoidGri
     name_hint = re.match(r"(gsigeo\d{4}|jpgeo\d{4})", path.name, re.IGNORECASE)  # only a label, never the format
     model = f"{name_hint.group(1).upper()} {label}" if name_hint and name_hint.group(1).upper() not in label.upper() else label
     prov = provenance_of(
-        path, sha256, model=model, ellipsoid="GRS80",
+        path, sha256, model=model, ellipsoid="GRS80", datum=JGD2011,
         notes=(f"GSI ASCII geoid grid, version label {label}, ikind {head['ikind']}",),
     )
     latitude = head["lat0"] + head["dlat"] * np.arange(nlat)

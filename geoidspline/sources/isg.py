@@ -40,6 +40,7 @@ from ..errors import InputFileError
 from ._common import MAX_TEXT_NODES, decimals_tolerance, parse_values, snap_origin, snap_spacing
 from .files import finish_grid, provenance_of
 from .grid import GeoidGrid
+from .reference import crs_datum
 
 __all__ = ["ISG_NODATA", "looks_like_isg", "isg_header", "read_isg", "write_isg"]
 
@@ -308,7 +309,8 @@ def read_isg(path, data: bytes, sha256: str, complete: bool = False) -> GeoidGri
     tide = _optional(fields, "tide system")
     notes = [f"ISG format {header.version}, {lat.registration}-registered"
              + (" (values at cell centres)" if lat.registration == "cell" else "")]
-    if (_optional(fields, "data type") or "geoid").lower() == "quasi-geoid":
+    quantity = (_optional(fields, "data type") or "geoid").lower()
+    if quantity == "quasi-geoid":
         notes.append("ISG data type quasi-geoid: the values are height anomalies (zeta), not geoid undulations N")
     for key in ("model type", "model year", "ref frame", "height datum", "epsg code", "creation date"):
         value = _optional(fields, key)
@@ -316,10 +318,16 @@ def read_isg(path, data: bytes, sha256: str, complete: bool = False) -> GeoidGri
             notes.append(f"ISG {key.replace('epsg', 'EPSG')}: {value}")
     if _optional(fields, "data units", "units") is None:
         notes.append("ISG data units not stated; read as metres")
+    epsg = _optional(fields, "epsg code")
+    datum = None
+    if epsg is not None and re.fullmatch(r"\d+", epsg.strip()):
+        datum, _ = crs_datum(f"EPSG:{epsg.strip()}")
     prov = provenance_of(
         path, sha256,
         model=_optional(fields, "model name"),
         ellipsoid=_optional(fields, "ref ellipsoid", "reference") or "unknown",
+        datum=datum,
+        quantity=quantity,
         tide_system=_TIDE[tide.lower().replace("_", "-").replace(" ", "-")] if tide else None,
         notes=tuple(notes),
     )
@@ -372,7 +380,7 @@ def _exact_lattice(units, texts, grid) -> bool:
     )
 
 
-def write_isg(path, grid: GeoidGrid, *, decimals: int | None = None, data_type: str = "geoid",
+def write_isg(path, grid: GeoidGrid, *, decimals: int | None = None, data_type: str | None = None,
               created: _dt.date | None = None) -> Path:
     """Write ``grid`` as an ISG 2.0 file (node-registered, north row first, metres).
 
@@ -381,9 +389,10 @@ def write_isg(path, grid: GeoidGrid, *, decimals: int | None = None, data_type: 
     six decimals would not read back as the same lattice. Values are written with
     ``decimals`` decimals (ISG's files use 4), or by default with the shortest text that
     reads back bit for bit. NaN (no data) is written as :data:`ISG_NODATA`.
-    ``data_type`` is ``"geoid"`` or ``"quasi-geoid"``.
+    ``data_type`` is ``"geoid"`` or ``"quasi-geoid"`` (default: the grid's quantity).
     """
     path = Path(path)
+    data_type = data_type or grid.provenance.quantity or "geoid"
     if data_type not in ("geoid", "quasi-geoid"):
         raise ValueError(f"data_type must be 'geoid' or 'quasi-geoid', got {data_type!r}")
     units, texts = next((c for c in _coordinate_texts(grid) if _exact_lattice(*c, grid)), (None, None))

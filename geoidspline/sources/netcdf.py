@@ -169,7 +169,6 @@ _LON_UNITS = {"degrees_east", "degree_east", "degrees_e", "degree_e", "degreese"
 _PLAIN_DEGREES = {"degrees", "degree", "deg"}
 
 
-_DATA_NAMES = ("geoid", "undulation", "n", "geoid_height", "z", "geoid_undulation", "geoidheight", "geoid_undulations")
 
 
 _UNIT_FACTORS = {
@@ -225,26 +224,64 @@ def _netcdf_axes(path, ds):
     return tuple(picked)
 
 
-def _netcdf_variable(path, ds, lat_dim, lon_dim, coord_names):
-    """Name of the single undulation variable on (lat_dim, lon_dim), or raise."""
+def _netcdf_variable(path, ds, lat_dim, lon_dim, coord_names, variable=None):
+    """Name of the undulation variable on (lat_dim, lon_dim): the only candidate, or
+    ``variable``; several candidates without ``variable`` are refused, listed (a file
+    with N and its error, or N and ζ, must not be read by guessing from names)."""
     wanted = {lat_dim, lon_dim}
     cands = []
     for name, var in ds.data_vars.items():
         dims = {d for d, n in zip(var.dims, var.shape) if n != 1 or d in wanted}
-        if dims == wanted and str(name) not in coord_names:
+        if dims == wanted and str(name) not in coord_names and "grid_mapping_name" not in var.attrs:
             cands.append(str(name))
+    if variable is not None:
+        if variable not in cands:
+            raise InputFileError(path, f"--variable {variable!r} is not a 2-D data variable on ({lat_dim}, {lon_dim}); "
+                                 f"the candidates are {', '.join(sorted(cands)) or 'none'}")
+        return variable
     if not cands:
         raise InputFileError(path, f"no 2-D data variable on dimensions ({lat_dim}, {lon_dim})")
     if len(cands) == 1:
         return cands[0]
-    named = [c for c in cands if c.lower() in _DATA_NAMES]
-    if len(named) == 1:
-        return named[0]
     raise InputFileError(
         path,
-        f"cannot tell which variable holds the undulations: candidates {', '.join(sorted(cands))} "
-        f"(name one of them {'/'.join(_DATA_NAMES[:5])}, or keep only one)",
+        f"cannot tell which variable holds the undulations: candidates {', '.join(sorted(cands))}; "
+        "name one with --variable NAME (variable=NAME)",
     )
+
+
+#: standard_name / long_name words that mean height anomalies (a quasi-geoid).
+_QUASI = ("height_anomaly", "height anomaly", "quasi-geoid", "quasi_geoid", "quasigeoid", "zeta")
+
+
+def _netcdf_reference(ds, var) -> tuple[str | None, str | None, str]:
+    """(datum, ellipsoid, quantity) from CF: the variable's ``grid_mapping`` (``crs_wkt``,
+    ``spatial_ref``, EPSG code, or its ellipsoid parameters) and the variable's
+    ``standard_name``/``long_name``/``quantity``; the global ``ellipsoid`` attribute
+    (geoidspline's own) when there is no grid mapping."""
+    from .reference import canonical_ellipsoid, crs_datum
+
+    datum = ellipsoid = None
+    mapping = str(var.attrs.get("grid_mapping", "")).split(":")[0].strip()
+    if mapping and mapping in ds.variables:
+        attrs = ds[mapping].attrs
+        text = attrs.get("crs_wkt") or attrs.get("spatial_ref")
+        if not text and attrs.get("epsg_code"):
+            text = str(attrs["epsg_code"])
+        if not text and "semi_major_axis" in attrs and "inverse_flattening" in attrs:
+            text = (f"+proj=longlat +a={float(attrs['semi_major_axis'])!r} +rf={float(attrs['inverse_flattening'])!r}"
+                    " +no_defs")
+        datum, ellipsoid = crs_datum(text) if text else (None, None)
+        if datum is not None and datum.startswith("+proj") or (datum is not None and "unknown" in datum.lower()):
+            datum = None  # an ellipsoid alone: no datum
+        if ellipsoid is None and attrs.get("reference_ellipsoid_name"):
+            ellipsoid = canonical_ellipsoid(attrs["reference_ellipsoid_name"])
+    if ellipsoid is None and "ellipsoid" in ds.attrs:
+        ellipsoid = str(ds.attrs["ellipsoid"])
+    said = [str(var.attrs.get(k, "")).strip().lower() for k in ("standard_name", "quantity", "data_type")]
+    said.append(str(ds.attrs.get("data_type", "")).strip().lower())
+    quantity = "quasi-geoid" if any(s in _QUASI for s in said) else "geoid"
+    return datum, ellipsoid, quantity
 
 
 def _sorted_longitudes(path, lon, values):
@@ -283,7 +320,7 @@ def _undeclared_nodata(raw_var) -> np.ndarray:
     return mask
 
 
-def read_netcdf(path: Path, sha256: str, complete: bool) -> GeoidGrid:
+def read_netcdf(path: Path, sha256: str, complete: bool, variable: str | None = None) -> GeoidGrid:
     import xarray as xr
 
     try:
@@ -293,8 +330,9 @@ def read_netcdf(path: Path, sha256: str, complete: bool) -> GeoidGrid:
         raise InputFileError(path, f"cannot be read as netCDF: {exc}") from None
     with ds, raw_ds:
         lat_name, lat_dim, lon_name, lon_dim = _netcdf_axes(path, ds)
-        var_name = _netcdf_variable(path, ds, lat_dim, lon_dim, {lat_name, lon_name})
+        var_name = _netcdf_variable(path, ds, lat_dim, lon_dim, {lat_name, lon_name}, variable)
         var = ds[var_name]
+        datum, ellipsoid, quantity = _netcdf_reference(ds, var)
         nodes = ds.sizes[lat_dim] * ds.sizes[lon_dim]
         if nodes > MAX_GRID_NODES:
             raise InputFileError(
@@ -336,7 +374,9 @@ def read_netcdf(path: Path, sha256: str, complete: bool) -> GeoidGrid:
     prov = provenance_of(
         path, sha256,
         model=str(attrs["model"]) if "model" in attrs else None,
-        ellipsoid=str(attrs["ellipsoid"]) if "ellipsoid" in attrs else None,
+        ellipsoid=ellipsoid,
+        datum=datum,
+        quantity=quantity,
         tide_system=tide if tide in TIDE_SYSTEMS else None,
         zero_degree_term_m=zero,
         notes=tuple(notes),
@@ -371,6 +411,15 @@ def write_netcdf(path, grid: GeoidGrid) -> Path:
     )
     ds.attrs["Conventions"] = "CF-1.8"
     ds.attrs["source"] = prov.source
+    if prov.quantity == "quasi-geoid":
+        ds["geoid_height"].attrs.update(standard_name="height_anomaly", quantity="quasi-geoid",
+                                        long_name="height anomaly zeta above the reference ellipsoid")
+    if prov.datum is not None:
+        from pyproj import CRS
+
+        ds["crs"] = ((), 0, {"grid_mapping_name": "latitude_longitude",
+                             "crs_wkt": CRS.from_user_input(prov.datum).to_wkt()})
+        ds["geoid_height"].attrs["grid_mapping"] = "crs"
     for key in ("model", "ellipsoid", "tide_system", "zero_degree_term_m", "sha256"):
         value = getattr(prov, key)
         if value is not None:

@@ -25,7 +25,8 @@ from .harmonics.presets import PRESETS, default_preset, store_preset
 __all__ = ["resolve_source", "is_model_file", "open_source", "load_synthesis"]
 
 
-def resolve_source(name_or_path, *, allow_unknown_copy: bool = False) -> GeoidGrid:
+def resolve_source(name_or_path, *, allow_unknown_copy: bool = False, band: int | None = None,
+                   variable: str | None = None) -> GeoidGrid:
     """A grid from an existing file path, or else from a catalogue name.
 
     A catalogue grid must be complete (no NaN nodes), must be one of the catalogue's
@@ -34,11 +35,12 @@ def resolve_source(name_or_path, *, allow_unknown_copy: bool = False) -> GeoidGr
     """
     path = Path(name_or_path).expanduser()
     if path.exists():
-        return read_grid(path, allow_unknown_copy=allow_unknown_copy)
+        return read_grid(path, allow_unknown_copy=allow_unknown_copy, band=band, variable=variable)
     if isinstance(name_or_path, os.PathLike):
         raise InputFileError(path, "no such file")
     entry = get_entry(str(name_or_path))
-    grid = read_grid(find_catalogue_file(entry), complete=True, allow_unknown_copy=allow_unknown_copy)
+    grid = read_grid(find_catalogue_file(entry), complete=True, allow_unknown_copy=allow_unknown_copy, band=band,
+                     variable=variable)
     grid.provenance = dataclasses.replace(
         grid.provenance,
         model=entry.model,
@@ -57,14 +59,18 @@ def is_model_file(path) -> bool:
     return Path(path).is_file() and model_file_kind(path) in ("icgem", "nga")
 
 
-def open_source(name_or_path, correction=None, preset=None, *, allow_unknown_copy: bool = False, max_degree=None):
+def open_source(name_or_path, correction=None, preset=None, *, allow_unknown_copy: bool = False, max_degree=None,
+                band: int | None = None, variable: str | None = None):
     """The source behind a command-line SOURCE: a model (with its optional ζ-to-N
-    correction file and NGA preset) or a grid file / catalogue name."""
+    correction file and NGA preset) or a grid file / catalogue name (``band``/``variable``:
+    the GeoTIFF band or netCDF variable of a file with several)."""
     if correction is not None or max_degree is not None or is_model_file(name_or_path):
+        if band is not None or variable is not None:
+            raise InputFileError(name_or_path, "--band and --variable apply to grid files, not to models")
         return load_synthesis(name_or_path, correction, preset, max_degree=max_degree)
     if preset is not None:
         raise InputFileError(name_or_path, "a preset applies to spherical-harmonic models only")
-    return resolve_source(name_or_path, allow_unknown_copy=allow_unknown_copy)
+    return resolve_source(name_or_path, allow_unknown_copy=allow_unknown_copy, band=band, variable=variable)
 
 
 def _check_is_model(path, label: str) -> None:

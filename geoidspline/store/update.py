@@ -39,6 +39,8 @@ from ..geodesy.ellipsoids import KM_PER_DEGREE
 from ..hierarchy.ambient import AmbientSpline
 from ..hierarchy.overlays import OverlayRefinement
 from ..sources.base import NodeSample
+from ..sources.plausibility import MAX_CHANGE_M, MAX_SLOPE, check_update
+from ..sources.reference import Target, conform
 from ..sphere.coordinates import directions
 from ..sphere.coverage import Coverage
 from ..sphere.region import Region
@@ -161,18 +163,7 @@ def _shrunk(extent: Region, margin_deg: float) -> Region | None:
 
 def _check_compatible(store: TileStore, source, region: Region, blend_width_km: float):
     blend_deg = blend_width_km / KM_PER_DEGREE
-    old = store.manifest["provenance"]
     new = source.provenance
-    if new.ellipsoid and old.get("ellipsoid") and new.ellipsoid != old["ellipsoid"]:
-        raise StoreError(
-            f"{store.path}: the store is on {old['ellipsoid']}, the source {new.source} on {new.ellipsoid}; "
-            "refit the source on the store's ellipsoid first"
-        )
-    if new.tide_system and old.get("tide_system") and new.tide_system != old["tide_system"]:
-        raise StoreError(
-            f"{store.path}: the store is {old['tide_system']}, the source {new.source} is {new.tide_system}; "
-            "convert the source to the store's tide system first"
-        )
     extent = source.extent
     if not region.within(extent):
         raise CoordinateError(
@@ -221,12 +212,20 @@ def _check_writable(root: Path):
 
 
 def update_store(path, source, region: Region, blend_width_km: float = 100.0, executor: Executor | None = None,
-                 tolerance_m: float | None = None, progress=None, wait_seconds: float = 0.0) -> dict:
+                 tolerance_m: float | None = None, progress=None, wait_seconds: float = 0.0, *,
+                 accept_datum: bool = False, accept_quasi_geoid: bool = False,
+                 max_change_m: float | None = MAX_CHANGE_M, max_slope: float | None = MAX_SLOPE) -> dict:
     """Replace the store's geoid inside ``region`` by ``source``; return the update report.
 
     Refused before anything is written when the store is read-only or locked by another
-    writer, when the source's ellipsoid or tide system differs from the store's, or when
-    the region lies outside the source's extent or the store's region. The manifest is
+    writer, when the source's datum, quantity or tide system differs from the store's and
+    no well-defined conversion exists (:func:`~geoidspline.sources.reference.conform`:
+    tide systems and datums PROJ transforms well are converted, and the record's
+    ``source_notes`` say so; ``accept_datum``/``accept_quasi_geoid`` take the values as
+    they are), when the source is implausible against the store
+    (:func:`~geoidspline.sources.plausibility.check_update`: a change beyond
+    ``max_change_m`` or a slope beyond ``max_slope``; None skips), or when the region
+    lies outside the source's extent or the store's region. The manifest is
     read once the writer lock is held, so concurrent updates apply one after the other
     (a second one started meanwhile waits up to ``wait_seconds`` for the first, then is
     refused; it is never lost).
@@ -247,17 +246,21 @@ def update_store(path, source, region: Region, blend_width_km: float = 100.0, ex
         crash_point("after-lock")
         store = TileStore.open(root)  # the manifest as it is now that the lock is held
         state = _manifest_state(root)
+        source, notes = conform(source, Target.of_store(store.manifest, root), accept_datum=accept_datum,
+                                accept_quasi_geoid=accept_quasi_geoid)
         _check_compatible(store, source, region, blend_width_km)
         manifest = store.manifest
+        bounds = {"max_change_m": max_change_m, "max_slope": max_slope}
         with _Attempt(root, manifest["store_version"]) as attempt:
             record, new_manifest = _update(root, store, source, region, blend_width_km, executor, progress, attempt,
-                                          tolerance_m)
+                                          tolerance_m, bounds, notes)
             commit(root, new_manifest, keep_files=[e["file"] for e in manifest["tiles"]], expect_state=state,
                    attempt=attempt)
     return record
 
 
-def _update(root, store, source, region, blend_width_km, executor, progress, attempt, tolerance_m=None):
+def _update(root, store, source, region, blend_width_km, executor, progress, attempt, tolerance_m=None, bounds=None,
+            notes=()):
     """Fit the update and write its tile files; (history record, new manifest)."""
     manifest = store.manifest
     params = _stored_parameters(store)
@@ -274,6 +277,10 @@ def _update(root, store, source, region, blend_width_km, executor, progress, att
     sample = source.nodes(clip_to_extent(zone, source), spacing_deg=params.sample_spacing_deg)
     lat2, lon2 = np.meshgrid(sample.latitude, sample.longitude, indexing="ij")
     old = store.spline.full.undulation(lat2, lon2)  # the spline, covered or not
+    # before anything is fitted or written: is the source a plausible revision of the store?
+    stored = np.where(np.asarray(store.coverage.covers(lat2, lon2), dtype=bool), old, np.nan)
+    plausibility = check_update(source.provenance.source, sample.latitude, sample.longitude, sample.undulation,
+                                stored, **(bounds or {}))
     weight = blend_weight(region, blend_deg, lat2, lon2)
     has_new = np.isfinite(sample.undulation)
     difference = np.where(has_new, sample.undulation - old, np.nan)
@@ -352,7 +359,10 @@ def _update(root, store, source, region, blend_width_km, executor, progress, att
         "rms_error_m": region_stats["rms_error_m"],
         "tolerance_m": params.tolerance_m,
         "converged": converged,
+        "plausibility": plausibility,
     }
+    if notes:
+        record["source_notes"] = list(notes)
     spacing_km = KM_PER_DEGREE * max(_step(sample.latitude), _step(sample.longitude))
     if not converged and blend_width_km < BLEND_NODE_SPACINGS * spacing_km:
         record["hint"] = (f"the blend width ({blend_width_km:g} km) spans fewer than {BLEND_NODE_SPACINGS} node "
