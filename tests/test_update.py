@@ -13,7 +13,7 @@ import pytest
 
 import geoidspline
 from geoidspline.api import build_store
-from geoidspline.errors import CoordinateError, StoreError
+from geoidspline.errors import CoordinateError, InputFileError, StoreError
 from geoidspline.geodesy.ellipsoids import KM_PER_DEGREE
 from geoidspline.fitting.parameters import FitParameters
 from geoidspline.sources.base import Provenance
@@ -229,8 +229,13 @@ def test_manifest_records_the_update(updated):
 
 
 @pytest.mark.parametrize("change, error, match", [
-    (dict(ellipsoid="GRS80"), StoreError, "ellipsoid"),
-    (dict(tide_system="mean_tide"), StoreError, "tide"),
+    # a non-geocentric ellipsoid without a datum: no conversion is defined
+    (dict(ellipsoid="Bessel 1841"), InputFileError, r"on the Bessel 1841 ellipsoid \(no datum stated\), the store .* "
+                                                    r"on WGS84: .*--accept-datum"),
+    # a datum PROJ converts only to metres (NAD27's Helmert, 7 m without NADCON grids) or not at all
+    (dict(datum="EPSG:4267", ellipsoid="Clarke 1866"), InputFileError, r"on NAD27 .*--accept-datum"),
+    (dict(quantity="quasi-geoid"), InputFileError, r"holds height anomalies \(a quasi-geoid\), the store .* geoid "
+                                                   r"undulations N; .*--accept-quasi-geoid"),
 ])
 def test_incompatible_sources_are_refused_before_writing(store, change, error, match):
     before = snapshot(store)

@@ -220,12 +220,12 @@ def _quantity(tags: dict, band_tags: dict, description) -> str:
 
 
 # -- writer --------------------------------------------------------------------------
-def write_geotiff(path, grid: GeoidGrid, *, crs_epsg: int | str = 4979, pixel_is: str = "point",
+def write_geotiff(path, grid: GeoidGrid, *, crs_epsg: int | str | None = None, pixel_is: str = "point",
                   nodata: float = GEOTIFF_NODATA, block_size: int = 256) -> Path:
     """Write ``grid`` as a PROJ GeoTIFF grid (GTG): float32 metres, deflate + predictor 3.
 
-    ``crs_epsg`` is the geographic CRS of the nodes (4979, WGS 84 3D, as GTG geoid
-    models; or 4326); ``pixel_is`` ``"point"`` (GTG's convention: the tie point is the
+    ``crs_epsg`` is the geographic CRS of the nodes (an EPSG code or CRS text; default
+    the grid's ``datum``, else 4979, WGS 84 3D, as GTG geoid models); ``pixel_is`` ``"point"`` (GTG's convention: the tie point is the
     north-west node) or ``"area"`` (the tie point is that node's cell corner). Grids of
     at least ``block_size`` nodes in a direction are tiled, smaller ones are one strip.
     NaN (no data) is written as ``nodata``. PROJ's ``vgridshift`` reads the file, e.g.
@@ -235,6 +235,8 @@ def write_geotiff(path, grid: GeoidGrid, *, crs_epsg: int | str = 4979, pixel_is
     if pixel_is not in ("point", "area"):
         raise ValueError(f"pixel_is must be 'point' or 'area', got {pixel_is!r}")
     rasterio = _rasterio(path, "writing")
+    if crs_epsg is None:
+        crs_epsg = grid.provenance.datum or 4979
     from rasterio.crs import CRS
     from rasterio.errors import RasterioError
     from rasterio.transform import Affine
@@ -247,6 +249,7 @@ def write_geotiff(path, grid: GeoidGrid, *, crs_epsg: int | str = 4979, pixel_is
     profile = dict(
         driver="GTiff", width=cols, height=rows, count=1, dtype="float32",
         crs=CRS.from_epsg(crs_epsg) if isinstance(crs_epsg, int) else CRS.from_user_input(crs_epsg),
+        # the file states the nodes' datum: the grid's own when it has one, else WGS 84 3D (GTG's)
         transform=transform, nodata=nodata, compress="deflate", predictor=3, interleave="band",
         photometric="minisblack", geotiff_version="1.1",
     )

@@ -130,7 +130,7 @@ def _datum_label(datum: str | None, ellipsoid: str | None) -> str:
         from pyproj import CRS
 
         crs = CRS.from_user_input(datum)
-        name = crs.datum.name if crs.datum else crs.name
+        name = crs.name  # "NAD27", "JGD2011": the short name
         return f"{name} ({datum if len(datum) < 20 else 'WKT'}, {crs.ellipsoid.name if crs.ellipsoid else '?'})"
     except Exception:  # a label only
         return datum[:60]
