@@ -121,6 +121,9 @@ def test_a_source_in_another_tide_system_is_converted_and_said():
     assert kept.provenance.tide_system is None and notes == []
     taken, notes = conform(unknown, Target("the store", tide_system="tide_free"))
     assert np.array_equal(taken.values, unknown.values) and "not stated by the source" in notes[0]
+    with pytest.raises(InputFileError, match=r"test: the source states no tide system, so it cannot be converted to "
+                                             r"mean_tide; drop --tide-system"):
+        for_new_store(unknown, tide_system="mean-tide")
 
 
 # -- datums and quantities ---------------------------------------------------------------

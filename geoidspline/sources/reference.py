@@ -209,13 +209,16 @@ def _refuse(source: Provenance, what: str, option: str):
                                         "as they are")
 
 
-def conform(source, target: Target, *, accept_datum: bool = False, accept_quasi_geoid: bool = False):
+def conform(source, target: Target, *, accept_datum: bool = False, accept_quasi_geoid: bool = False,
+            asked_tide: bool = False):
     """``(source, notes)``: ``source`` as ``target`` holds it (the same object when nothing
     differs, else a converted copy) and what was done (also added to its provenance's
     notes, so to the manifest), or :class:`InputFileError` naming both sides and the
     option that accepts the values as they are.
 
-    ``target.tide_system`` None keeps the source's. The order: quantity, datum, tide.
+    ``target.tide_system`` None keeps the source's; a source that states none is taken
+    as in the target's (an update into a store), or refused when the conversion was
+    ``asked_tide`` (``--tide-system``). The order: quantity, datum, tide.
     """
     prov = source.provenance
     notes: list[str] = []
@@ -233,6 +236,9 @@ def conform(source, target: Target, *, accept_datum: bool = False, accept_quasi_
     offset = None
     tide = prov.tide_system
     if target.tide_system is not None and target.tide_system != tide:
+        if tide is None and asked_tide:
+            raise InputFileError(prov.source, f"the source states no tide system, so it cannot be converted to "
+                                              f"{target.tide_system}; drop --tide-system (tide_system=None)")
         if tide is None:
             notes.append(f"tide system not stated by the source: taken as {target.tide_system}, {target.label}'s")
         else:
@@ -261,7 +267,8 @@ def for_new_store(source, *, tide_system: str | None = None, accept_datum: bool 
     quasi-geoid), in ``tide_system`` (None: the source's own)."""
     quantity = source.provenance.quantity if accept_quasi_geoid else "geoid"
     source, notes = conform(source, Target("a new store", "WGS84", None, quantity, parse_tide_system(tide_system)),
-                            accept_datum=accept_datum, accept_quasi_geoid=accept_quasi_geoid)
+                            accept_datum=accept_datum, accept_quasi_geoid=accept_quasi_geoid,
+                            asked_tide=tide_system is not None)
     if quantity == "quasi-geoid":
         notes = notes + ["the store holds height anomalies (a quasi-geoid), as asked (--accept-quasi-geoid)"]
     return source, notes
