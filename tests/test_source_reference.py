@@ -199,6 +199,51 @@ def test_geoid_fit_refuses_a_nad27_geotiff_and_says_what_it_converts(tmp_path):
     assert any("JGD2011" in n for n in prov["notes"])
 
 
+@pytest.mark.parametrize("mapping, expected", [
+    ({"grid_mapping_name": "latitude_longitude", "crs_wkt": "GEOGCRS[broken"}, "PROJ cannot read the CRS"),
+    ({"grid_mapping_name": "latitude_longitude", "crs_wkt": "EPSG:4258"}, None),
+    ({"grid_mapping_name": "latitude_longitude", "semi_major_axis": 6377397.155, "inverse_flattening": 299.1528128},
+     "no datum stated"),
+])
+def test_netcdf_grid_mapping_states_the_datum(tmp_path, mapping, expected):
+    """CF grid_mapping: a CRS PROJ cannot read is refused by name; ETRS89 is converted
+    (PROJ's null transformation, 1 m); Bessel's parameters alone give no datum: refused."""
+    import xarray as xr
+
+    grid = lattice_grid(47, 6, 50, 10, 0.5)
+    ds = xr.Dataset({"N": (("lat", "lon"), grid.values, {"units": "m", "grid_mapping": "crs"}),
+                     "crs": ((), 0, mapping)},
+                    coords={"lat": ("lat", grid.latitude, {"units": "degrees_north"}),
+                            "lon": ("lon", grid.longitude, {"units": "degrees_east"})})
+    path = tmp_path / "mapped.nc"
+    ds.to_netcdf(path, engine="netcdf4")
+    if expected == "PROJ cannot read the CRS":
+        with pytest.raises(InputFileError, match=r"mapped\.nc: grid_mapping variable 'crs': PROJ cannot read the CRS"):
+            read_grid(path)
+        return
+    read = read_grid(path)
+    if expected is None:
+        assert read.provenance.datum == "EPSG:4258"
+        converted, notes = for_new_store(read)
+        assert "converted from ETRS89" in notes[0] and "accuracy 1 m" in notes[0]
+        np.testing.assert_allclose(converted.values, read.values, atol=1e-3)
+    else:
+        assert read.provenance.datum is None and read.provenance.ellipsoid == "Bessel 1841"
+        with pytest.raises(InputFileError, match=expected + r".*--accept-datum"):
+            for_new_store(read)
+
+
+def test_an_isg_epsg_code_proj_does_not_know_is_refused(tmp_path):
+    from geoidspline.sources.isg import write_isg
+
+    path = write_isg(tmp_path / "code.isg", lattice_grid(47, 6, 50, 10, 0.25, ellipsoid="GRS80"))
+    path.write_text(path.read_text().replace("EPSG code      : ---", "EPSG code      : 999999"))
+    with pytest.raises(InputFileError, match=r"code\.isg: ISG EPSG code 999999 is not a CRS PROJ knows"):
+        read_grid(path)
+    path.write_text(path.read_text().replace("EPSG code      : 999999", "EPSG code      : 4258"))
+    assert read_grid(path).provenance.datum == "EPSG:4258"
+
+
 # -- bands and variables -------------------------------------------------------------------
 def test_a_multi_band_geotiff_needs_its_band_named(tmp_path):
     rasterio = pytest.importorskip("rasterio")

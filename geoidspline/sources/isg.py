@@ -321,7 +321,10 @@ def read_isg(path, data: bytes, sha256: str, complete: bool = False) -> GeoidGri
     epsg = _optional(fields, "epsg code")
     datum = None
     if epsg is not None and re.fullmatch(r"\d+", epsg.strip()):
-        datum, _ = crs_datum(f"EPSG:{epsg.strip()}")
+        try:
+            datum, _ = crs_datum(f"EPSG:{epsg.strip()}")
+        except ValueError:
+            raise InputFileError(path, f"ISG EPSG code {epsg} is not a CRS PROJ knows") from None
     prov = provenance_of(
         path, sha256,
         model=_optional(fields, "model name"),

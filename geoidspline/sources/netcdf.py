@@ -254,7 +254,7 @@ def _netcdf_variable(path, ds, lat_dim, lon_dim, coord_names, variable=None):
 _QUASI = ("height_anomaly", "height anomaly", "quasi-geoid", "quasi_geoid", "quasigeoid", "zeta")
 
 
-def _netcdf_reference(ds, var) -> tuple[str | None, str | None, str]:
+def _netcdf_reference(path, ds, var) -> tuple[str | None, str | None, str]:
     """(datum, ellipsoid, quantity) from CF: the variable's ``grid_mapping`` (``crs_wkt``,
     ``spatial_ref``, EPSG code, or its ellipsoid parameters) and the variable's
     ``standard_name``/``long_name``/``quantity``; the global ``ellipsoid`` attribute
@@ -271,7 +271,10 @@ def _netcdf_reference(ds, var) -> tuple[str | None, str | None, str]:
         if not text and "semi_major_axis" in attrs and "inverse_flattening" in attrs:
             text = (f"+proj=longlat +a={float(attrs['semi_major_axis'])!r} +rf={float(attrs['inverse_flattening'])!r}"
                     " +no_defs")
-        datum, ellipsoid = crs_datum(text) if text else (None, None)
+        try:
+            datum, ellipsoid = crs_datum(text) if text else (None, None)
+        except ValueError as exc:
+            raise InputFileError(path, f"grid_mapping variable '{mapping}': {exc}") from None
         if datum is not None and datum.startswith("+proj") or (datum is not None and "unknown" in datum.lower()):
             datum = None  # an ellipsoid alone: no datum
         if ellipsoid is None and attrs.get("reference_ellipsoid_name"):
@@ -332,7 +335,7 @@ def read_netcdf(path: Path, sha256: str, complete: bool, variable: str | None = 
         lat_name, lat_dim, lon_name, lon_dim = _netcdf_axes(path, ds)
         var_name = _netcdf_variable(path, ds, lat_dim, lon_dim, {lat_name, lon_name}, variable)
         var = ds[var_name]
-        datum, ellipsoid, quantity = _netcdf_reference(ds, var)
+        datum, ellipsoid, quantity = _netcdf_reference(path, ds, var)
         nodes = ds.sizes[lat_dim] * ds.sizes[lon_dim]
         if nodes > MAX_GRID_NODES:
             raise InputFileError(

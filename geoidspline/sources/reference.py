@@ -43,8 +43,9 @@ from ..errors import GeoidSplineError, InputFileError, StoreError
 from ..geodesy.ellipsoids import PERMANENT_TIDE, TIDE_SYSTEMS, WGS84
 from .base import NodeSample, Provenance
 
-__all__ = ["TIDE_SYSTEM_NAMES", "Target", "tide_offset_m", "tide_slope_north", "for_new_store", "store_tide_target", "parse_tide_system", "canonical_ellipsoid", "crs_datum", "datum_transformer", "conform",
-           "converted_grid", "QUANTITIES"]
+__all__ = ["TIDE_SYSTEM_NAMES", "QUANTITIES", "Target", "tide_offset_m", "tide_slope_north", "for_new_store",
+           "store_tide_target", "parse_tide_system", "canonical_ellipsoid", "crs_datum", "datum_transformer",
+           "conform", "converted_grid"]
 
 QUANTITIES = ("geoid", "quasi-geoid")
 #: The tide-system names a command accepts: the library's and their hyphenated spellings.
@@ -104,7 +105,8 @@ def tide_offset_m(latitude_deg, source: str, target: str):
 # -- datums ----------------------------------------------------------------------------
 def crs_datum(crs_text) -> tuple[str | None, str | None]:
     """(datum, ellipsoid) of a geographic CRS given as WKT/EPSG/PROJ text: datum as
-    ``"EPSG:xxxx"`` when PROJ knows the code (else the WKT), ellipsoid's one name."""
+    ``"EPSG:xxxx"`` when PROJ knows the code (else the WKT), ellipsoid's one name.
+    Text PROJ cannot read raises ValueError (the reader names its file)."""
     if not crs_text:
         return None, None
     from pyproj import CRS
@@ -112,8 +114,8 @@ def crs_datum(crs_text) -> tuple[str | None, str | None]:
 
     try:
         crs = CRS.from_user_input(crs_text)
-    except CRSError:
-        return str(crs_text), None
+    except CRSError as exc:
+        raise ValueError(f"PROJ cannot read the CRS {str(crs_text)[:60]!r} ({str(exc)[:80]})") from None
     if crs.is_compound:
         crs = crs.sub_crs_list[0]
     if not crs.is_geographic:
