@@ -144,7 +144,8 @@ def main(ctx, source, store_path, update, blend_width, region, tolerance, h0, ma
     info["wall_seconds"] = round(time.perf_counter() - started, 2)
     info["converged"] = bool(result.converged)
     info["choices"] = choice.as_manifest()
-    info["source_notes"] = conversions
+    if conversions:  # what was converted or taken, as the manifest's provenance notes say
+        info["source_notes"] = conversions
     if as_json:
         echo(json.dumps(info, indent=1))
         sys.exit(0 if result.converged else 3)
