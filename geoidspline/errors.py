@@ -12,6 +12,7 @@ __all__ = [
     "CoordinateError",
     "StoreError",
     "StoreCorruptError",
+    "StoreFileMissingError",
     "FitError",
 ]
 
@@ -42,6 +43,11 @@ class StoreError(GeoidSplineError):
 
 class StoreCorruptError(StoreError):
     """A tile store's files disagree with its manifest (missing, truncated or altered)."""
+
+
+class StoreFileMissingError(StoreCorruptError):
+    """A file or directory of a tile store is not there (the reader tells a store
+    rewritten since it was opened from a damaged one by this type)."""
 
 
 class FitError(GeoidSplineError):
