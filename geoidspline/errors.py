@@ -14,6 +14,7 @@ __all__ = [
     "StoreCorruptError",
     "StoreFileMissingError",
     "FitError",
+    "ParameterError",
 ]
 
 
@@ -48,6 +49,11 @@ class StoreCorruptError(StoreError):
 class StoreFileMissingError(StoreCorruptError):
     """A file or directory of a tile store is not there (the reader tells a store
     rewritten since it was opened from a damaged one by this type)."""
+
+
+class ParameterError(GeoidSplineError, ValueError):
+    """An argument of a call is outside what it accepts (an unknown tide system, a
+    degree beyond the model's); the message names the argument and what it takes."""
 
 
 class FitError(GeoidSplineError):

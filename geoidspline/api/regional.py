@@ -1,6 +1,6 @@
 """A regional update of a store: the fit's update strategy inside the store's update transaction.
 
-:func:`update` checks the source against the store, fits Δ with the store's own
+:func:`update_store` checks the source against the store, fits Δ with the store's own
 parameters (:func:`geoidspline.fitting.update.fit_update`) and writes it
 (:func:`geoidspline.store.update.update_transaction`).
 """
