@@ -8,7 +8,7 @@ import time
 
 import click
 
-from geoidspline.sources.reference import TIDE_SYSTEM_NAMES as TIDE_CHOICES
+from geoidspline.api import TIDE_SYSTEM_NAMES
 
 from ._common import command, echo, store_options, user_errors, verbosity_options
 
@@ -22,7 +22,7 @@ log = logging.getLogger("geoidspline.cli")
 @click.option("--spacing", type=float, required=True, help="Node spacing in degrees (latitude and longitude).")
 @click.option("--region", nargs=4, type=float, metavar="S W N E", default=None,
               help="Region in degrees: south west north east [default: the store's region].")
-@click.option("--tide-system", type=click.Choice(TIDE_CHOICES), default=None,
+@click.option("--tide-system", type=click.Choice(TIDE_SYSTEM_NAMES), default=None,
               help="Tide system of the grid written: the store's values are converted to it [default: the store's].")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @verbosity_options
@@ -40,8 +40,7 @@ def main(store_path, out, spacing, region, tide_system, as_json, quiet, verbose)
 
     if store_path is None:
         raise click.UsageError("give --store DIR, the store to export")
-    from geoidspline.query.export import export_grid
-    from geoidspline.sphere.region import Region
+    from geoidspline.api import Region, export_grid
 
     store = geoidspline.open_store(store_path)
     started = time.perf_counter()

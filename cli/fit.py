@@ -3,20 +3,13 @@
 from __future__ import annotations
 
 import json
-import logging
 import sys
-import time
 
 import click
 
-from geoidspline.fitting.parameters import FIT_METHODS, REFINEMENTS, FitParameters
-from geoidspline.sources.harmonics.presets import PRESETS
-from geoidspline.sources.reference import TIDE_SYSTEM_NAMES as TIDE_CHOICES
+from geoidspline.api import FIT_METHODS, PRESETS, REFINEMENTS, TIDE_SYSTEM_NAMES, FitParameters
 
 from ._common import command, echo, store_options, user_errors, verbosity_options
-
-log = logging.getLogger("geoidspline.cli")
-
 
 _DEFAULTS = FitParameters()
 
@@ -69,7 +62,7 @@ _FIT_ONLY = ("h0", "max_level", "order", "method", "refinement", "sample_spacing
               help="The band of a GeoTIFF SOURCE with several (1-based); required for such a file.")
 @click.option("--variable", default=None, metavar="NAME",
               help="The variable of a netCDF SOURCE with several 2-D candidates; required for such a file.")
-@click.option("--tide-system", type=click.Choice(TIDE_CHOICES), default=None,
+@click.option("--tide-system", type=click.Choice(TIDE_SYSTEM_NAMES), default=None,
               help="Tide system of the store: SOURCE is converted to it [default: SOURCE's own].")
 @click.option("--accept-datum", is_flag=True,
               help="Take a SOURCE on another datum that PROJ cannot convert well (e.g. NAD27, Bessel without a "
@@ -90,8 +83,7 @@ def main(ctx, source, store_path, update, blend_width, region, tolerance, h0, ma
     egm96-15, or a spherical-harmonic model (ICGEM .gfc, NGA egm96_to360.ascii[.gz],
     EGM2008_to2190_*) whose synthesis is fitted directly.
     """
-    from geoidspline.api import build_store
-    from geoidspline.sources.resolve import open_source
+    from geoidspline.api import for_terminal, run_fit
 
     if update is not None:
         from click.core import ParameterSource
@@ -117,41 +109,27 @@ def main(ctx, source, store_path, update, blend_width, region, tolerance, h0, ma
     out = store_path
     from click.core import ParameterSource
 
-    from geoidspline.fitting.choose import choose_parameters
-    from geoidspline.fitting.driver import check_method
-    from geoidspline.fitting.executors import Executor
-    from geoidspline.fitting.progress import for_terminal
-    from geoidspline.sphere.region import GLOBAL, Region
-
-    executor = Executor(workers=workers, scheduler=scheduler)
-    fit_region = Region.from_bounds(*region) if region else GLOBAL
-    from geoidspline.sources.reference import for_new_store
-
-    src = open_source(source, correction, preset, band=band, variable=variable)
-    src, conversions = for_new_store(src, tide_system=tide_system, accept_datum=accept_datum,
-                                     accept_quasi_geoid=accept_quasi_geoid)
     options = {"method": method, "refinement": refinement, "order": order, "h0": h0, "max_level": max_level,
                "sample_spacing": sample_spacing, "tolerance": tolerance}
     given = {field: options[name] for name, field in _CHOSEN.items()
              if name != "tolerance" and ctx.get_parameter_source(name) is not ParameterSource.DEFAULT}
-    choice = choose_parameters(src, tolerance, fit_region, given)
-    params = choice.parameters
-    check_method(src, params)
-    log.info("source %s (%s), region %s", src.provenance.source, src.provenance.model, fit_region.as_tuple())
-    started = time.perf_counter()
-    result, info = build_store(src, out, fit_region, params, progress=for_terminal(quiet, verbose),
-                               overwrite=overwrite, executor=executor, extra={"choices": choice.as_manifest()})
-    info["wall_seconds"] = round(time.perf_counter() - started, 2)
+    run = run_fit(source, out, region=region, overwrite=overwrite, workers=workers, scheduler=scheduler,
+                  correction=correction, preset=preset, progress=for_terminal(quiet, verbose), tolerance_m=tolerance,
+                  band=band, variable=variable, tide_system=tide_system, accept_datum=accept_datum,
+                  accept_quasi_geoid=accept_quasi_geoid, **given)
+    result, info, choice, params, src, fit_region = (run.result, run.info, run.choice, run.parameters, run.source,
+                                                     run.region)
+    info["wall_seconds"] = round(run.seconds, 2)
     info["converged"] = bool(result.converged)
     info["choices"] = choice.as_manifest()
-    if conversions:  # what was converted or taken, as the manifest's provenance notes say
-        info["source_notes"] = conversions
+    if run.source_notes:  # what was converted or taken, as the manifest's provenance notes say
+        info["source_notes"] = run.source_notes
     if as_json:
         echo(json.dumps(info, indent=1))
         sys.exit(0 if result.converged else 3)
     echo(f"store      {out}  ({info['tiles']} tiles, {info['bytes']:,} bytes)")
     echo(f"source     {src.provenance.source} ({src.provenance.model})")
-    for note in conversions:
+    for note in run.source_notes:
         echo(f"source     {note}")
     echo(f"region     S {fit_region.south:g}  W {fit_region.west:g}  N {fit_region.north:g}  E {fit_region.east:g}")
     for field in _CHOSEN.values():

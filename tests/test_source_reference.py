@@ -34,7 +34,7 @@ from geoidspline.sources.reference import (  # noqa: E402
     tide_slope_north,
 )
 from geoidspline.sphere.region import Region  # noqa: E402
-from geoidspline.store.update import update_store  # noqa: E402
+from geoidspline.api.regional import update_store  # noqa: E402
 
 EGM96_GTX = Path("/usr/share/proj/egm96_15.gtx")
 PARAMS = FitParameters(h0=0.2, max_level=2, tolerance_m=0.05, tile_size=1.0)
@@ -481,6 +481,6 @@ def test_tide_system_needs_a_store_that_records_its_own(tmp_path):
     assert_user_error(invoke(query_main, ["--store", store, "--tide-system", "mean_tide", 1, 1]),
                       "tide system is unknown", "mean_tide")
     with pytest.raises(StoreError, match="tide system is unknown"):
-        from geoidspline.query.export import export_grid
+        from geoidspline.api.export import export_grid
 
         export_grid(geoidspline.open_store(store), tmp_path / "x.gtx", 0.5, tide_system="mean_tide")

@@ -33,23 +33,21 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import math
-import re
 from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import GeoidSplineError, InputFileError, StoreError
-from ..geodesy.ellipsoids import PERMANENT_TIDE, TIDE_SYSTEMS, WGS84
+from ..errors import InputFileError
+from ..geodesy.ellipsoids import PERMANENT_TIDE
+from ..geodesy.tides import TIDE_SYSTEM_NAMES, parse_tide_system, tide_conversion, tide_offset_m, tide_slope_north
 from .base import NodeSample, Provenance
 
-__all__ = ["TIDE_SYSTEM_NAMES", "QUANTITIES", "Target", "tide_offset_m", "tide_slope_north", "for_new_store",
-           "store_tide_target", "parse_tide_system", "canonical_ellipsoid", "crs_datum", "datum_transformer",
-           "conform", "converted_grid"]
+__all__ = ["QUANTITIES", "Target", "for_new_store", "canonical_ellipsoid", "crs_datum", "datum_transformer",
+           "conform", "converted_grid",
+           # the tide systems' offsets live in geodesy.tides; re-exported for the sources' users
+           "TIDE_SYSTEM_NAMES", "tide_offset_m", "tide_slope_north", "parse_tide_system", "tide_conversion"]
 
 QUANTITIES = ("geoid", "quasi-geoid")
-#: The tide-system names a command accepts: the library's and their hyphenated spellings.
-TIDE_SYSTEM_NAMES = TIDE_SYSTEMS + tuple(t.replace("_", "-") for t in TIDE_SYSTEMS)
 
 # Ellipsoid names as files spell them -> one name each (ISG "ref ellipsoid", netCDF
 # attributes, PROJ's names).
@@ -76,30 +74,6 @@ def canonical_ellipsoid(name) -> str | None:
         return None
     key = " ".join(str(name).replace("_", " ").split()).lower()
     return _ELLIPSOIDS.get(key, _ELLIPSOIDS.get(key.replace(" ", ""), str(name).strip()))
-
-
-# -- tide systems ----------------------------------------------------------------------
-def tide_offset_m(latitude_deg, source: str, target: str):
-    """N_target − N_source (metres) at geodetic latitude φ (degrees), for geoid heights.
-
-    The permanent tide changes C̄20 by ΔC̄20 (:class:`~geoidspline.geodesy.ellipsoids.PermanentTide`,
-    IERS Conventions 2010 §6.2.2: A0H0 = −1.39119e-8, NGA's k20 = 0.3), so N by
-    a·ΔC̄20·P̄20(sin φ) with P̄20 = √5 (3 sin²φ − 1)/2 (Bruns's formula, GM/(aγ) ≈ a):
-
-    - N_mean − N_zero = −0.1984 (3/2 sin²φ − 1/2) m = 9.9 − 29.8 sin²φ cm,
-    - N_zero − N_free = k20 times that, N_mean − N_free = (1 + k20) times that,
-
-    Ekman (1989), Bull. Géod. 63:281-296 (N_mean − N_free = (1 + k)(9.9 − 29.6 sin²φ) cm)
-    and Mäkinen & Ihde (2009), IAG Symposia 133:81-87, to 1 mm. Same numbers as the
-    C̄20 conversion of harmonic models, so a grid and a model convert alike.
-    """
-    for system in (source, target):
-        if system not in TIDE_SYSTEMS:
-            raise ValueError(f"unknown tide system {system!r}; expected one of {', '.join(TIDE_SYSTEMS)}")
-    phi = np.radians(np.asarray(latitude_deg, dtype=np.float64))
-    p20 = math.sqrt(5.0) * (1.5 * np.sin(phi) ** 2 - 0.5)
-    dc20 = PERMANENT_TIDE.c20_offset(target) - PERMANENT_TIDE.c20_offset(source)
-    return WGS84.a * dc20 * p20
 
 
 # -- datums ----------------------------------------------------------------------------
@@ -276,29 +250,6 @@ def for_new_store(source, *, tide_system: str | None = None, accept_datum: bool 
     return source, notes
 
 
-def tide_slope_north(latitude_deg, source: str, target: str):
-    """d(N_target − N_source)/dnorth (metres per metre) at geodetic latitude φ (degrees):
-    the derivative of :func:`tide_offset_m` over the Gaussian mean radius, as
-    :func:`geoidspline.query.derived.deflection` measures slopes."""
-    from ..geodesy.ellipsoids import gaussian_mean_radius
-
-    phi = np.radians(np.asarray(latitude_deg, dtype=np.float64))
-    dc20 = PERMANENT_TIDE.c20_offset(target) - PERMANENT_TIDE.c20_offset(source)
-    return WGS84.a * dc20 * math.sqrt(5.0) * 3.0 * np.sin(phi) * np.cos(phi) / gaussian_mean_radius(latitude_deg)
-
-
-def store_tide_target(store_tide: str | None, tide_system: str | None, what: str):
-    """(store's system, target) for answers asked in ``tide_system``; None when nothing
-    is to convert; refused when the store's system is unknown."""
-    target = parse_tide_system(tide_system)
-    if target is None or target == store_tide:
-        return None
-    if store_tide is None:
-        raise StoreError(f"{what}: the store's tide system is unknown, so it cannot be converted to {target} "
-                         "(--tide-system needs a store that records its own)")
-    return store_tide, target
-
-
 def _quantity_label(quantity: str) -> str:
     return "height anomalies (a quasi-geoid)" if quantity == "quasi-geoid" else "geoid undulations N"
 
@@ -445,11 +396,3 @@ class _Converted:
         return NodeSample(sample.latitude, sample.longitude, values)
 
 
-def parse_tide_system(text: str | None) -> str | None:
-    """``tide-free``/``tide_free``/``tide free`` -> ``tide_free``; None stays None."""
-    if text is None:
-        return None
-    key = re.sub(r"[\s-]+", "_", str(text).strip().lower())
-    if key not in TIDE_SYSTEMS:
-        raise GeoidSplineError(f"unknown tide system {text!r}; expected one of {', '.join(TIDE_SYSTEMS)}")
-    return key

@@ -128,10 +128,10 @@ def export_grid(store, path, spacing_deg, region=None, tide_system=None):
             ) from None
     if not path.parent.is_dir():
         raise InputFileError(path, "the output directory does not exist")
-    from ..sources.reference import store_tide_target, tide_offset_m
+    from ..geodesy.tides import tide_conversion, tide_offset_m
 
     prov = store.manifest.get("provenance", {})
-    conversion = store_tide_target(prov.get("tide_system"), tide_system, store.path)
+    conversion = tide_conversion(prov.get("tide_system"), tide_system, store.path)
     latitude, longitude, used = export_lattice(store, spacing_deg, region)
     lat2, lon2 = np.meshgrid(latitude, longitude, indexing="ij")
     values, covered = _covered_values(store, lat2, lon2, used)
