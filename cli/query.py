@@ -103,11 +103,13 @@ is one ERROR line on stderr, exit 1; a closed pipe (| head) ends quietly.
               help="Output format.")
 @click.option("--precision", type=click.IntRange(0, 15), default=4, show_default=True,
               help="Decimals of metres and arcseconds.")
+@click.option("--tide-system", type=click.Choice(TIDE_SYSTEM_NAMES), default=None,
+              help="Answer in this tide system: converted from the store's (or model's) own [default: its own].")
 @click.argument("coordinates", nargs=-1, type=float, required=False, metavar="[LAT LON]")
 @verbosity_options
 @user_errors
 def main(store_path, model_path, correction_path, preset, input_path, deflection, height_in, height_column,
-         crs, with_error, outside, fmt, precision, coordinates, quiet, verbose):
+         crs, with_error, outside, fmt, precision, tide_system, coordinates, quiet, verbose):
     coordinates = tuple(coordinates) or None
     if (input_path is None) == (coordinates is None):
         raise click.UsageError("give either LAT LON or --input FILE (use '-' for stdin)")
@@ -149,7 +151,7 @@ def main(store_path, model_path, correction_path, preset, input_path, deflection
 
     q = BatchQuery(source, is_store=store_path is not None, deflection=deflection, height_in=height_in,
               height_column=height_column, crs=crs, with_error=with_error, precision=precision, fmt=fmt,
-              outside=outside)
+              outside=outside, tide_system=tide_system)
     if coordinates is not None:
         if len(coordinates) != q.width:
             raise click.UsageError(f"expected {q.width} coordinate values ({q.layout()}), got {len(coordinates)}")
