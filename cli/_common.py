@@ -25,6 +25,7 @@ from geoidspline._memory import pin_mmap_threshold
 
 from geoidspline._version import __version__
 from geoidspline.errors import GeoidSplineError
+from geoidspline.options import RULES, OptionError, check_number
 
 CONTEXT = {"help_option_names": ["-h", "--help"]}
 
@@ -36,6 +37,8 @@ OPTION_NAMES = {
     "blend_width_km": "--blend-width",
     "tolerance_m": "--tolerance",
     "max_level": "--max-level",
+    "wait_seconds": "--wait",
+    "spacing_deg": "--spacing",
 }
 _OPTION_PATTERN = re.compile("|".join(re.escape(k) for k in sorted(OPTION_NAMES, key=len, reverse=True)))
 
@@ -88,6 +91,30 @@ def command(name: str, **kwargs):
     """``click.command`` with the shared class and context settings."""
     return click.command(name=name, cls=GeoidCommand, context_settings={**CONTEXT, **kwargs.pop("context", {})},
                          **kwargs)
+
+
+class Number(click.ParamType):
+    """A numeric option checked by the library's rule for the parameter it sets
+    (:func:`geoidspline.options.check_number`): the same range, the same sentence, as
+    an ``ERROR: Invalid value for '--h0': ...`` usage line (exit 2)."""
+
+    def __init__(self, rule: str):
+        self.rule = rule
+        self.name = "integer" if RULES[rule].integer else "float"
+
+    def convert(self, value, param, ctx):
+        try:
+            return check_number(self.rule, value)
+        except OptionError as exc:
+            self.fail(f"must be {exc.requirement}, got {value!r}", param, ctx)
+
+    def get_metavar(self, param, ctx=None):
+        return "INTEGER" if RULES[self.rule].integer else "FLOAT"
+
+
+#: ``--region S W N E``: latitudes and longitudes by their rules (how the bounds relate
+#: to each other is :class:`geoidspline.sphere.region.Region`'s to say).
+REGION = (Number("latitude_deg"), Number("longitude_deg"), Number("latitude_deg"), Number("longitude_deg"))
 
 
 def version_option(func):

@@ -8,7 +8,7 @@ import time
 
 import click
 
-from ._common import command, echo, store_options, user_errors, verbosity_options
+from ._common import REGION, Number, command, echo, store_options, user_errors, verbosity_options
 
 log = logging.getLogger("geoidspline.cli")
 
@@ -17,8 +17,8 @@ log = logging.getLogger("geoidspline.cli")
 @store_options("Tile store directory (may also be given as the argument STORE).", positional=True)
 @click.option("--out", "out", required=True, type=click.Path(dir_okay=False),
               help="Grid file to write: FILE.gtx (PROJ GTX), FILE.nc (CF netCDF) or FILE.tif (GeoTIFF, needs rasterio).")
-@click.option("--spacing", type=float, required=True, help="Node spacing in degrees (latitude and longitude).")
-@click.option("--region", nargs=4, type=float, metavar="S W N E", default=None,
+@click.option("--spacing", type=Number("spacing_deg"), required=True, help="Node spacing in degrees (latitude and longitude).")
+@click.option("--region", nargs=4, type=REGION, metavar="S W N E", default=None,
               help="Region in degrees: south west north east [default: the store's region].")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @verbosity_options

@@ -12,7 +12,7 @@ import click
 from geoidspline.fitting.parameters import FIT_METHODS, REFINEMENTS, FitParameters
 from geoidspline.sources.harmonics.presets import PRESETS
 
-from ._common import command, echo, store_options, user_errors, verbosity_options
+from ._common import REGION, Number, command, echo, store_options, user_errors, verbosity_options
 
 log = logging.getLogger("geoidspline.cli")
 
@@ -34,17 +34,17 @@ _FIT_ONLY = ("h0", "max_level", "order", "method", "refinement", "sample_spacing
 @store_options("Store directory to write (must not exist unless --overwrite).", aliases=("--out",))
 @click.option("--update", "update", type=click.Path(file_okay=False), default=None, hidden=True,
               help="Old spelling of 'geoid-update SOURCE --store DIR'.")
-@click.option("--blend-width", type=click.FloatRange(min=0.0), default=100.0, show_default=True, hidden=True,
+@click.option("--blend-width", type=Number("blend_width_km"), default=100.0, show_default=True, hidden=True,
               help="With --update: width in km outside --region over which SOURCE fades into the store.")
-@click.option("--region", nargs=4, type=float, metavar="S W N E", default=None,
+@click.option("--region", nargs=4, type=REGION, metavar="S W N E", default=None,
               help="Region in degrees: south west north east (default: global).")
-@click.option("--tolerance", type=click.FloatRange(min=0.0, min_open=True), default=_DEFAULTS.tolerance_m,
+@click.option("--tolerance", type=Number("tolerance_m"), default=_DEFAULTS.tolerance_m,
               show_default=True, help="Largest |error| in metres accepted. The options below that are not "
                                       "given are chosen from it for the fewest coefficients (the summary says why).")
-@click.option("--h0", type=float, default=None, help="Level-0 grid spacing on the unit sphere [default: chosen].")
-@click.option("--max-level", type=int, default=None, help="Finest level (h = h0 / 2**level) [default: chosen].")
-@click.option("--order", type=int, default=None, help="Spline order (4 = cubic, C²) [default: chosen].")
-@click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
+@click.option("--h0", type=Number("h0"), default=None, help="Level-0 grid spacing on the unit sphere [default: chosen].")
+@click.option("--max-level", type=Number("max_level"), default=None, help="Finest level (h = h0 / 2**level) [default: chosen].")
+@click.option("--order", type=Number("order"), default=None, help="Spline order (4 = cubic, C²) [default: chosen].")
+@click.option("--workers", type=Number("workers"), default=1, show_default=True,
               help="Worker processes solving blocks (same coefficients, not stored).")
 @click.option("--scheduler", type=str, default=None, metavar="TEXT",
               help="dask scheduler address, or 'local' for a LocalCluster of --workers processes.")
@@ -52,7 +52,7 @@ _FIT_ONLY = ("h0", "max_level", "order", "method", "refinement", "sample_spacing
               help="NGA zeta-to-N correction coefficients (CORRCOEF) for a model SOURCE.")
 @click.option("--preset", type=click.Choice(PRESETS), default=None,
               help="Synthesis conventions for a model SOURCE [default: chosen from the model].")
-@click.option("--sample-spacing", type=float, default=None,
+@click.option("--sample-spacing", type=Number("sample_spacing_deg"), default=None,
               help="Lattice spacing in degrees at which a model SOURCE is synthesised "
                    "[default: chosen].")
 @click.option("--method", type=click.Choice(FIT_METHODS), default=None,

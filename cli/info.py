@@ -8,7 +8,7 @@ import click
 
 from geoidspline.sources.harmonics.presets import PRESETS
 
-from ._common import command, echo, store_options, user_errors, verbosity_options
+from ._common import Number, command, echo, store_options, user_errors, verbosity_options
 
 
 @command("info")
@@ -22,7 +22,7 @@ from ._common import command, echo, store_options, user_errors, verbosity_option
 @click.option("--preset", type=click.Choice(PRESETS), default=None,
               help="With --check-against: synthesis conventions [default: the store's, when it was fitted from "
                    "MODEL; else nga-f477, nga-hsynth for EGM2008].")
-@click.option("--points", type=click.IntRange(min=1), default=20_000, show_default=True,
+@click.option("--points", type=Number("points"), default=20_000, show_default=True,
               help="With --check-against: random points, uniform in area over the store's region (fixed seed).")
 @click.option("--verify", is_flag=True,
               help="Check every tile's size and sha256 against the manifest; name each missing, truncated or "

@@ -9,7 +9,7 @@ import click
 
 from geoidspline.sources.harmonics.presets import PRESETS
 
-from ._common import command, store_options, user_errors, verbosity_options
+from ._common import REGION, Number, command, store_options, user_errors, verbosity_options
 
 
 @command("plot")
@@ -30,14 +30,14 @@ from ._common import command, store_options, user_errors, verbosity_options
 @click.option("--preset", type=click.Choice(PRESETS), default=None,
               help="With --against MODEL: synthesis conventions [default: the store's, when it was fitted "
                    "from MODEL; else chosen from the model].")
-@click.option("--region", nargs=4, type=float, metavar="S W N E", default=None,
+@click.option("--region", nargs=4, type=REGION, metavar="S W N E", default=None,
               help="Map region in degrees: south west north east [default: the store's region].")
-@click.option("--spacing", type=float, default=None,
+@click.option("--spacing", type=Number("plot_spacing_deg"), default=None,
               help="Pixel size in degrees [default: about as many pixels as the figure shows: 720 along the longer "
                    "side at 150 dpi].")
 @click.option("--contours/--no-contours", default=None,
               help="Labelled contour lines [default: on for maps of N].")
-@click.option("--dpi", type=click.IntRange(min=30, max=1200), default=150, show_default=True,
+@click.option("--dpi", type=Number("dpi"), default=150, show_default=True,
               help="Resolution of a PNG (dots per inch; the figure is about 8 inches wide).")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary (file, region, statistics) as JSON.")
 @verbosity_options

@@ -15,9 +15,10 @@ import click
 
 from geoidspline.sources.harmonics.presets import PRESETS
 
+from geoidspline.options import DECIMAL
 from geoidspline.sphere.region import MAX_ABS_POINT_LONGITUDE_DEG
 
-from ._common import command, echo, output_stream, store_options, user_errors, verbosity_options
+from ._common import Number, command, echo, output_stream, store_options, user_errors, verbosity_options
 
 log = logging.getLogger("geoidspline.cli")
 
@@ -132,8 +133,14 @@ def _unquoted(field):
 
 
 def _number(field):
-    """The float in a (possibly quoted) CSV field; ValueError if it holds none."""
-    return float(_unquoted(field))
+    """The float a (possibly quoted) CSV field spells as a plain ASCII decimal
+    (:data:`geoidspline.options.DECIMAL`: no ``1_000``, no non-ASCII digits, no nan or
+    inf); ValueError for anything else. A decimal beyond float's range is inf (refused
+    as not finite)."""
+    text = _unquoted(field)
+    if not DECIMAL.fullmatch(text):
+        raise ValueError(f"not a plain decimal number: {text!r}")
+    return float(text)
 
 
 #: A column name: a letter or underscore, then letters, digits, underscores, blanks,
@@ -538,7 +545,7 @@ is one ERROR line on stderr, exit 1; a closed pipe (| head) ends quietly.
               help="Append xi_arcsec, eta_arcsec, dNdn_m_per_m, dNde_m_per_m (store only).")
 @click.option("--height-in", type=click.Choice(sorted(HEIGHT_OUTPUT)), default=None,
               help="Convert a height: ellipsoidal h -> orthometric_height_m, orthometric H -> ellipsoidal_height_m.")
-@click.option("--height-column", type=click.IntRange(min=0), default=None,
+@click.option("--height-column", type=Number("height_column"), default=None,
               help="0-based column of the height for --height-in [default: 2, the third column].")
 @click.option("--crs", default=None, metavar="CRS",
               help="Input coordinates are x,y[,z] in this CRS (e.g. EPSG:32633, EPSG:4978); "
@@ -549,9 +556,9 @@ is one ERROR line on stderr, exit 1; a closed pipe (| head) ends quietly.
               help="A point outside the store's coverage: an ERROR row (exit 1), or nan values (exit 0).")
 @click.option("--format", "fmt", type=click.Choice(["csv", "jsonl"]), default="csv", show_default=True,
               help="Output format.")
-@click.option("--precision", type=click.IntRange(0, 15), default=4, show_default=True,
+@click.option("--precision", type=Number("precision"), default=4, show_default=True,
               help="Decimals of metres and arcseconds.")
-@click.argument("coordinates", nargs=-1, type=float, required=False, metavar="[LAT LON]")
+@click.argument("coordinates", nargs=-1, type=Number("coordinate"), required=False, metavar="[LAT LON]")
 @verbosity_options
 @user_errors
 def main(store_path, model_path, correction_path, preset, input_path, deflection, height_in, height_column,

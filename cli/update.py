@@ -10,28 +10,28 @@ import click
 
 from geoidspline.sources.harmonics.presets import PRESETS
 
-from ._common import command, echo, store_options, user_errors, verbosity_options
+from ._common import REGION, Number, command, echo, store_options, user_errors, verbosity_options
 
 
 @command("update")
 @click.argument("source")
 @store_options("The store to update (it must exist; it is changed atomically).")
-@click.option("--region", nargs=4, type=float, metavar="S W N E", required=True,
+@click.option("--region", nargs=4, type=REGION, metavar="S W N E", required=True,
               help="Region in degrees where SOURCE replaces the store's geoid: south west north east.")
-@click.option("--blend-width", type=click.FloatRange(min=0.0), default=100.0, show_default=True,
+@click.option("--blend-width", type=Number("blend_width_km"), default=100.0, show_default=True,
               help="Width in km outside --region over which SOURCE fades into the store; outside it the store "
                    "is unchanged (0: the change stays inside the region, so SOURCE is reached only away from its "
                    "edge).")
-@click.option("--tolerance", type=click.FloatRange(min=0.0, min_open=True), default=None,
+@click.option("--tolerance", type=Number("tolerance_m"), default=None,
               help="Largest |error| in metres accepted inside --region [default: the store's]; the levels "
                    "available stay the store's.")
-@click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
+@click.option("--workers", type=Number("workers"), default=1, show_default=True,
               help="Worker processes solving blocks (same coefficients).")
 @click.option("--correction", type=click.Path(exists=True, dir_okay=False), default=None,
               help="NGA zeta-to-N correction coefficients (CORRCOEF) for a model SOURCE.")
 @click.option("--preset", type=click.Choice(PRESETS), default=None,
               help="Synthesis conventions for a model SOURCE [default: chosen from the model].")
-@click.option("--wait", "wait_seconds", type=click.FloatRange(min=0.0), default=0.0, show_default=True,
+@click.option("--wait", "wait_seconds", type=Number("wait_seconds"), default=0.0, show_default=True,
               metavar="SECONDS", help="Wait this long for another process writing the store, then give up.")
 @click.option("--json", "as_json", is_flag=True, help="Print the update's history record as JSON.")
 @verbosity_options

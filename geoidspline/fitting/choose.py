@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..options import check_number, check_numbers
 from ..sphere.region import GLOBAL, Region
 from .parameters import MIN_H_PER_DATA_SPACING, FitParameters
 
@@ -171,7 +172,9 @@ def choose_parameters(source, tolerance_m: float, region: Region | None = None, 
     as given and the rest chosen around them. Returns a :class:`Choice`.
     """
     region = region or GLOBAL
-    given = dict(given or {})
+    # the user's numbers, before any is used in a formula (geoidspline.options)
+    tolerance_m = check_number("tolerance_m", tolerance_m)
+    given = check_numbers(dict(given or {}))
     everything_given = all(f in given for f in CHOSEN_FIELDS if f not in ("tolerance_m", "refinement"))
     if everything_given:  # the expert's command as before: the tolerance holds at the nodes
         given.setdefault("tolerance_m", tolerance_m)

@@ -87,6 +87,13 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
         raise FitError(str(exc)) from None
     if not np.any(nodes.in_region):
         raise FitError(f"no data nodes inside the region {region.as_tuple()}")
+    if (first_level is None and not base_is_overlay
+            and params.h0 < MIN_H_PER_DATA_SPACING * nodes.spacing_rad):
+        # level 0 finer than the data: its B-splines are not determined between the
+        # nodes, and there are (spacing / h0)² times more of them than nodes to pay for
+        raise FitError(f"h0 {params.h0:.4g} is finer than {MIN_H_PER_DATA_SPACING:g} x the data spacing "
+                       f"({nodes.spacing_rad:.4g} on the unit sphere): give h0 >= "
+                       f"{MIN_H_PER_DATA_SPACING * nodes.spacing_rad:.4g}, or a finer source")
     fallback = None
     if hierarchical:
         from .hierarchical import BasisTooLarge, fit_hierarchical  # §5.3: one basis over all levels

@@ -32,6 +32,7 @@ import numpy as np
 
 from .._files import atomic_path
 from ..errors import CoordinateError, GeoidSplineError, InputFileError
+from ..options import check_number
 from ..sphere.region import Region
 
 __all__ = [
@@ -140,17 +141,18 @@ def _map_extent(store, region, others=()):
     return region, (west, west + region.longitude_span, region.south, region.north)
 
 
+def _pixel_count(low, high, spacing):
+    return max(2, math.ceil((high - low) / spacing - _TOL_DEG))
+
+
 def _pixel_centres(low, high, spacing):
-    count = max(2, math.ceil((high - low) / spacing - _TOL_DEG))
+    count = _pixel_count(low, high, spacing)
     step = (high - low) / count
     return low + step * (np.arange(count) + 0.5)
 
 
 def _check_spacing(spacing):
-    spacing = float(spacing)
-    if not (math.isfinite(spacing) and spacing > 0.0):
-        raise CoordinateError(f"spacing must be a positive number of degrees, got {spacing}")
-    return spacing
+    return check_number("spacing_deg", spacing)
 
 
 def _raster(extent, spacing, cells=DEFAULT_PIXELS):
@@ -159,10 +161,8 @@ def _raster(extent, spacing, cells=DEFAULT_PIXELS):
     along the longer side)."""
     west, east, south, north = extent
     spacing = max(east - west, north - south) / cells if spacing is None else _check_spacing(spacing)
-    latitude = _pixel_centres(south, north, spacing)
-    longitude = _pixel_centres(west, east, spacing)
-    _check_size(latitude.size, longitude.size, spacing)
-    return latitude, longitude
+    _check_size(_pixel_count(south, north, spacing), _pixel_count(west, east, spacing), spacing)  # before allocating
+    return _pixel_centres(south, north, spacing), _pixel_centres(west, east, spacing)
 
 
 def _check_size(nlat, nlon, spacing):

@@ -36,6 +36,7 @@ from ..fitting.driver import clip_to_extent, fit_nodes
 from ..fitting.executors import Executor
 from ..fitting.parameters import FitParameters, finest_level
 from ..geodesy.ellipsoids import KM_PER_DEGREE
+from ..options import check_number
 from ..hierarchy.ambient import AmbientSpline
 from ..hierarchy.overlays import OverlayRefinement
 from ..sources.base import NodeSample
@@ -239,8 +240,9 @@ def update_store(path, source, region: Region, blend_width_km: float = 100.0, ex
     source's node spacing determines them.
     """
     root = Path(path)
-    if not blend_width_km >= 0.0:
-        raise StoreError(f"blend width must be a non-negative number of km, got {blend_width_km}")
+    blend_width_km = check_number("blend_width_km", blend_width_km)
+    tolerance_m = check_number("tolerance_m", tolerance_m, rule="update_tolerance_m")
+    wait_seconds = check_number("wait_seconds", wait_seconds)
     load_manifest(root)  # a store, before a lock file is created in it
     _check_writable(root)
     with StoreLock(root, wait_seconds):
