@@ -65,12 +65,14 @@ _FIT_ONLY = ("h0", "max_level", "order", "method", "refinement", "sample_spacing
                    "squares, or with --method interpolation its quasi-interpolant for a model SOURCE) "
                    "[default: chosen: hierarchical for least squares, overlays after quasi-interpolation].")
 @click.option("--overwrite", is_flag=True, help="Replace an existing store at --store.")
+@click.option("--sign", "sign", type=click.Path(dir_okay=False), default=None, metavar="KEYFILE",
+              help="Sign the store's manifest with this Ed25519 private key (PEM; see geoid-info --generate-key).")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @verbosity_options
 @user_errors
 @click.pass_context
 def main(ctx, source, store_path, update, blend_width, region, tolerance, h0, max_level, order, workers, scheduler,
-         correction, preset, sample_spacing, method, refinement, overwrite, as_json, quiet, verbose):
+         correction, preset, sample_spacing, method, refinement, overwrite, sign, as_json, quiet, verbose):
     """Fit SOURCE into ambient B-spline tiles stored at --store.
 
     SOURCE is a grid file (.gtx, .nc, WW15MGH.DAC, .pgm), a catalogue name such as
@@ -93,11 +95,15 @@ def main(ctx, source, store_path, update, blend_width, region, tolerance, h0, ma
         from .update import run_update
 
         return run_update(source, update, region, blend_width, workers, correction, preset, as_json, quiet,
-                          tolerance if ctx.get_parameter_source("tolerance") is not ParameterSource.DEFAULT else None)
+                          tolerance if ctx.get_parameter_source("tolerance") is not ParameterSource.DEFAULT else None,
+                          sign=sign)
     if store_path is None:
         raise click.UsageError("give --store DIR, the store to write (or use geoid-update for a regional update)")
-    out = store_path
     from click.core import ParameterSource
+
+    if ctx.get_parameter_source("blend_width") is not ParameterSource.DEFAULT:
+        raise click.UsageError("--blend-width goes with --update (a new fit has no blend zone)")
+    out = store_path
 
     from geoidspline.fitting.choose import choose_parameters
     from geoidspline.fitting.driver import check_method
@@ -118,7 +124,8 @@ def main(ctx, source, store_path, update, blend_width, region, tolerance, h0, ma
     log.info("source %s (%s), region %s", src.provenance.source, src.provenance.model, fit_region.as_tuple())
     started = time.perf_counter()
     result, info = build_store(src, out, fit_region, params, progress=for_terminal(quiet, verbose),
-                               overwrite=overwrite, executor=executor, extra={"choices": choice.as_manifest()})
+                               overwrite=overwrite, executor=executor, extra={"choices": choice.as_manifest()},
+                               sign=sign)
     info["wall_seconds"] = round(time.perf_counter() - started, 2)
     info["converged"] = bool(result.converged)
     info["choices"] = choice.as_manifest()

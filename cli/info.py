@@ -28,45 +28,76 @@ from ._common import Number, command, echo, store_options, user_errors, verbosit
               help="Check every tile's size and sha256 against the manifest; name each missing, truncated or "
                    "altered tile and exit 1 if there is any.")
 @click.option("--upgrade", is_flag=True,
-              help="Rewrite a format-1 store in format 2 (compact tiles), atomically, then describe it.")
+              help="Rewrite a format-1 store in format 2 (compact tiles), atomically, then describe it "
+                   "(with --verify: upgrade first, then verify the upgraded store).")
+@click.option("--key", "key", type=click.Path(dir_okay=False), default=None, metavar="PUBKEY",
+              help="Refuse the store unless this Ed25519 public key (PEM) signed it; with --verify, a missing or "
+                   "wrong signature is a problem like an altered tile.")
+@click.option("--generate-key", "generate_key", type=click.Path(dir_okay=False), default=None, metavar="KEYFILE",
+              help="Write a new Ed25519 key pair for --sign: KEYFILE (private, mode 0600) and KEYFILE's .pub.pem "
+                   "(public); no store is read.")
 @verbosity_options
 @user_errors
-def main(store_path, as_json, model_path, correction_path, preset, points, verify, quiet, verbose, upgrade):
+@click.pass_context
+def main(ctx, store_path, as_json, model_path, correction_path, preset, points, verify, quiet, verbose, upgrade, key,
+         generate_key):
     """Summary of the tile store at --store (a directory written by geoid-fit).
 
     With --check-against MODEL: max, RMS and 99th percentile of |store - model| at
     --points random points uniform in area over the store's region (seed fixed, so
     repeatable; random points are not the fit's lattice nodes).
+
+    Several actions run in this order: --upgrade, then --verify (of the store as it now
+    is; problems end the command, exit 1), then the summary (with --check-against). With
+    --verify alone only the verification is printed.
     """
+    import sys
+
+    from click.core import ParameterSource
+
     import geoidspline
 
+    if generate_key is not None:
+        if store_path is not None or verify or upgrade or model_path is not None or key is not None:
+            raise click.UsageError("--generate-key writes a key pair and reads no store: give it alone")
+        from geoidspline.store.signing import generate_key as make_key, key_fingerprint
+
+        private, public = make_key(generate_key)
+        echo(f"wrote {private} (private: keep it secret) and {public} (public: give it to users), "
+             f"key {key_fingerprint(private)}")
+        return
     if store_path is None:
         raise click.UsageError("give --store DIR, the store to describe")
     if model_path is None and (correction_path is not None or preset is not None):
         raise click.UsageError("--correction and --preset go with --check-against")
-    if verify:
-        import sys
-
-        from geoidspline.store.reader import verify_store
-
-        problems = verify_store(store_path)
-        if as_json:
-            echo(json.dumps({"store": str(store_path), "ok": not problems, "problems": problems}, indent=1))
-        else:
-            for problem in problems:
-                echo(f"ERROR: {problem}")
-            if not problems:
-                echo(f"{store_path}: every tile matches the manifest")
-        sys.exit(1 if problems else 0)
+    if model_path is None and ctx.get_parameter_source("points") is not ParameterSource.DEFAULT:
+        raise click.UsageError("--points goes with --check-against")
+    upgraded = None
     if upgrade:
         from geoidspline.store.upgrade import upgrade_store
 
-        record = upgrade_store(store_path)
+        upgraded = upgrade_store(store_path)
         if not as_json:
-            click.echo(f"{store_path}: format {record['from_format']} -> {record['to_format']}, tiles "
-                       f"{record['tile_bytes_before']:,} -> {record['tile_bytes_after']:,} bytes, value step "
-                       f"{record['value_step_m']:g} m (bound {record['value_error_bound_m']:g} m)")
-    store = geoidspline.open_store(store_path)
+            click.echo(f"{store_path}: format {upgraded['from_format']} -> {upgraded['to_format']}, tiles "
+                       f"{upgraded['tile_bytes_before']:,} -> {upgraded['tile_bytes_after']:,} bytes, value step "
+                       f"{upgraded['value_step_m']:g} m (bound {upgraded['value_error_bound_m']:g} m)")
+    if verify:
+        from geoidspline.store.reader import verify_store
+
+        problems = verify_store(store_path, key=key)
+        summary_too = model_path is not None
+        if as_json and (problems or not summary_too):
+            echo(json.dumps({"store": str(store_path), "ok": not problems, "problems": problems,
+                             **({"upgrade": upgraded} if upgraded else {})}, indent=1))
+        elif not as_json:
+            for problem in problems:
+                echo(f"ERROR: {problem}")
+            if not problems:
+                signed = " and is signed by that key" if key is not None else ""
+                echo(f"{store_path}: every tile matches the manifest{signed}")
+        if problems or not summary_too:
+            sys.exit(1 if problems else 0)
+    store = geoidspline.open_store(store_path, key=key)
     info = store.info()
     if model_path is not None:
         from geoidspline.query.validation import check_against
@@ -74,11 +105,18 @@ def main(store_path, as_json, model_path, correction_path, preset, points, verif
 
         synthesis = load_synthesis(model_path, correction_path, preset, like_store=store)
         info["check_against"] = check_against(store, synthesis, points)
+    if upgraded and as_json:
+        info["upgrade"] = upgraded
+    if verify and as_json:
+        info["verify"] = {"ok": True, "problems": []}
     if as_json:
         echo(json.dumps(info, indent=1))
         return
     prov = info["provenance"]
     echo(f"store        {info['store']} (format {info['format_version']}, version {info['store_version']})")
+    if info["signature"]:
+        checked = "checked with the key given" if key is not None else "not checked: give --key PUBKEY"
+        echo(f"signature    {info['signature']} ({checked})")
     echo(f"source       {prov['source']} sha256 {str(prov['sha256'])[:16]}...")
     echo(f"model        {prov['model']}, ellipsoid {prov['ellipsoid']}, tide system {prov['tide_system']}, "
                f"zero-degree term {prov['zero_degree_term_m']} m")

@@ -533,6 +533,8 @@ is one ERROR line on stderr, exit 1; a closed pipe (| head) ends quietly.
 
 @command("query", help=HELP, context={"ignore_unknown_options": True})
 @store_options("Tile store directory.")
+@click.option("--key", "key", type=click.Path(dir_okay=False), default=None, metavar="PUBKEY",
+              help="Refuse the store unless this Ed25519 public key (PEM) signed it (see geoid-info --key).")
 @click.option("--model", "model_path", type=click.Path(), default=None,
               help="Spherical-harmonic model file (instead of --store): exact synthesis at each point.")
 @click.option("--correction", "correction_path", type=click.Path(), default=None,
@@ -561,7 +563,7 @@ is one ERROR line on stderr, exit 1; a closed pipe (| head) ends quietly.
 @click.argument("coordinates", nargs=-1, type=Number("coordinate"), required=False, metavar="[LAT LON]")
 @verbosity_options
 @user_errors
-def main(store_path, model_path, correction_path, preset, input_path, deflection, height_in, height_column,
+def main(store_path, key, model_path, correction_path, preset, input_path, deflection, height_in, height_column,
          crs, with_error, outside, fmt, precision, coordinates, quiet, verbose):
     coordinates = tuple(coordinates) or None
     if (input_path is None) == (coordinates is None):
@@ -570,6 +572,8 @@ def main(store_path, model_path, correction_path, preset, input_path, deflection
         raise click.UsageError("give either --store DIR or --model FILE")
     if model_path is None and (correction_path is not None or preset is not None):
         raise click.UsageError("--correction and --preset go with --model")
+    if key is not None and store_path is None:
+        raise click.UsageError("--key goes with --store (a model file is not signed)")
     if model_path is not None and (deflection or with_error):
         raise click.UsageError("--deflection and --with-error need a --store (a model has no tiles or gradient here)")
     if height_column is not None and height_in is None:
@@ -593,7 +597,7 @@ def main(store_path, model_path, correction_path, preset, input_path, deflection
     if store_path is not None:
         import geoidspline
 
-        source = geoidspline.open_store(store_path)
+        source = geoidspline.open_store(store_path, key=key)
     else:
         from geoidspline.sources.resolve import load_synthesis
 

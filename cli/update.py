@@ -33,11 +33,13 @@ from ._common import REGION, Number, command, echo, store_options, user_errors, 
               help="Synthesis conventions for a model SOURCE [default: chosen from the model].")
 @click.option("--wait", "wait_seconds", type=Number("wait_seconds"), default=0.0, show_default=True,
               metavar="SECONDS", help="Wait this long for another process writing the store, then give up.")
+@click.option("--sign", "sign", type=click.Path(dir_okay=False), default=None, metavar="KEYFILE",
+              help="Sign the updated store's manifest with this Ed25519 private key (PEM; see geoid-info --generate-key).")
 @click.option("--json", "as_json", is_flag=True, help="Print the update's history record as JSON.")
 @verbosity_options
 @user_errors
-def main(source, store_path, region, blend_width, tolerance, workers, correction, preset, wait_seconds, as_json, quiet,
-         verbose):
+def main(source, store_path, region, blend_width, tolerance, workers, correction, preset, wait_seconds, sign, as_json,
+         quiet, verbose):
     """Replace the geoid of the store at --store by SOURCE inside --region.
 
     The update fits overlays to w·(N_new − N_store) with the store's own parameters (w
@@ -55,11 +57,11 @@ def main(source, store_path, region, blend_width, tolerance, workers, correction
     if store_path is None:
         raise click.UsageError("give --store DIR, the store to update")
     run_update(source, store_path, region, blend_width, workers, correction, preset, as_json, quiet, tolerance,
-               wait_seconds)
+               wait_seconds, sign)
 
 
 def run_update(source, store, region, blend_width, workers, correction, preset, as_json, quiet, tolerance=None,
-               wait_seconds=0.0):
+               wait_seconds=0.0, sign=None):
     from geoidspline.fitting.executors import Executor
     from geoidspline.sources.resolve import open_source
     from geoidspline.sphere.region import Region
@@ -70,7 +72,8 @@ def run_update(source, store, region, blend_width, workers, correction, preset, 
     src = open_source(source, correction, preset)
     started = time.perf_counter()
     record = update_store(store, src, Region.from_bounds(*region), blend_width_km=blend_width,
-                          executor=Executor(workers=workers), tolerance_m=tolerance, wait_seconds=wait_seconds)
+                          executor=Executor(workers=workers), tolerance_m=tolerance, wait_seconds=wait_seconds,
+                          sign=sign)
     record["wall_seconds"] = round(time.perf_counter() - started, 2)
     if as_json:
         echo(json.dumps(record, indent=1))
@@ -87,6 +90,8 @@ def run_update(source, store, region, blend_width, workers, correction, preset, 
         echo(f"tolerance  {record['tolerance_m']:g} m NOT reached inside the region")
         if record.get("hint"):
             echo(f"hint       {record['hint']}")
+    if record.get("signed_by"):
+        echo(f"signed     by key {record['signed_by']}")
     echo(f"time       {record['wall_seconds']:.1f} s")
     if not record["converged"]:
         sys.exit(3)

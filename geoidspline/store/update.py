@@ -22,6 +22,7 @@ version's tile files are kept for readers that opened it, until the next write.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import os
 from pathlib import Path
@@ -47,6 +48,7 @@ from .codec import node_safe_step
 from .coverage import coverage_record
 from .format import FORMAT_VERSION, MANIFEST, TILE_DIR, error_stats, load_manifest, utc_now
 from .reader import TileStore
+from .signing import key_fingerprint, load_private_key, signature_name
 from .writer import (
     StoreLock,
     _Attempt,
@@ -62,6 +64,9 @@ from .writer import (
 )
 
 __all__ = ["update_store", "blend_weight", "fade_into_no_data"]
+
+log = logging.getLogger("geoidspline.store")
+
 
 #: Node spacings of the new source a blend zone should span: Δ falls from the new
 #: values to 0 within it on B-splines the data determine.
@@ -222,7 +227,7 @@ def _check_writable(root: Path):
 
 
 def update_store(path, source, region: Region, blend_width_km: float = 100.0, executor: Executor | None = None,
-                 tolerance_m: float | None = None, progress=None, wait_seconds: float = 0.0) -> dict:
+                 tolerance_m: float | None = None, progress=None, wait_seconds: float = 0.0, sign=None) -> dict:
     """Replace the store's geoid inside ``region`` by ``source``; return the update report.
 
     Refused before anything is written when the store is read-only or locked by another
@@ -238,8 +243,15 @@ def update_store(path, source, region: Region, blend_width_km: float = 100.0, ex
     ``tolerance_m`` (metres), when given, is this update's tolerance instead of the
     store's. The update may add levels finer than the store's, as far as the new
     source's node spacing determines them.
+
+    ``sign``: an Ed25519 private key (object or PEM file) that signs the new manifest
+    (:mod:`geoidspline.store.signing`). The signer vouches for the whole store, so a
+    store whose current version is signed must be signed by the same key (checked
+    before the update); an unsigned update of a signed store leaves it unsigned, with a
+    warning.
     """
     root = Path(path)
+    signing_key = load_private_key(sign) if sign is not None else None  # a bad key before any work
     blend_width_km = check_number("blend_width_km", blend_width_km)
     tolerance_m = check_number("tolerance_m", tolerance_m, rule="update_tolerance_m")
     wait_seconds = check_number("wait_seconds", wait_seconds)
@@ -247,15 +259,23 @@ def update_store(path, source, region: Region, blend_width_km: float = 100.0, ex
     _check_writable(root)
     with StoreLock(root, wait_seconds):
         crash_point("after-lock")
-        store = TileStore.open(root)  # the manifest as it is now that the lock is held
+        version = load_manifest(root)["store_version"]
+        signed = (root / signature_name(version)).exists()
+        # the manifest as it is now that the lock is held (and, to be signed again, as signed)
+        store = TileStore.open(root, key=signing_key.public_key() if signing_key and signed else None)
         state = _manifest_state(root)
+        if signed and signing_key is None:
+            log.warning("%s: store version %d is signed (%s); this update is not, so the store will not be: "
+                        "sign it with the key (sign=KEY, geoid-update --sign KEY)", root, version,
+                        signature_name(version))
         _check_compatible(store, source, region, blend_width_km)
         manifest = store.manifest
         with _Attempt(root, manifest["store_version"]) as attempt:
             record, new_manifest = _update(root, store, source, region, blend_width_km, executor, progress, attempt,
                                           tolerance_m)
             commit(root, new_manifest, keep_files=[e["file"] for e in manifest["tiles"]], expect_state=state,
-                   attempt=attempt)
+                   attempt=attempt, signing_key=signing_key)
+    record["signed_by"] = key_fingerprint(signing_key) if signing_key is not None else None
     return record
 
 

@@ -48,6 +48,7 @@ from .format import (
     MANIFEST,
     MANIFEST_TMP,
     MARKER,
+    SIGNATURE_NAME,
     TILE_DIR,
     error_stats,
     is_store_file,
@@ -57,6 +58,7 @@ from .format import (
     utc_now,
     write_tile_file,
 )
+from .signing import load_private_key, signature_name, write_signature
 
 if TYPE_CHECKING:  # annotations only
     from ..fitting.check_points import CheckPoints
@@ -450,13 +452,18 @@ def _write_all(fd, data: bytes):
 
 
 def commit(root: Path, manifest: dict, keep_files=(), expect_state: str | None = None,
-           attempt: _Attempt | None = None):
+           attempt: _Attempt | None = None, signing_key=None):
     """Make ``manifest`` the store's state in one atomic rename, then remove tile files
     that neither it nor ``keep_files`` (the previous version's, for readers that
     opened it just before) name. Only names the store format owns are removed.
 
     ``expect_state`` is :func:`_manifest_state` as the writer read it under the lock:
     a manifest changed since (a writer that ignored the lock) is never overwritten.
+
+    ``signing_key`` (an Ed25519 private key, :mod:`~geoidspline.store.signing`): the
+    signature of the new manifest's bytes is written and flushed under its version's
+    own name before the rename, and the previous version's removed only after it, so a
+    crash leaves each manifest with its own signature (or none, if it had none).
     """
     fsync_dir(root / TILE_DIR)
     crash_point("before-manifest")
@@ -468,9 +475,18 @@ def commit(root: Path, manifest: dict, keep_files=(), expect_state: str | None =
         attempt.writing(tmp)
         attempt.created.append(tmp)
     tmp.unlink(missing_ok=True)  # a killed writer's; never followed if a symlink
+    text = manifest_text(manifest)
+    signature = signature_name(manifest["store_version"])
+    if signing_key is not None:
+        if attempt is not None:
+            attempt.writing(root / signature)
+            attempt.created.append(root / signature)
+        write_signature(root, text, manifest["store_version"], signing_key)
+        fsync_dir(root)
+        crash_point("signature-written")
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
     try:
-        _write_all(fd, manifest_text(manifest))
+        _write_all(fd, text)
         os.fsync(fd)
     finally:
         os.close(fd)
@@ -484,14 +500,16 @@ def commit(root: Path, manifest: dict, keep_files=(), expect_state: str | None =
     try:
         ours, _ = scan_directory(root)
         for rel in ours:
-            if rel.startswith(f"{TILE_DIR}/") and rel not in live:
+            stale_signature = SIGNATURE_NAME.fullmatch(rel) and (signing_key is None or rel != signature)
+            if (rel.startswith(f"{TILE_DIR}/") and rel not in live) or stale_signature:
                 (root / rel).unlink(missing_ok=True)
     except OSError as exc:  # committed already: stale files are removed by the next write
         log.warning("%s: stale tile files not removed (%s)", root, fault_cause(exc))
 
 
 def write_store(path, result, provenance, check: CheckPoints | None = None,
-                overwrite=False, extra=None, format_version=FORMAT_VERSION, value_step_m=None) -> Path:
+                overwrite=False, extra=None, format_version=FORMAT_VERSION, value_step_m=None,
+                sign=None) -> Path:
     """Write a fit (:class:`geoidspline.fitting.driver.FitResult`) as a tile store at ``path``.
 
     An existing store is refused unless ``overwrite``; even then its files stay valid
@@ -504,8 +522,11 @@ def write_store(path, result, provenance, check: CheckPoints | None = None,
     spline still meets the tolerance asked for at every node); the node and check-point
     errors in the manifest are those of the stored (quantised) spline (``accuracy.
     fit_node_max_error_m`` keeps the fit's), each within ``value_error_bound_m`` of the fit's.
+    ``sign``: an Ed25519 private key (object or PEM file) that signs the manifest
+    (:mod:`geoidspline.store.signing`).
     """
     root = Path(path)
+    signing_key = load_private_key(sign) if sign is not None else None  # a bad key before any work
     _previous_store(root, overwrite)  # refuse before writing anything
     _create_store_directory(root)
     with StoreLock(root):
@@ -517,7 +538,7 @@ def write_store(path, result, provenance, check: CheckPoints | None = None,
             manifest = _fit_manifest(root, result, provenance, check, previous, version, extra, attempt,
                                      format_version, value_step_m)
             keep = [e["file"] for e in previous["tiles"]] if previous else []
-            commit(root, manifest, keep, expect_state=state, attempt=attempt)
+            commit(root, manifest, keep, expect_state=state, attempt=attempt, signing_key=signing_key)
     return root
 
 
