@@ -18,6 +18,7 @@ import logging
 import os
 import re
 import sys
+import warnings
 
 import click
 
@@ -131,12 +132,27 @@ def verbosity_options(func):
     def wrapper(*args, verbose, quiet, **kwargs):
         level = logging.ERROR if quiet else (logging.WARNING, logging.INFO, logging.DEBUG)[min(verbose, 2)]
         logging.basicConfig(level=level, stream=sys.stderr, format="%(levelname)s: %(message)s", force=True)
+        warnings.showwarning = _warning_as_log_line
         # a command owns its process: freed arrays go back to the system (the library
         # itself leaves the process's allocator alone; see geoidspline._memory)
         pin_mmap_threshold()
         return func(*args, quiet=quiet, verbose=verbose, **kwargs)
 
     return version_option(wrapper)
+
+
+def _warning_as_log_line(message, category, filename, lineno, file=None, line=None):
+    """geoidspline's own warnings (a tide system corrected from C̄20, say) as one
+    ``WARNING: ...`` line through logging, like every other statement on stderr (``-q``
+    silences it); the library also records them in the provenance notes. Other
+    packages' warnings keep Python's own format."""
+    if issubclass(category, Warning) and category.__module__.startswith("geoidspline"):
+        logging.getLogger("geoidspline").warning("%s", message)
+    else:
+        _python_showwarning(message, category, filename, lineno, file, line)
+
+
+_python_showwarning = warnings.showwarning
 
 
 def store_options(help_text: str, *, positional: bool = False, aliases=()):

@@ -13,6 +13,7 @@ __all__ = [
     "StoreError",
     "StoreCorruptError",
     "FitError",
+    "ExportError",
 ]
 
 
@@ -46,3 +47,8 @@ class StoreCorruptError(StoreError):
 
 class FitError(GeoidSplineError):
     """A fit cannot be set up with the given data and parameters."""
+
+
+class ExportError(GeoidSplineError):
+    """A grid export cannot be written (a full disk, a read-only file system, ...); the
+    message names the file and the cause, and no partial file is left."""

@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 
 log = logging.getLogger(__name__)
-from ..errors import CoordinateError, GeoidSplineError, InputFileError
+from .._files import fault_cause
+from ..errors import CoordinateError, ExportError, GeoidSplineError, InputFileError
 from ..options import check_number
 from ..sphere.region import Region
 
@@ -165,11 +166,12 @@ def export_grid(store, path, spacing_deg, region=None):
         finite = values[np.isfinite(values)]
         if finite.size and np.abs(finite).max() >= 1000.0:
             log.warning("%s: values beyond ±1000 m, which PROJ treats as no data in GTX grids", path)
-        write_gtx(path, grid)
-    elif suffix == ".nc":
-        write_netcdf(path, grid)
-    else:
-        _write_geotiff(path, grid)
+    writer = {".gtx": write_gtx, ".nc": write_netcdf}.get(suffix, _write_geotiff)
+    try:
+        writer(path, grid)  # atomic: the partial file is removed on a fault
+    except (OSError, RuntimeError) as exc:  # the cause behind it (geoidspline._files.write_fault)
+        raise ExportError(f"{path}: cannot write the {EXPORT_FORMATS[suffix]} export: {fault_cause(exc)}; "
+                          f"nothing was written there") from None
     return grid
 
 

@@ -33,7 +33,7 @@ from ..bspline.domain import supports_inside
 from ..bspline.keys import unpack_keys
 from ..bspline.level import add_levels
 from ..errors import CoordinateError, FitError, StoreCorruptError, StoreError
-from ..fitting.driver import clip_to_extent, fit_nodes
+from ..fitting.driver import clip_to_extent, finer_data_hint, fit_nodes
 from ..fitting.executors import Executor
 from ..fitting.parameters import FitParameters, finest_level
 from ..geodesy.ellipsoids import KM_PER_DEGREE
@@ -311,7 +311,7 @@ def _update(root, store, source, region, blend_width_km, executor, progress, att
         raise FitError(str(exc)) from None
     delta = fit_nodes(NodeSample(sample.latitude, sample.longitude, residual), zone, params,
                       refinement=_ResidualRefinement(params.refine_radius, zone), progress=progress, executor=executor,
-                      base_is_overlay=True)
+                      base_is_overlay=True, finer_hint=finer_data_hint(source))
     merged = _merge(store.spline, delta.spline)
     format_version, encoding = tile_encoding(manifest)  # the store's own tile format and step
     inside = region.contains(lat2, lon2) & has_new

@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .._files import fsync_dir, sha256_file
+from .._files import fault_cause, fsync_dir, sha256_file, write_fault
 from .._version import __version__
 from ..bspline import keys as _keys
 from ..bspline.level import cube_of_support_centres
@@ -87,25 +87,6 @@ def crash_point(name):
 
 # -- faults ---------------------------------------------------------------------------
 
-_CAUSES = {
-    errno.ENOSPC: "no space left on the device (disk full)",
-    errno.EDQUOT: "disk quota exceeded",
-    errno.EROFS: "read-only file system",
-    errno.EACCES: "permission denied",
-    errno.EPERM: "operation not permitted",
-    errno.EIO: "input/output error",
-    errno.EFBIG: "file too large for the file system",
-}
-
-
-def fault_cause(exc: BaseException) -> str:
-    """What went wrong, in words, for an I/O fault (errno first, never a guess)."""
-    if isinstance(exc, OSError) and exc.errno is not None:
-        return _CAUSES.get(exc.errno, exc.strerror or str(exc))
-    if isinstance(exc, MemoryError):
-        return "out of memory"
-    return str(exc) or type(exc).__name__
-
 
 class _Attempt:
     """The files one write creates; on an I/O fault they are removed again and the fault
@@ -137,30 +118,11 @@ class _Attempt:
         raise StoreError(f"{self.current}: cannot write the store {self.root}: {fault_cause(exc)}; {kept}") from None
 
 
-def _netcdf_fault(directory: Path, exc: Exception) -> BaseException:
-    """netCDF/HDF5 report a failed write as 'NetCDF: HDF error', or as 'Permission
-    denied' on a full disk: find the cause from the file system while the partial file
-    still exists."""
-    if isinstance(exc, OSError) and exc.errno not in (errno.EACCES, errno.EPERM, None):
-        return exc  # a cause the library did name
-    try:
-        st = os.statvfs(directory)
-    except OSError:
-        return exc
-    if st.f_flag & os.ST_RDONLY:
-        return OSError(errno.EROFS, f"Read-only file system ({exc})")
-    if isinstance(exc, OSError) and not os.access(directory, os.W_OK):
-        return exc  # really no permission
-    if st.f_bavail * st.f_frsize < (1 << 20) or (st.f_files and st.f_favail == 0):
-        return OSError(errno.ENOSPC, f"No space left on device ({exc}; {st.f_bavail * st.f_frsize} bytes free)")
-    return exc
-
-
 def _write_tile(path: Path, tile, levels, indices, values, attrs, format_version=FORMAT_VERSION):
     try:
         write_tile_file(path, tile, levels, indices, values, attrs, format_version)
     except (RuntimeError, OSError) as exc:
-        raise _netcdf_fault(path.parent, exc) from None
+        raise write_fault(path.parent, exc) from None
 
 
 # -- the lock -------------------------------------------------------------------------
