@@ -181,6 +181,7 @@ def load_signed_manifest(root, key) -> dict:
     """The store's manifest, read and checked as :func:`~geoidspline.store.format.load_manifest`
     does, and refused (:class:`SignatureError`) unless ``key`` signed its exact bytes."""
     root = Path(root)
+    key = load_public_key(key)  # a bad key file is named before the store is read
     for attempt in range(3):
         data = read_manifest_bytes(root)
         manifest = parse_manifest(root / MANIFEST, data)
