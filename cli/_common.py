@@ -22,11 +22,8 @@ import warnings
 
 import click
 
-from geoidspline._memory import pin_mmap_threshold
-
-from geoidspline._version import __version__
+from geoidspline.api import RULES, OptionError, __version__, check_number, pin_mmap_threshold
 from geoidspline.errors import GeoidSplineError
-from geoidspline.options import RULES, OptionError, check_number
 
 CONTEXT = {"help_option_names": ["-h", "--help"]}
 

@@ -6,7 +6,7 @@ import json
 
 import click
 
-from geoidspline.sources.harmonics.presets import PRESETS
+from geoidspline.api import PRESETS
 
 from ._common import Number, command, echo, store_options, user_errors, verbosity_options
 
@@ -60,7 +60,8 @@ def main(ctx, store_path, as_json, model_path, correction_path, preset, points, 
     if generate_key is not None:
         if store_path is not None or verify or upgrade or model_path is not None or key is not None:
             raise click.UsageError("--generate-key writes a key pair and reads no store: give it alone")
-        from geoidspline.store.signing import generate_key as make_key, key_fingerprint
+        from geoidspline.api import generate_key as make_key
+        from geoidspline.api import key_fingerprint
 
         private, public = make_key(generate_key)
         echo(f"wrote {private} (private: keep it secret) and {public} (public: give it to users), "
@@ -74,7 +75,7 @@ def main(ctx, store_path, as_json, model_path, correction_path, preset, points, 
         raise click.UsageError("--points goes with --check-against")
     upgraded = None
     if upgrade:
-        from geoidspline.store.upgrade import upgrade_store
+        from geoidspline.api import upgrade_store
 
         upgraded = upgrade_store(store_path)
         if not as_json:
@@ -82,7 +83,7 @@ def main(ctx, store_path, as_json, model_path, correction_path, preset, points, 
                        f"{upgraded['tile_bytes_before']:,} -> {upgraded['tile_bytes_after']:,} bytes, value step "
                        f"{upgraded['value_step_m']:g} m (bound {upgraded['value_error_bound_m']:g} m)")
     if verify:
-        from geoidspline.store.reader import verify_store
+        from geoidspline.api import verify_store
 
         problems = verify_store(store_path, key=key)
         summary_too = model_path is not None
@@ -100,8 +101,7 @@ def main(ctx, store_path, as_json, model_path, correction_path, preset, points, 
     store = geoidspline.open_store(store_path, key=key)
     info = store.info()
     if model_path is not None:
-        from geoidspline.query.validation import check_against
-        from geoidspline.sources.resolve import load_synthesis
+        from geoidspline.api import check_against, load_synthesis
 
         synthesis = load_synthesis(model_path, correction_path, preset, like_store=store)
         info["check_against"] = check_against(store, synthesis, points)

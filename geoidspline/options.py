@@ -20,12 +20,12 @@ import numbers
 import re
 from dataclasses import dataclass
 
-from .errors import GeoidSplineError
+from .errors import ParameterError
 
 __all__ = ["DECIMAL", "NumberRule", "OptionError", "RULES", "check_number", "check_numbers", "parse_decimal"]
 
 
-class OptionError(GeoidSplineError, ValueError):
+class OptionError(ParameterError):
     """A numeric parameter that is not a finite number in its range.
 
     ``name`` is the Python parameter, ``requirement`` the rule in words ("a finite

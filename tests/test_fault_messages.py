@@ -20,7 +20,7 @@ from geoidspline.cli import export, fit, info, query
 from geoidspline.errors import ExportError
 from geoidspline.fitting.driver import finer_data_hint
 from geoidspline.fitting.parameters import FitParameters
-from geoidspline.query.export import export_grid
+from geoidspline.api.export import export_grid
 from geoidspline.sphere.region import Region
 from geoidspline.store.writer import write_store
 

@@ -65,7 +65,7 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
               force_tiles=False, base_is_overlay=False, first_level=None,
               executor: Executor | None = None, interpolant=None, started=None,
               finer_hint: str = "finer data are needed for a finer level") -> FitResult:
-    """Fit the nodes of a :class:`~geoidspline.sources.NodeSample` over ``region``.
+    """Fit the nodes of a :class:`~geoidspline.sphere.sample.NodeSample` over ``region``.
 
     ``sample`` must cover the region plus the support margin of level 0 (see
     :func:`fit_source`, which asks the source for exactly that). ``progress``: a
