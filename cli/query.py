@@ -105,7 +105,7 @@ is one ERROR line on stderr, exit 1; a closed pipe (| head) ends quietly.
               help="Output format.")
 @click.option("--precision", type=Number("precision"), default=4, show_default=True,
               help="Decimals of metres and arcseconds.")
-@click.argument("coordinates", nargs=-1, type=Number("coordinate"), required=False, metavar="[LAT LON]")
+@click.argument("coordinates", nargs=-1, type=str, required=False, metavar="[LAT LON]")
 @verbosity_options
 @user_errors
 def main(store_path, key, model_path, correction_path, preset, input_path, deflection, height_in, height_column,

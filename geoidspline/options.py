@@ -147,9 +147,6 @@ RULES: dict[str, NumberRule] = {
     # say how the bounds relate to each other)
     "latitude_deg": NumberRule(-90.0, 90.0, "degrees"),
     "longitude_deg": NumberRule(-540.0, 540.0, "degrees"),
-    # a point typed on geoid-query's command line: degrees, or metres in a --crs (the
-    # row's own rules then apply, as to a CSV row)
-    "coordinate": NumberRule(-1e12, 1e12),
 }
 
 def check_number(name: str, value, rule: str | None = None):

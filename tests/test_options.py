@@ -127,10 +127,12 @@ def test_region_bounds_are_refused_with_their_range_or_go_on(tmp_path, command, 
     assert ("Invalid value for '--region'" in errors[0]) == (not keeps_rule(text, rule)), errors[0]
 
 
-@pytest.mark.parametrize("text, exit_code", [("10", 1), ("nan", 2), ("1_0", 2), ("\u0661\u0660", 2), ("inf", 2)])
-def test_a_point_on_the_command_line_is_a_plain_decimal(tmp_path, text, exit_code):
-    result, errors = run(query.main, ["--store", str(tmp_path / "nostore"), text, "20"])
-    assert result.exit_code == exit_code and len(errors) == 1
+@pytest.mark.parametrize("text, words", [("nan", "finite"), ("1_0", "not numbers"), ("\u0661\u0660", "not numbers"),
+                                         ("inf", "finite"), ("-Infinity", "finite"), ("1e999", "finite")])
+def test_a_point_on_the_command_line_is_a_plain_decimal(small_store, text, words):
+    """One point on the command line follows a CSV row's rules: one ERROR line, exit 1."""
+    result, errors = run(query.main, ["--store", str(small_store.path), text, "30"])
+    assert result.exit_code == 1 and len(errors) == 1 and words in errors[0], errors
 
 
 # -- the same rules in Python -----------------------------------------------------------
