@@ -188,3 +188,14 @@ def test_a_copied_store_keeps_its_signature(signed_store, keys, tmp_path):
     """What travels (a directory copy, a Docker layer) verifies where it arrives."""
     copy = shutil.copytree(signed_store, tmp_path / "arrived")
     assert geoidspline.open_store(copy, key=keys["agency"][1]).manifest["store_version"] == 1
+
+
+def test_an_upgrade_says_the_signature_is_gone(small_store, keys, tmp_path, caplog):
+    from geoidspline.store.upgrade import upgrade_store
+
+    path = tmp_path / "old"
+    writer.write_store(path, small_store.result, small_store.grid.provenance, format_version=1, sign=keys["agency"][0])
+    geoidspline.open_store(path, key=keys["agency"][1])
+    upgrade_store(path)
+    assert "was signed; the upgraded store is not" in caplog.text
+    assert not list(path.glob("*.sig"))
