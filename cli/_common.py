@@ -110,9 +110,9 @@ class Number(click.ParamType):
         return "INTEGER" if RULES[self.rule].integer else "FLOAT"
 
 
-#: ``--region S W N E``: latitudes and longitudes by their rules (how the bounds relate
-#: to each other is :class:`geoidspline.sphere.region.Region`'s to say).
-REGION = (Number("latitude_deg"), Number("longitude_deg"), Number("latitude_deg"), Number("longitude_deg"))
+#: ``--region S W N E``: four plain finite numbers (what they make together is
+#: :class:`geoidspline.sphere.region.Region`'s to say, exit 1 naming the bound).
+REGION = (Number("region_bound_deg"),) * 4
 
 
 def version_option(func):

@@ -110,6 +110,9 @@ is one ERROR line on stderr, exit 1; a closed pipe (| head) ends quietly.
 @user_errors
 def main(store_path, key, model_path, correction_path, preset, input_path, deflection, height_in, height_column,
          crs, with_error, outside, fmt, precision, coordinates, quiet, verbose):
+    unknown = [c for c in coordinates if c.startswith("--")]  # a coordinate is never spelled so
+    if unknown:
+        raise click.UsageError(f"No such option: {unknown[0]}")
     coordinates = tuple(coordinates) or None
     if (input_path is None) == (coordinates is None):
         raise click.UsageError("give either LAT LON or --input FILE (use '-' for stdin)")

@@ -142,11 +142,12 @@ RULES: dict[str, NumberRule] = {
     "dpi": NumberRule(30, 1200, "dots per inch", integer=True),
     # geoid-query
     "precision": NumberRule(0, 15, "decimals", integer=True),
-    "height_column": NumberRule(0, 10_000, "(0-based column)", integer=True, optional=True),
-    # regions and points (the region's own rules, :class:`~geoidspline.sphere.region.Region`,
-    # say how the bounds relate to each other)
-    "latitude_deg": NumberRule(-90.0, 90.0, "degrees"),
-    "longitude_deg": NumberRule(-540.0, 540.0, "degrees"),
+    # a far column is a row's error ("expected at least N columns"), not the option's
+    "height_column": NumberRule(0, 2**53, "(0-based column)", integer=True, optional=True),
+    # a region's bound: a plain finite number here; the region's own rules
+    # (:class:`~geoidspline.sphere.region.Region`: latitudes within ±90, longitudes within
+    # ±540, at most one turn) then say what is wrong with the bounds together
+    "region_bound_deg": NumberRule(-1e6, 1e6, "degrees"),
 }
 
 def check_number(name: str, value, rule: str | None = None):

@@ -227,13 +227,17 @@ def test_fit_not_converged_exits_3(synthetic_gtx, tmp_path):
 
 
 @pytest.mark.parametrize(
-    "args, words",
-    [(["--h0", "0.9"], "h0"), (["--region", "30", "20", "10", "40"], "south"), (["--order", "1"], "order")],
+    "args, words, code",
+    # a number outside its option's range is a usage error (exit 2, geoidspline.options);
+    # bounds that do not make a region are the region's error (exit 1)
+    [(["--h0", "0.9"], "'--h0': must be a finite number in [0.0001, 0.5]", 2),
+     (["--region", "30", "20", "10", "40"], "south", 1),
+     (["--order", "1"], "'--order': must be a whole number in [2, 8]", 2)],
     ids=["h0", "region", "order"],
 )
-def test_fit_bad_parameters_are_user_errors(synthetic_gtx, tmp_path, args, words):
+def test_fit_bad_parameters_are_user_errors(synthetic_gtx, tmp_path, args, words, code):
     result = invoke(fit_main, [synthetic_gtx, "--out", tmp_path / "store", *args, "-q"])
-    assert_user_error(result)
+    assert_user_error(result, code)
     assert words in result.stderr
     assert not (tmp_path / "store" / "manifest.json").exists()
 

@@ -19,7 +19,7 @@ matplotlib = pytest.importorskip("matplotlib", reason="geoid-plot needs matplotl
 import geoidspline  # noqa: E402
 from geoidspline.api import build_store
 from geoidspline.cli.plot import main as plot_main  # noqa: E402
-from geoidspline.errors import CoordinateError, GeoidSplineError, InputFileError  # noqa: E402
+from geoidspline.errors import CoordinateError, GeoidSplineError, InputFileError, ParameterError  # noqa: E402
 from geoidspline.fitting.parameters import FitParameters
 from geoidspline.sources.grid import GeoidGrid
 from geoidspline.store.error_bound import tile_error_bound
@@ -153,7 +153,7 @@ def test_map_extent_is_the_region_and_the_title_names_the_source(bump_store, sto
 def test_a_map_outside_the_store_region_is_refused(store):
     with pytest.raises(CoordinateError, match="not inside the region"):
         gplot.undulation_map(store, region=(0.0, 4.0, 18.0, 28.0))
-    with pytest.raises(CoordinateError, match="positive"):
+    with pytest.raises(ParameterError, match=r"spacing_deg must be a finite number in \[1e-06, 180\]"):
         gplot.undulation_map(store, spacing=0.0)
 
 
