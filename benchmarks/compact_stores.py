@@ -9,7 +9,7 @@ bytes (manifest plus tiles), bytes per coefficient, the step and its stated boun
 largest |error| at the fit's nodes of what the store holds (read back from the store
 and evaluated at every node, independently of the manifest's figures), and for a model
 the errors at 20,000 random points against the exact synthesis
-(:func:`geoidspline.query.validation.check_against`, seed 1, as ``geoid-info
+(:func:`geoidspline.api.validation.check_against`, seed 1, as ``geoid-info
 --check-against``). One JSON row per scenario goes to ``results/compact.jsonl``.
 Run it under the shared lock: the 2 mm fit needs about 3 GB.
 """
@@ -42,7 +42,7 @@ SCENARIOS = {
 
 
 def _store_figures(path: Path, result, synthesis) -> dict:
-    from geoidspline.query.validation import check_against
+    from geoidspline.api.validation import check_against
     from geoidspline.store.reader import TileStore
 
     store = TileStore.open(path, lazy=False)

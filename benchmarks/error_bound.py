@@ -40,7 +40,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import git_commit, machine_info  # noqa: E402
 
 import geoidspline  # noqa: E402
-from geoidspline.query import derived  # noqa: E402
+from geoidspline.store import error_bound as derived  # noqa: E402
 from geoidspline.sphere.coordinates import directions  # noqa: E402
 from geoidspline.sphere.region import Region  # noqa: E402
 

@@ -21,9 +21,7 @@ import sys
 
 import click
 
-from geoidspline._memory import pin_mmap_threshold
-
-from geoidspline._version import __version__
+from geoidspline.api import __version__, pin_mmap_threshold
 from geoidspline.errors import GeoidSplineError
 
 CONTEXT = {"help_option_names": ["-h", "--help"]}

@@ -36,8 +36,7 @@ def main(store_path, out, spacing, region, as_json, quiet, verbose):
 
     if store_path is None:
         raise click.UsageError("give --store DIR, the store to export")
-    from geoidspline.query.export import export_grid
-    from geoidspline.sphere.region import Region
+    from geoidspline.api import Region, export_grid
 
     store = geoidspline.open_store(store_path)
     started = time.perf_counter()

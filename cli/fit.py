@@ -3,19 +3,13 @@
 from __future__ import annotations
 
 import json
-import logging
 import sys
-import time
 
 import click
 
-from geoidspline.fitting.parameters import FIT_METHODS, REFINEMENTS, FitParameters
-from geoidspline.sources.harmonics.presets import PRESETS
+from geoidspline.api import FIT_METHODS, PRESETS, REFINEMENTS, FitParameters
 
 from ._common import command, echo, store_options, user_errors, verbosity_options
-
-log = logging.getLogger("geoidspline.cli")
-
 
 _DEFAULTS = FitParameters()
 
@@ -77,8 +71,7 @@ def main(ctx, source, store_path, update, blend_width, region, tolerance, h0, ma
     egm96-15, or a spherical-harmonic model (ICGEM .gfc, NGA egm96_to360.ascii[.gz],
     EGM2008_to2190_*) whose synthesis is fitted directly.
     """
-    from geoidspline.api import build_store
-    from geoidspline.sources.resolve import open_source
+    from geoidspline.api import for_terminal, run_fit
 
     if update is not None:
         from click.core import ParameterSource
@@ -99,27 +92,16 @@ def main(ctx, source, store_path, update, blend_width, region, tolerance, h0, ma
     out = store_path
     from click.core import ParameterSource
 
-    from geoidspline.fitting.choose import choose_parameters
-    from geoidspline.fitting.driver import check_method
-    from geoidspline.fitting.executors import Executor
-    from geoidspline.fitting.progress import for_terminal
-    from geoidspline.sphere.region import GLOBAL, Region
-
-    executor = Executor(workers=workers, scheduler=scheduler)
-    fit_region = Region.from_bounds(*region) if region else GLOBAL
-    src = open_source(source, correction, preset)
     options = {"method": method, "refinement": refinement, "order": order, "h0": h0, "max_level": max_level,
                "sample_spacing": sample_spacing, "tolerance": tolerance}
     given = {field: options[name] for name, field in _CHOSEN.items()
              if name != "tolerance" and ctx.get_parameter_source(name) is not ParameterSource.DEFAULT}
-    choice = choose_parameters(src, tolerance, fit_region, given)
-    params = choice.parameters
-    check_method(src, params)
-    log.info("source %s (%s), region %s", src.provenance.source, src.provenance.model, fit_region.as_tuple())
-    started = time.perf_counter()
-    result, info = build_store(src, out, fit_region, params, progress=for_terminal(quiet, verbose),
-                               overwrite=overwrite, executor=executor, extra={"choices": choice.as_manifest()})
-    info["wall_seconds"] = round(time.perf_counter() - started, 2)
+    run = run_fit(source, out, region=region, overwrite=overwrite, workers=workers, scheduler=scheduler,
+                  correction=correction, preset=preset, progress=for_terminal(quiet, verbose), tolerance_m=tolerance,
+                  **given)
+    result, info, choice, params, src, fit_region = (run.result, run.info, run.choice, run.parameters, run.source,
+                                                     run.region)
+    info["wall_seconds"] = round(run.seconds, 2)
     info["converged"] = bool(result.converged)
     info["choices"] = choice.as_manifest()
     if as_json:

@@ -6,7 +6,7 @@ import json
 
 import click
 
-from geoidspline.sources.harmonics.presets import PRESETS
+from geoidspline.api import PRESETS
 
 from ._common import command, echo, store_options, user_errors, verbosity_options
 
@@ -47,7 +47,7 @@ def main(store_path, as_json, model_path, correction_path, preset, points, verif
     if verify:
         import sys
 
-        from geoidspline.store.reader import verify_store
+        from geoidspline.api import verify_store
 
         problems = verify_store(store_path)
         if as_json:
@@ -59,7 +59,7 @@ def main(store_path, as_json, model_path, correction_path, preset, points, verif
                 echo(f"{store_path}: every tile matches the manifest")
         sys.exit(1 if problems else 0)
     if upgrade:
-        from geoidspline.store.upgrade import upgrade_store
+        from geoidspline.api import upgrade_store
 
         record = upgrade_store(store_path)
         if not as_json:
@@ -69,8 +69,7 @@ def main(store_path, as_json, model_path, correction_path, preset, points, verif
     store = geoidspline.open_store(store_path)
     info = store.info()
     if model_path is not None:
-        from geoidspline.query.validation import check_against
-        from geoidspline.sources.resolve import load_synthesis
+        from geoidspline.api import check_against, load_synthesis
 
         synthesis = load_synthesis(model_path, correction_path, preset, like_store=store)
         info["check_against"] = check_against(store, synthesis, points)

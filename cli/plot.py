@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from geoidspline.sources.harmonics.presets import PRESETS
+from geoidspline.api import PRESETS
 
 from ._common import command, store_options, user_errors, verbosity_options
 
@@ -53,7 +53,7 @@ def main(store_path, out, kind, other_path, against, correction_path, preset, re
     (coastlines, shipped in the package): pip install 'geoidspline[plot]'.
     """
     import geoidspline
-    from geoidspline.query.plot import plot_store
+    from geoidspline.api import plot_store
 
     if store_path is None:
         raise click.UsageError("give --store DIR, the store to draw")
@@ -70,10 +70,10 @@ def main(store_path, out, kind, other_path, against, correction_path, preset, re
     other = geoidspline.open_store(other_path) if other_path is not None else None
     source = None
     if against is not None:
-        from geoidspline.sources.resolve import is_model_file, resolve_source
+        from geoidspline.api import is_model_file, resolve_source
 
         if correction_path is not None or (Path(against).exists() and is_model_file(against)):
-            from geoidspline.sources.resolve import load_synthesis
+            from geoidspline.api import load_synthesis
 
             source = load_synthesis(against, correction_path, preset, like_store=store)
         else:

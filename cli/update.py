@@ -8,7 +8,7 @@ import time
 
 import click
 
-from geoidspline.sources.harmonics.presets import PRESETS
+from geoidspline.api import PRESETS
 
 from ._common import command, echo, store_options, user_errors, verbosity_options
 
@@ -60,17 +60,13 @@ def main(source, store_path, region, blend_width, tolerance, workers, correction
 
 def run_update(source, store, region, blend_width, workers, correction, preset, as_json, quiet, tolerance=None,
                wait_seconds=0.0):
-    from geoidspline.fitting.executors import Executor
-    from geoidspline.sources.resolve import open_source
-    from geoidspline.sphere.region import Region
-    from geoidspline.store.update import update_store
+    from geoidspline.api import update
 
     if region is None:
         raise click.UsageError("a regional update needs --region S W N E")
-    src = open_source(source, correction, preset)
     started = time.perf_counter()
-    record = update_store(store, src, Region.from_bounds(*region), blend_width_km=blend_width,
-                          executor=Executor(workers=workers), tolerance_m=tolerance, wait_seconds=wait_seconds)
+    record = update(store, source, region, blend_width_km=blend_width, tolerance_m=tolerance, workers=workers,
+                    correction=correction, preset=preset, wait_seconds=wait_seconds)
     record["wall_seconds"] = round(time.perf_counter() - started, 2)
     if as_json:
         echo(json.dumps(record, indent=1))

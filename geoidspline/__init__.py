@@ -4,10 +4,13 @@ Fit a geoid grid or spherical-harmonic model once into a tile store (:func:`fit`
 ``geoid-fit``), then answer point queries fast (:func:`open_store`, ``geoid-query``).
 Latitudes and longitudes are in degrees, heights and undulations in metres.
 
-The packages follow the method: :mod:`.sphere` (the reference manifold), :mod:`.bspline`
-(one level), :mod:`.hierarchy` (levels summed), :mod:`.fitting`, :mod:`.sources` (grids
-and harmonic models), :mod:`.store` (tiles on disk), :mod:`.query` (the query index and
-derived quantities), :mod:`.geodesy` (ellipsoids); see README's "Architecture".
+The packages are layers, bottom to top (tests/test_architecture.py checks every import):
+:mod:`._kernels` (compiled loops), :mod:`.geodesy` (ellipsoids, heights), :mod:`.sphere`
+(the reference manifold), :mod:`.bspline` (one level, the brick index), :mod:`.hierarchy`
+(levels summed); side by side above them :mod:`.sources` (grids and harmonic models),
+:mod:`.fitting` (one engine, the regional update a strategy of it), :mod:`.store` (tiles
+on disk) and :mod:`.query` (batches, derived quantities); :mod:`.api` is the front door
+composing them, and the commands call only it.
 """
 
 from __future__ import annotations
@@ -17,11 +20,12 @@ import sys as _sys
 import pathlib as _pathlib
 
 from ._version import __version__
-from .errors import CoordinateError, FitError, GeoidSplineError, InputFileError, StoreCorruptError, StoreError
+from .errors import (CoordinateError, FitError, GeoidSplineError, InputFileError, ParameterError, StoreCorruptError,
+                     StoreError)
 from .sphere.region import GLOBAL, Region
 
 __all__ = ["open_store", "fit", "update", "Region", "GLOBAL", "__version__", "GeoidSplineError",
-           "InputFileError", "CoordinateError", "StoreError", "StoreCorruptError", "FitError"]
+           "InputFileError", "CoordinateError", "StoreError", "StoreCorruptError", "FitError", "ParameterError"]
 
 
 def open_store(path, *, lazy: bool = True, verify: bool = True):

@@ -12,7 +12,9 @@ __all__ = [
     "CoordinateError",
     "StoreError",
     "StoreCorruptError",
+    "StoreFileMissingError",
     "FitError",
+    "ParameterError",
 ]
 
 
@@ -42,6 +44,16 @@ class StoreError(GeoidSplineError):
 
 class StoreCorruptError(StoreError):
     """A tile store's files disagree with its manifest (missing, truncated or altered)."""
+
+
+class StoreFileMissingError(StoreCorruptError):
+    """A file or directory of a tile store is not there (the reader tells a store
+    rewritten since it was opened from a damaged one by this type)."""
+
+
+class ParameterError(GeoidSplineError, ValueError):
+    """An argument of a call is outside what it accepts (an unknown tide system, a
+    degree beyond the model's); the message names the argument and what it takes."""
 
 
 class FitError(GeoidSplineError):

@@ -116,7 +116,7 @@ def _model_fit():
 def _queries(spline):
     """Large-batch queries of a fitted spline: values, gradients and Hessians."""
     from .hierarchy.ambient import FOLDED_FROM_POINTS
-    from .query.index import _ORDER_THRESHOLD
+    from .bspline.index import _ORDER_THRESHOLD
     from .sphere.coordinates import directions
 
     rng = np.random.default_rng(3)
@@ -131,7 +131,7 @@ def _queries(spline):
 
 def _coverage_lookup():
     """A large batch against a coverage with a no-data mask (a national grid's sea)."""
-    from .sources.base import NodeSample
+    from .sphere.sample import NodeSample
     from .sphere.coordinates import COMPILED_FROM_POINTS
     from .sphere.coverage import Coverage
     from .sphere.region import Region

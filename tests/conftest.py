@@ -136,3 +136,21 @@ def toy24():
 def analytic():
     """The analytic field the synthetic grid samples: ``analytic(lat, lon)`` in metres."""
     return analytic_undulation
+
+
+# -- the slow tests -----------------------------------------------------------------------
+
+
+def pytest_addoption(parser):
+    parser.addoption("--slow", action="store_true",
+                     help="also run the tests marked slow (the exhaustive kill matrices, the packaging replay)")
+
+
+def pytest_collection_modifyitems(config, items):
+    """Tests marked ``slow`` run only with ``--slow``."""
+    if config.getoption("--slow"):
+        return
+    skip = pytest.mark.skip(reason="slow: run with --slow")
+    for item in items:
+        if "slow" in item.keywords:
+            item.add_marker(skip)

@@ -22,7 +22,7 @@ from test_cli import QUICK_FIT, assert_user_error, fmt, invoke
 import geoidspline
 from geoidspline.cli.export import main as export_main
 from geoidspline.cli.fit import main as fit_main
-from geoidspline.cli.query import _looks_like_header
+from geoidspline.query.batch import _looks_like_header
 from geoidspline.cli.query import main as query_main
 from geoidspline.cli.update import main as update_main
 from geoidspline.errors import CoordinateError
@@ -230,7 +230,7 @@ def test_what_is_not_a_header(line):
 
 def test_a_line_longer_than_the_limit_is_a_bad_row_and_is_not_kept(small_store, api, tmp_path, monkeypatch):
     """Memory stays bounded whatever the input (a file without newlines, /dev/zero)."""
-    import geoidspline.cli.query as query_module
+    import geoidspline.query.batch as query_module
 
     monkeypatch.setattr(query_module, "MAX_LINE_BYTES", 100_000)
     path = tmp_path / "long.csv"
@@ -345,7 +345,7 @@ def test_export_outside_the_store_is_an_error_and_holes_are_no_data(small_store,
 def test_export_keeps_edge_nodes_a_rounding_error_outside_the_region(small_store, tmp_path, monkeypatch):
     """11.3 + 17 * 1.1 is 30.000000000000004: a lattice's last node can lie beyond the
     region's edge by a rounding error; it is a node of the region, not no data."""
-    from geoidspline.query.export import export_grid, export_lattice
+    from geoidspline.api.export import export_grid, export_lattice
     from geoidspline.store.reader import TileStore
 
     store = geoidspline.open_store(small_store.path)

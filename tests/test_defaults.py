@@ -298,3 +298,17 @@ def test_bars_show_count_of_total():
         advance(1)
         advance(2)
     assert "level 0 blocks:   0%| | 0/3" in stream.getvalue().replace(" " * 10, " ")  # the total before the first block
+
+
+def test_an_order_without_measured_convergence_needs_h0():
+    """Orders 4 and 6 were measured; another order cannot have its h0 chosen: a FitError
+    (a one-line ERROR on the command line) naming --h0, and with h0 given it is fitted."""
+    from geoidspline.errors import FitError, GeoidSplineError
+
+    assert 8 not in MEASURED
+    with pytest.raises(FitError, match=r"order 8 .*give h0 \(--h0\) too") as err:
+        choose_parameters(model(360), 0.002, given={"order": 8})
+    assert isinstance(err.value, GeoidSplineError)
+    choice = choose_parameters(model(360), 0.002, given={"order": 8, "h0": 0.02})
+    assert (choice.parameters.order, choice.parameters.h0) == (8, 0.02)
+    assert choice.reasons["order"] == choice.reasons["h0"] == "given"

@@ -440,7 +440,7 @@ def test_reads_a_geotiff_that_gdal_made_from_projs_gtx(tmp_path):
 @needs_rasterio
 def test_store_export_is_read_by_proj_as_the_store_at_the_nodes(tmp_path, small_store):
     import geoidspline
-    from geoidspline.query.export import export_grid
+    from geoidspline.api.export import export_grid
 
     store = geoidspline.open_store(small_store.path)
     path = tmp_path / "store.tif"

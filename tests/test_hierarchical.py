@@ -120,7 +120,7 @@ def test_refinement_relation_is_exact(order):
 
 
 def test_query_folding_shares_the_one_refinement_relation():
-    import geoidspline.query.index as index
+    import geoidspline.bspline.index as index
 
     assert index.refinement_weights is refinement_weights
 

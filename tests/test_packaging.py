@@ -1,7 +1,7 @@
 """Packaging: README commands, .ci/run, Dockerfile, requirements.lock, installed import names.
 
 All fast and offline except ``test_replay_docker`` (network, ~2 min), which runs only
-with GEOIDSPLINE_SLOW=1.
+with ``pytest --slow``.
 """
 
 from __future__ import annotations
@@ -335,9 +335,7 @@ def test_every_package_directory_is_installed():
     assert found <= packages, sorted(found - packages)
 
 
-@pytest.mark.slow
-@pytest.mark.skipif(os.environ.get("GEOIDSPLINE_SLOW") != "1",
-                    reason="set GEOIDSPLINE_SLOW=1 (needs network; installs, compiles the kernels: ~5-10 min)")
+@pytest.mark.slow  # needs network; installs, compiles the kernels: ~5-10 min
 def test_replay_docker(tmp_path):
     """The Dockerfile's pip install steps work in a fresh venv and give working commands."""
     env = dict(os.environ, TMPDIR=str(tmp_path))

@@ -22,7 +22,7 @@ from geoidspline.cli.plot import main as plot_main  # noqa: E402
 from geoidspline.errors import CoordinateError, GeoidSplineError, InputFileError  # noqa: E402
 from geoidspline.fitting.parameters import FitParameters
 from geoidspline.sources.grid import GeoidGrid
-from geoidspline.query.derived import tile_error_bound
+from geoidspline.store.error_bound import tile_error_bound
 from geoidspline.query import plot as gplot  # noqa: E402
 from geoidspline.sources.formats import read_grid, write_gtx
 from geoidspline.sphere.region import Region
@@ -30,7 +30,7 @@ from geoidspline.sources.base import Provenance
 from geoidspline.hierarchy.ambient import AmbientSpline
 from geoidspline.bspline.level import LevelSpline
 from geoidspline.sphere.coordinates import directions
-from geoidspline.store.update import update_store
+from geoidspline.api.regional import update_store
 
 REGION = Region(2.0, 4.0, 18.0, 28.0)
 HIGH = (8.0, 10.0, 25.0)  # latitude, longitude, N (metres) of the high
@@ -439,7 +439,7 @@ def test_cli_user_errors_are_one_error_line(bump_store, tmp_path):
 
 
 def test_blend_edge_is_where_the_blend_weight_reaches_zero():
-    from geoidspline.store.update import blend_weight
+    from geoidspline.fitting.update import blend_weight
 
     region, blend_deg = Region(30.0, 120.0, 40.0, 140.0), 1.5
     lon, lat = gplot._blend_edge(region, blend_deg, 0.0)

@@ -29,7 +29,9 @@ from geoidspline.cli.query import main as query_main
 from geoidspline.errors import CoordinateError, GeoidSplineError
 from geoidspline.fitting.parameters import FitParameters
 from geoidspline.geodesy.ellipsoids import WGS84
-from geoidspline.query import crs, derived, export, validation
+from geoidspline.api import export, validation
+from geoidspline.query import crs, derived
+from geoidspline.store import error_bound
 from geoidspline.sources.formats import read_grid
 from geoidspline.sources.harmonics import GeoidSynthesis, presets, read_model
 from geoidspline.sphere.coordinates import directions
@@ -275,28 +277,28 @@ def nearby_by_scan(store, lat, lon):
 def test_tile_error_bound_is_the_factor_times_the_largest_error_measured_nearby_plus_the_grid_term(store):
     lat, lon = interior_points(200, seed=9, region=(10.0, 20.0, 30.0, 40.0))
     nearby, excess = nearby_by_scan(store, lat, lon)
-    np.testing.assert_array_equal(derived.nearby_measured_error(store, lat, lon), nearby)
-    np.testing.assert_array_equal(derived.grid_interpolation_uncertainty(store, lat, lon), excess)
+    np.testing.assert_array_equal(error_bound.nearby_measured_error(store, lat, lon), nearby)
+    np.testing.assert_array_equal(error_bound.grid_interpolation_uncertainty(store, lat, lon), excess)
     assert store.manifest["provenance"]["kind"] == "grid" and excess.max() > 0  # the grid term is in use
-    bound = derived.tile_error_bound(store, lat, lon)
-    np.testing.assert_array_equal(bound, derived.ERROR_BOUND_FACTOR * nearby + excess)
+    bound = error_bound.tile_error_bound(store, lat, lon)
+    np.testing.assert_array_equal(bound, error_bound.ERROR_BOUND_FACTOR * nearby + excess)
     assert np.isfinite(bound).all()  # every point inside the coverage has a bound
     acc = store.manifest["accuracy"]
     assert np.all(nearby <= max(acc["max_error_m"], acc["node_max_error_m"]))
     assert np.all(nearby >= min(acc["max_error_m"], acc["node_max_error_m"]) / 10)  # not vacuous
     # outside the coverage and for NaN: no bound
-    out = derived.tile_error_bound(store, [45.0, -20.0, np.nan], [30.0, 30.0, 30.0])
+    out = error_bound.tile_error_bound(store, [45.0, -20.0, np.nan], [30.0, 30.0, 30.0])
     assert np.isnan(out).all()
-    assert np.ndim(derived.tile_error_bound(store, 20.0, 30.0)) == 0
-    assert store.error_bound(20.0, 30.0) == derived.tile_error_bound(store, 20.0, 30.0)
+    assert np.ndim(error_bound.tile_error_bound(store, 20.0, 30.0)) == 0
+    assert store.error_bound(20.0, 30.0) == error_bound.tile_error_bound(store, 20.0, 30.0)
 
 
 def test_a_model_store_has_no_grid_term(model_store):
     store = geoidspline.open_store(model_store)
     lat, lon = interior_points(50, seed=4, region=MODEL_REGION)
-    assert np.all(derived.grid_interpolation_uncertainty(store, lat, lon) == 0.0)
-    np.testing.assert_array_equal(derived.tile_error_bound(store, lat, lon),
-                                  derived.ERROR_BOUND_FACTOR * derived.nearby_measured_error(store, lat, lon))
+    assert np.all(error_bound.grid_interpolation_uncertainty(store, lat, lon) == 0.0)
+    np.testing.assert_array_equal(error_bound.tile_error_bound(store, lat, lon),
+                                  error_bound.ERROR_BOUND_FACTOR * error_bound.nearby_measured_error(store, lat, lon))
 
 
 def test_tile_error_bound_falls_back_to_the_store_figure_for_tiles_without_figures(store):
@@ -307,10 +309,10 @@ def test_tile_error_bound_falls_back_to_the_store_figure_for_tiles_without_figur
         {**e, "max_error_m": None, "node_max_error_m": None} for e in store.manifest["tiles"]]},
         covers=store.covers)
     acc = store.manifest["accuracy"]
-    bound = derived.tile_error_bound(bare, [20.0, 12.5], [30.0, 39.0])
+    bound = error_bound.tile_error_bound(bare, [20.0, 12.5], [30.0, 39.0])
     overall = max(acc["max_error_m"], acc["node_max_error_m"])
     excess = max(0.0, acc["max_error_m"] - acc["node_max_error_m"])
-    np.testing.assert_array_equal(bound, derived.ERROR_BOUND_FACTOR * overall + excess)
+    np.testing.assert_array_equal(bound, error_bound.ERROR_BOUND_FACTOR * overall + excess)
 
 
 def test_tile_error_bound_holds_against_the_analytic_field(store, analytic, small_store):
@@ -336,7 +338,7 @@ def test_tile_error_bound_holds_against_the_analytic_field(store, analytic, smal
 def test_query_with_error_column(small_store, store, tmp_path):
     lat, lon = interior_points(6, seed=10)
     lat, lon = np.round(lat, 3), np.round(lon, 3)
-    expected = derived.tile_error_bound(store, lat, lon)
+    expected = error_bound.tile_error_bound(store, lat, lon)
     assert np.isfinite(expected).all()
     rows = "".join(f"{a},{b}\n" for a, b in zip(lat, lon)) + "45,30\n"
     result = query(small_store, "--input", "-", "--with-error", "--precision", "10", input=rows)
@@ -507,7 +509,7 @@ def test_query_jsonl_has_stable_keys(small_store, store, tmp_path):
     assert good["undulation_m"] == round(float(n), 4)
     assert good["orthometric_height_m"] == float(f"{100 - n:.4f}")
     assert good["xi_arcsec"] == float(f"{d.xi_arcsec:.4f}") and good["dNde_m_per_m"] == float(f"{d.dn_deast:.4e}")
-    assert good["error_bound_m"] == float(f"{derived.tile_error_bound(store, 20.0, 30.0):.4f}")
+    assert good["error_bound_m"] == float(f"{error_bound.tile_error_bound(store, 20.0, 30.0):.4f}")
     assert good2["line"] == 4
     assert bad1["line"] == 3 and bad1["error"].startswith("line 3: ") and "not numbers" in bad1["error"]
     assert bad1["undulation_m"] is None and bad1["fields"] == ["abc", "30", "1"]

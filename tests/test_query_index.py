@@ -1,6 +1,6 @@
 """The query index folds the overlays: one level per point, the same sum as level by level.
 
-:class:`geoidspline.query.index.BrickIndex` rewrites S_0 + … + S_ℓ on level ℓ's grid (B-spline
+:class:`geoidspline.bspline.index.BrickIndex` rewrites S_0 + … + S_ℓ on level ℓ's grid (B-spline
 subdivision) near the sphere, and evaluates a point on the finest level that has a
 brick there only. These tests compare it with a plain reference: the sum over levels
 of the order³ B-splines touching each point, found by ``np.searchsorted`` in each
@@ -24,7 +24,7 @@ from geoidspline.bspline.level import LevelSpline
 from geoidspline.fitting.driver import fit_nodes
 from geoidspline.fitting.parameters import FitParameters
 from geoidspline.hierarchy.ambient import AmbientSpline
-from geoidspline.query.index import FOLD_BAND_CELLS
+from geoidspline.bspline.index import FOLD_BAND_CELLS
 from geoidspline.sources.base import NodeSample
 from geoidspline.sphere.coordinates import directions
 from geoidspline.sphere.region import Region

@@ -23,7 +23,7 @@ from geoidspline.sources.base import NodeSample, Provenance
 from geoidspline.sources.grid import GeoidGrid
 from geoidspline.sphere.coverage import INSIDE, NO_DATA, OUTSIDE, Coverage
 from geoidspline.sphere.region import Region
-from geoidspline.store.update import update_store
+from geoidspline.api.regional import update_store
 from geoidspline.store.writer import write_store
 
 #: An "Andes" store (S W N E), as in the issue's first report.

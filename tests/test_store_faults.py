@@ -5,7 +5,7 @@ not write, and writers killed at every commit point.
 
 Subprocesses stop themselves at a commit point (``GEOIDSPLINE_STOP_AT``: SIGSTOP) for a
 real SIGKILL there, or die there (``GEOIDSPLINE_CRASH_AT``: ``os._exit``); nothing waits
-on a timer. The exhaustive kill matrix is ``@pytest.mark.slow`` (``GEOIDSPLINE_SLOW=1``).
+on a timer. The exhaustive kill matrix is ``@pytest.mark.slow`` (``pytest --slow``).
 """
 
 from __future__ import annotations
@@ -35,12 +35,10 @@ from geoidspline.sources.base import Provenance
 from geoidspline.sources.grid import GeoidGrid
 from geoidspline.sphere.region import Region
 from geoidspline.store.reader import verify_store
-from geoidspline.store.update import update_store
+from geoidspline.api.regional import update_store
 from geoidspline.store.writer import StoreLock, commit, write_store
 
 TESTS = str(Path(__file__).parent)
-SLOW = os.environ.get("GEOIDSPLINE_SLOW") == "1"
-slow = pytest.mark.skipif(not SLOW, reason="the exhaustive kill matrix runs with GEOIDSPLINE_SLOW=1")
 
 #: The store the concurrent updates share: few tiles (tile size 1), two levels.
 RACE_REGION = Region(-48.0, -50.0, 48.0, 50.0)
@@ -88,6 +86,7 @@ RACE_SCRIPT = textwrap.dedent("""
     from geoidspline.errors import StoreError
     from geoidspline.sphere.region import Region
     import geoidspline.store.update as update
+    from geoidspline.api.regional import update_store
 
     store, log, p, rounds = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
 
@@ -116,8 +115,8 @@ RACE_SCRIPT = textwrap.dedent("""
         source = _offset_grid(grid, f"race-{{k}}")
         while True:
             try:
-                record = update.update_store(store, source, Region(lat - 4, lon - 4, lat + 4, lon + 4),
-                                             blend_width_km=300)
+                record = update_store(store, source, Region(lat - 4, lon - 4, lat + 4, lon + 4),
+                                      blend_width_km=300)
                 break
             except StoreError as exc:
                 if "another writer" not in str(exc):
@@ -215,7 +214,7 @@ UPDATE_ONE = textwrap.dedent("""
     from conftest import make_synthetic_grid
     from test_store_faults import _offset_grid
     from geoidspline.sphere.region import Region
-    from geoidspline.store.update import update_store
+    from geoidspline.api.regional import update_store
     update_store(sys.argv[1], _offset_grid(make_synthetic_grid(), sys.argv[2]), Region(-4, -4, 4, 4),
                  blend_width_km=300)
 """)
@@ -515,17 +514,17 @@ def _overwrite_targets(race_base, tmp_path, points, kill):
 
 
 @pytest.mark.parametrize("kill", ["exit", "sigkill"])
-def test_an_overwrite_killed_at_each_commit_point(race_base, payload, tmp_path, kill):
+def test_an_overwrite_killed_at_each_commit_point(race_base, payload, tmp_path, kill, request):
     """At every commit point (os._exit, or a real SIGKILL where the writer stopped): the
     store is the old or the new version, opens and verifies, the user's files are there,
     and the next writer succeeds."""
-    points = WRITE_POINTS if (kill == "exit" or SLOW) else ("after-lock", "during-tiles", "manifest-written")
+    points = WRITE_POINTS if (kill == "exit" or request.config.getoption("--slow")) else ("after-lock", "during-tiles", "manifest-written")
     stores = _overwrite_targets(race_base, tmp_path, points, kill)
     _kill_writers(payload, stores, points, overwrite=True, kill=kill)
     _check_overwrite_survivors(race_base, payload, stores, points)
 
 
-@pytest.mark.parametrize("kill", ["exit", pytest.param("sigkill", marks=slow)])
+@pytest.mark.parametrize("kill", ["exit", pytest.param("sigkill", marks=pytest.mark.slow)])
 def test_a_first_write_killed_at_each_commit_point(race_base, payload, tmp_path, kill):
     """Seen: a fit killed between writing manifest.json.tmp and the rename left a
     directory that even --overwrite refused."""

@@ -22,7 +22,7 @@ from geoidspline.sources.grid import GeoidGrid
 from geoidspline.sphere.coordinates import directions
 from geoidspline.sphere.region import GLOBAL, Region
 from geoidspline.store.reader import verify_store
-from geoidspline.store.update import update_store
+from geoidspline.api.regional import update_store
 
 REGION = Region(0, 10, 20, 30)
 BLEND_KM = 300.0
@@ -320,7 +320,7 @@ def test_no_data_nodes_fade_from_the_nearest_data_and_keep_the_store_beyond(stor
     no-data node gets the difference of the nearest node with data, faded out over the
     blend width, times the region's weight, so the change has no step at the coast and
     is 0 (the store's values) where either taper is; never NaN where the store has data."""
-    import geoidspline.store.update as update_module
+    import geoidspline.fitting.update as update_module
 
     def island(la, lo):
         return np.where(REGION.contains(la, lo), base_field(la, lo) + bump(la, lo) + 1.0, np.nan)
@@ -359,7 +359,7 @@ def test_no_data_nodes_fade_from_the_nearest_data_and_keep_the_store_beyond(stor
 
 
 def test_fade_into_no_data():
-    from geoidspline.store.update import fade_into_no_data
+    from geoidspline.fitting.update import fade_into_no_data
 
     lat = np.arange(0.0, 10.01, 0.1)
     lon = np.arange(0.0, 10.01, 0.1)
@@ -444,7 +444,7 @@ UPDATE_SCRIPT = textwrap.dedent("""
     import sys
     sys.path.insert(0, {tests!r})
     from test_update import new_grid, REGION, BLEND_KM
-    from geoidspline.store.update import update_store
+    from geoidspline.api.regional import update_store
     update_store({store!r}, new_grid(step=2.0), REGION, blend_width_km=BLEND_KM)
 """)
 
@@ -475,7 +475,7 @@ def test_an_update_killed_anywhere_leaves_the_old_or_the_new_store(small, point)
 
 
 @pytest.mark.parametrize("point", [p if p in ("after-lock", "during-tiles", "manifest-written") else pytest.param(
-    p, marks=pytest.mark.skipif(os.environ.get("GEOIDSPLINE_SLOW") != "1", reason="GEOIDSPLINE_SLOW=1: every point"))
+    p, marks=pytest.mark.slow)  # every point with --slow
     for p in UPDATE_POINTS if p != "after-manifest"])
 def test_sigkill_during_an_update(small, point):
     """A real SIGKILL at a commit point (the writer stops itself there first): the store

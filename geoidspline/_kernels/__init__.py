@@ -1,5 +1,6 @@
 """Compiled (numba) kernels, by stage, free of validation.
 
+- :mod:`.layout`: the packed key layout (plain integers);
 - :mod:`.common`: key packing, binary search, B-spline weights;
 - :mod:`.fitting`: the domain test and the normal equations of least squares;
 - :mod:`.interpolation`: the quasi-interpolant's lattice lookups and prefilter;
@@ -13,9 +14,10 @@ Conventions shared by every kernel:
   tensor product ``Π_d B_n(x_d / h - k_d)`` of the cardinal B-spline on ``[0, n)``,
   so it is non-zero on cells ``k .. k + n - 1`` and a point in cell ``a`` is touched
   by ``k = a - n + 1 .. a`` on each axis.
-- Coefficient indices are packed into one int64 key (:mod:`geoidspline.bspline.keys`).
+- Coefficient indices are packed into one int64 key (:mod:`.layout`; numpy helpers in
+  :mod:`geoidspline.bspline.keys`).
 
 Callers pass well-formed contiguous arrays; the validated APIs live in the packages
-named after each stage. Importing this package imports nothing: each submodule imports
-numba, which a one-point query never needs.
+named after each stage. Importing this package imports nothing: each submodule but
+:mod:`.layout` imports numba, which a one-point query never needs.
 """

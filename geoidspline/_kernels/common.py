@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..bspline.keys import KEY_BITS, KEY_OFFSET
+from .layout import KEY_BITS, KEY_OFFSET
 from ._jit import jit as _jit
 
 

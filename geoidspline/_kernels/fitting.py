@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..bspline.keys import KEY_BITS
+from .layout import KEY_BITS
 from ._jit import jit as _jit
 from .common import bspline_weights
 from .common import lower_bound as _lower_bound

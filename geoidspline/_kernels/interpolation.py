@@ -97,7 +97,7 @@ def key_directions(keys, key_offset, key_bits, position_offset, h, latitude, lon
 
     The lattice point of packed key ``k`` (index triple ``a``) sits at
     ``(a + position_offset) h``; its direction is read as ``u = (cos φ cos λ, cos φ sin λ,
-    sin φ)``, the mapping of :func:`geoidspline.spline.directions`.
+    sin φ)``, the mapping of :func:`geoidspline.sphere.coordinates.directions`.
     """
     mask = (1 << key_bits) - 1
     for p in numba.prange(keys.size):

@@ -2,7 +2,7 @@
 
 The grid, B-spline and key conventions are those of :mod:`geoidspline._kernels`.
 
-The validated API is :mod:`geoidspline.query.index`.
+The validated API is :mod:`geoidspline.bspline.index`.
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ..bspline.keys import KEY_BITS, KEY_OFFSET
+from .layout import KEY_BITS, KEY_OFFSET
 from ._jit import ijit as _ijit
 from ._jit import jit as _jit
 from ._jit import pjit as _pjit
@@ -41,7 +41,7 @@ _U = np.uint64  # unsigned indices: no negative-index wraparound code in the hot
 def brick_row_entries(keys, order, bits, row):
     """Every (brick, coefficient) pair of one row of a level's bricks (brick index ``row``
     on the first axis): a B-spline is listed in each brick of ``2**bits`` cells a side
-    whose tables hold it (1 to 8, see :class:`geoidspline.query.index._Slab`).
+    whose tables hold it (1 to 8, see :class:`geoidspline.bspline.index._Slab`).
 
     ``keys``: sorted packed keys (those outside the row are skipped). Returns
     ``(brick_keys (B,), brick_start (B + 1,), brick_of_entry (E,), local (E, 3),
@@ -634,7 +634,7 @@ def evaluate_bricks(points, inv_hs, band_lo2, band_hi2, order, nderiv, presence,
                     fold_base, fold_cols, own_base, own_cols, values, out):
     """The spline (and derivatives) at points (M, 3), added into out.
 
-    Levels are stacked coarse to fine (see :class:`geoidspline.spline.BrickIndex`):
+    Levels are stacked coarse to fine (see :class:`geoidspline.bspline.index.BrickIndex`):
     level ``l`` probes ``slots[slot_start[l]:slot_start[l] + slot_mask[l] + 1]``, only
     where its coarse presence map says it has bricks. Per point, from the finest level
     down, the first level with a brick at the point whose band holds the point

@@ -5,5 +5,6 @@
   (the one implementation: the query index folds with it, the hierarchical basis refines with it);
 - :mod:`.level`: :class:`~.level.LevelSpline`, one level's sparse coefficients;
 - :mod:`.evaluate`: numpy evaluation of a sum of levels;
-- :mod:`.domain`: the domain Ω, the cells of a level that meet the sphere (§3.2).
+- :mod:`.domain`: the domain Ω, the cells of a level that meet the sphere (§3.2);
+- :mod:`.index`: the compiled, folded brick index large batches are evaluated with.
 """

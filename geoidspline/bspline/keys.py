@@ -11,11 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-KEY_BITS = 21
-
-
-KEY_OFFSET = 1 << (KEY_BITS - 1)
-
+from .._kernels.layout import KEY_BITS, KEY_OFFSET  # noqa: F401 (the layout the kernels share)
 
 KEY_MASK = (1 << KEY_BITS) - 1
 

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import FitError
 from ..sphere.region import GLOBAL, Region
 from .parameters import MIN_H_PER_DATA_SPACING, FitParameters
 
@@ -211,10 +212,13 @@ def _for_model(source, tolerance_m, region, given):
     # the order with the fewest level-0 coefficients at the error target
     candidates = {}
     for order in ([given["order"]] if "order" in given else sorted(MEASURED)):
-        if order not in MEASURED:
-            raise ValueError(f"no measured convergence for order {order}: give --h0 too")
+        if order not in MEASURED and not given.get("h0"):
+            raise FitError(f"no measured convergence for order {order} to choose h0 from: give h0 (--h0) too, "
+                           f"or an order of {sorted(MEASURED)}")
         h0 = given.get("h0") or _level0_spacing(order, degree, level0_target)
-        candidates[order] = (h0, MEASURED[order].density * area / h0**2)
+        # an order not measured comes with its h0 given: no count to compare (nor needed)
+        count = MEASURED[order].density * area / h0**2 if order in MEASURED else math.nan
+        candidates[order] = (h0, count)
     order = min(candidates, key=lambda o: candidates[o][1])
     h0, count = candidates[order]
     if "order" not in given:

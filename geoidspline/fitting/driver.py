@@ -56,7 +56,7 @@ def solve_level(problems, executor: Executor, progress=None):
 def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, progress=None,
               force_tiles=False, base_is_overlay=False, first_level=None,
               executor: Executor | None = None, interpolant=None, started=None) -> FitResult:
-    """Fit the nodes of a :class:`~geoidspline.sources.NodeSample` over ``region``.
+    """Fit the nodes of a :class:`~geoidspline.sphere.sample.NodeSample` over ``region``.
 
     ``sample`` must cover the region plus the support margin of level 0 (see
     :func:`fit_source`, which asks the source for exactly that). ``progress``: a

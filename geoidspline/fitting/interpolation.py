@@ -38,9 +38,9 @@ from .._kernels import interpolation as kern
 from ..bspline.basis import centred_bspline_samples
 from ..bspline.keys import AXIS_STEPS, KEY_BITS, KEY_OFFSET, union_of_shifts
 from ..errors import FitError
-from ..sources.base import NodeSample
 from ..sphere.coordinates import latlon_of
 from ..sphere.region import Region
+from ..sphere.sample import NodeSample
 
 __all__ = ["prefilter_taps", "sample_band", "LatticeLookup", "sample_nodes", "lattice_spacing", "interpolate_level",
            "prefilter_terms"]

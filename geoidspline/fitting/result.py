@@ -59,3 +59,21 @@ class FitResult:
     basis: object = None
     # why a hierarchical fit was fitted by overlays instead (its basis outgrew the memory)
     refinement_fallback: str | None = None
+
+    @property
+    def method(self) -> str:
+        """The method actually used, in words (the manifest's ``fit.method``): the
+        parameters are those the fit ran with (a hierarchical fit that fell back to
+        overlays says overlays)."""
+        return method_text(self.parameters)
+
+
+def method_text(params: FitParameters) -> str:
+    """How a fit with ``params`` computes its levels, citing the thesis (Lehmann 2013)."""
+    if params.refinement == "hierarchical":
+        if params.method == "interpolation":
+            return "hierarchical B-spline basis by quasi-interpolation (Lehmann 2013, section 5.3)"
+        return "hierarchical B-spline basis by least squares (Lehmann 2013, section 5.3)"
+    if params.method == "interpolation":
+        return "level 0 by quasi-interpolation, then hierarchical overlays (Lehmann 2013, section 5.2)"
+    return "hierarchical overlays (Lehmann 2013, section 5.2)"

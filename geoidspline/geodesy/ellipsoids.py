@@ -17,6 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import ParameterError
+
 __all__ = ["Ellipsoid", "WGS84", "GRS80", "PermanentTide", "PERMANENT_TIDE", "TIDE_SYSTEMS", "gaussian_mean_radius", "MEAN_EARTH_RADIUS_KM", "KM_PER_DEGREE"]
 
 
@@ -185,7 +187,7 @@ class PermanentTide:
             return self.love_k20 * self.a0h0
         if system == "mean_tide":
             return (1.0 + self.love_k20) * self.a0h0
-        raise ValueError(f"unknown tide system {system!r}; expected one of {TIDE_SYSTEMS}")
+        raise ParameterError(f"unknown tide system {system!r}; expected one of {TIDE_SYSTEMS}")
 
     def convert_c20(self, c20: float, source: str, target: str) -> float:
         """C̄20 of ``source`` tide system expressed in the ``target`` one."""

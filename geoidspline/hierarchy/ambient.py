@@ -14,7 +14,7 @@ from ..bspline.evaluate import evaluate_levels
 from ..sphere.coordinates import COMPILED_FROM_POINTS, check_coordinates, directions
 from ..sphere.region import MAX_ABS_POINT_LONGITUDE_DEG
 
-#: Batches from this size on use the compiled, folded index (:class:`~geoidspline.query.index.BrickIndex`).
+#: Batches from this size on use the compiled, folded index (:class:`~geoidspline.bspline.index.BrickIndex`).
 FOLDED_FROM_POINTS = COMPILED_FROM_POINTS
 
 
@@ -49,7 +49,7 @@ class AmbientSpline:
     def index(self):
         """The folded query index (built on first use)."""
         if self._folded is None:
-            from ..query.index import BrickIndex  # imports numba: large batches only
+            from ..bspline.index import BrickIndex  # imports numba: large batches only
 
             self._folded = BrickIndex(self.levels, self.order)
         return self._folded

@@ -1,8 +1,10 @@
-"""Answering queries from a fitted spline.
+"""Answering queries from any fitted spline (through ``undulation``/``evaluate_points``).
 
-- :mod:`.index`: the compiled, folded brick index for large batches;
-- :mod:`.derived`: deflection of the vertical, height conversion, per-tile error bounds;
+- :mod:`.batch`: the batch engine: CSV rows in, values out, in chunks;
+- :mod:`.derived`: deflection of the vertical, height conversion;
 - :mod:`.crs`: input coordinates in any CRS PROJ knows;
-- :mod:`.export`: a store sampled on a grid (GTX, netCDF, GeoTIFF);
-- :mod:`.validation`: a store against the exact synthesis of a harmonic model.
+- :mod:`.plot`: maps of a store.
+
+A store sampled on a grid (GTX, netCDF, GeoTIFF) and a store against a harmonic model
+compose a query with a source: :mod:`geoidspline.api.export`, :mod:`geoidspline.api.validation`.
 """

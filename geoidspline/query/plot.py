@@ -318,12 +318,10 @@ def tile_error_map(store, region=None, spacing=None) -> MapField:
     largest |store − truth| at the store's check points when it was written
     (``max_error_m`` in the manifest, what ``geoid-query --with-error`` reports); NaN
     in tiles without check points."""
-    from .derived import tile_error_bound
-
     region, extent = _map_extent(store, region)
     latitude, longitude = _raster(extent, spacing)
     lat2, lon2 = np.meshgrid(latitude, longitude, indexing="ij")
-    values = np.asarray(tile_error_bound(store, lat2, lon2), dtype=float)
+    values = np.asarray(store.error_bound(lat2, lon2), dtype=float)  # the store's own measurements
     stats = _stats(values)
     truth = store.manifest.get("accuracy", {}).get("check_truth") or "the source"
     notes = []
@@ -683,7 +681,7 @@ def _degree_axes(ax, extent):
 
 def _blend_edge(region: Region, blend_deg: float, shift: float, count=60):
     """The outer edge of an update's blend: the points at ``blend_deg`` degrees of arc
-    from the region in :func:`geoidspline.store.update.blend_weight`'s metric (hypot of the
+    from the region in :func:`geoidspline.fitting.update.blend_weight`'s metric (hypot of the
     latitude and cos φ-scaled longitude excess), as (longitudes, latitudes)."""
     s, w, n, e = region.south, region.west + shift, region.north, region.east + shift
     t = np.linspace(0.0, 1.0, count)

@@ -19,6 +19,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from ..sphere.region import Region
+from ..sphere.sample import NodeSample  # what a source's nodes() gives; fitting reads it from sphere
 
 __all__ = ["Provenance", "NodeSample", "GeoidSource"]
 
@@ -45,20 +46,6 @@ class Provenance:
         data = asdict(self)
         data["notes"] = list(self.notes)
         return data
-
-
-@dataclass(frozen=True)
-class NodeSample:
-    """Undulations on a latitude/longitude lattice.
-
-    ``latitude`` (degrees, ascending, shape (nlat,)), ``longitude`` (degrees, ascending,
-    shape (nlon,), possibly beyond ±180 for a region crossing the antimeridian) and
-    ``undulation`` (metres, shape (nlat, nlon)). NaN marks a node without data.
-    """
-
-    latitude: np.ndarray
-    longitude: np.ndarray
-    undulation: np.ndarray
 
 
 @runtime_checkable

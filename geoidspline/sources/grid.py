@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import CoordinateError, InputFileError
+from ..errors import CoordinateError, InputFileError, ParameterError
 from ..sphere.region import Region
 from .base import NodeSample, Provenance
 
@@ -240,7 +240,7 @@ class GeoidGrid:
         regional grid) raises :class:`CoordinateError`; any finite longitude is wrapped.
         """
         if method not in ("bilinear", "bicubic"):
-            raise ValueError(f"method must be 'bilinear' or 'bicubic', got {method!r}")
+            raise ParameterError(f"method must be 'bilinear' or 'bicubic', got {method!r}")
         lat, lon = np.broadcast_arrays(
             np.asarray(latitude, dtype=np.float64), np.asarray(longitude, dtype=np.float64)
         )

@@ -188,7 +188,7 @@ class Coverage:
 
     @classmethod
     def from_sample(cls, sample, region: Region, source: str | None = None) -> Coverage:
-        """The coverage of a :class:`~geoidspline.sources.base.NodeSample` (NaN: no data)
+        """The coverage of a :class:`~geoidspline.sphere.sample.NodeSample` (NaN: no data)
         over ``region``: the lattice cropped to the cells meeting the region, or the
         region alone when the lattice spans it without a hole."""
         lat = np.asarray(sample.latitude, dtype=float)

@@ -46,7 +46,7 @@ from .._files import atomic_path, atomic_write
 from .._version import __version__  # noqa: F401 (recorded in manifests)
 from ..bspline.keys import pack_keys, unpack_keys
 from ..bspline.level import cube_of_support_centres
-from ..errors import StoreCorruptError, StoreError
+from ..errors import StoreCorruptError, StoreError, StoreFileMissingError
 from .codec import decode_tile, encode_tile, is_tile_v2, runs_of
 
 FORMAT_NAME = "geoidspline-tile-store"
@@ -185,7 +185,7 @@ def _tile_dir_fd(root: Path):
     try:
         return os.open(path, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC)
     except FileNotFoundError:
-        raise StoreCorruptError(f"{path}: the store's tile directory is missing") from None
+        raise StoreFileMissingError(f"{path}: the store's tile directory is missing") from None
     except OSError as exc:
         if exc.errno in (errno.ELOOP, errno.ENOTDIR):
             raise StoreCorruptError(f"{path}: not a directory of the store (a symbolic link or a file)") from None

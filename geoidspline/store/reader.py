@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..bspline.level import LevelSpline
-from ..errors import StoreCorruptError, StoreError
+from ..errors import StoreCorruptError, StoreError, StoreFileMissingError
 from ..hierarchy.ambient import FOLDED_FROM_POINTS, AmbientSpline
 from ..sphere.coordinates import check_coordinates, directions
 from .coverage import coverage_of
@@ -47,7 +47,7 @@ class StoreSpline:
 
     Larger batches, and :attr:`levels`, :attr:`index` or :attr:`full`, read every tile
     (once) and evaluate with the compiled folded index
-    (:class:`~geoidspline.query.index.BrickIndex`).
+    (:class:`~geoidspline.bspline.index.BrickIndex`).
 
     Each tile's size and sha256 are checked (when ``verify``) as it is read; a damaged
     tile raises :class:`~geoidspline.errors.StoreCorruptError` naming it, for the query
@@ -121,10 +121,8 @@ class StoreSpline:
             return
         try:
             directory = TileDirectory(self.path)
-        except StoreCorruptError as exc:
-            if "missing" in str(exc):
-                raise self._missing(self.path / "tiles", self._entries[tiles[0]]) from None
-            raise
+        except StoreFileMissingError:
+            raise self._missing(self.path / "tiles", self._entries[tiles[0]]) from None
         with directory:
             for tile in tiles:
                 self._tiles[tile] = self._read(tile, directory)
@@ -347,7 +345,7 @@ class TileStore:
         """Deflection of the vertical (ξ, η, arcseconds) and the geoid slope (metres per
         metre) from the spline's analytic gradient; see
         :func:`geoidspline.query.derived.deflection`."""
-        from ..query.derived import Deflection, deflection
+        from ..hierarchy.derived import Deflection, deflection
 
         result = deflection(self, latitude, longitude)
         covered = np.asarray(self.covers(latitude, longitude))
@@ -357,20 +355,20 @@ class TileStore:
 
     def orthometric_height(self, latitude, longitude, ellipsoidal_height):
         """Orthometric height H = h − N (metres) from the ellipsoidal height h (metres)."""
-        from ..query.derived import convert_height
+        from ..geodesy.heights import convert_height
 
         return convert_height(self.undulation(latitude, longitude), ellipsoidal_height, "ellipsoidal")
 
     def ellipsoidal_height(self, latitude, longitude, orthometric_height):
         """Ellipsoidal height h = H + N (metres) from the orthometric height H (metres)."""
-        from ..query.derived import convert_height
+        from ..geodesy.heights import convert_height
 
         return convert_height(self.undulation(latitude, longitude), orthometric_height, "orthometric")
 
     def error_bound(self, latitude, longitude):
         """The measured error bound (metres) of the tile each point falls in; see
-        :func:`geoidspline.query.derived.tile_error_bound`."""
-        from ..query.derived import tile_error_bound
+        :func:`geoidspline.store.error_bound.tile_error_bound`."""
+        from .error_bound import tile_error_bound
 
         bound = tile_error_bound(self, latitude, longitude)
         covered = self.covers(latitude, longitude)

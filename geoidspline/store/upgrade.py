@@ -23,6 +23,7 @@ from ..errors import StoreError
 from .codec import slack_step
 from .coverage import coverage_record
 from .format import FORMAT_VERSION, load_manifest, utc_now
+from .manifest import build_manifest
 from .reader import TileStore
 from .writer import (StoreLock, _Attempt, _manifest_state, commit, crash_point, quantisation_meta, tolerance_asked,
                      write_tile_entry)
@@ -99,19 +100,9 @@ def _upgrade(root, store, attempt):
         "tile_bytes_after": after,
         **quantisation_meta(step, levels),
     }
-    new_manifest = dict(manifest)
-    new_manifest.pop("integrity", None)
-    new_manifest.update({
-        "format_version": FORMAT_VERSION,
-        "store_version": version,
-        "store_id": store_id,
-        "updated": record["time"],
-        "coverage": manifest.get("coverage") or coverage_record(store.coverage),
-        "spline": dict(meta, **quantisation_meta(step, levels)),
-        "tiles": entries,
-        "history": manifest.get("history", []) + [record],
-    })
-    return record, new_manifest
+    return record, build_manifest(record, entries, manifest, store_id=store_id,
+                                  coverage=manifest.get("coverage") or coverage_record(store.coverage),
+                                  spline=dict(meta, **quantisation_meta(step, levels)))
 
 
 def _tile_key(tile):

@@ -33,7 +33,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .._files import fsync_dir, sha256_file
-from .._version import __version__
 from ..bspline import keys as _keys
 from ..bspline.level import cube_of_support_centres
 from ..errors import StoreCorruptError, StoreError
@@ -41,8 +40,8 @@ from ..sphere.coordinates import directions
 from ..sphere.coverage import Coverage
 from .codec import node_safe_step, quantisation_change, quantised_spline, value_error_bound
 from .coverage import coverage_record
+from .manifest import build_manifest
 from .format import (
-    FORMAT_NAME,
     FORMAT_VERSION,
     LOCK,
     MANIFEST,
@@ -59,7 +58,6 @@ from .format import (
 )
 
 if TYPE_CHECKING:  # annotations only
-    from ..fitting.check_points import CheckPoints
     from ..hierarchy.ambient import AmbientSpline
 
 log = logging.getLogger("geoidspline.store")
@@ -490,7 +488,7 @@ def commit(root: Path, manifest: dict, keep_files=(), expect_state: str | None =
         log.warning("%s: stale tile files not removed (%s)", root, fault_cause(exc))
 
 
-def write_store(path, result, provenance, check: CheckPoints | None = None,
+def write_store(path, result, provenance, check=None,
                 overwrite=False, extra=None, format_version=FORMAT_VERSION, value_step_m=None) -> Path:
     """Write a fit (:class:`geoidspline.fitting.driver.FitResult`) as a tile store at ``path``.
 
@@ -504,6 +502,9 @@ def write_store(path, result, provenance, check: CheckPoints | None = None,
     spline still meets the tolerance asked for at every node); the node and check-point
     errors in the manifest are those of the stored (quantised) spline (``accuracy.
     fit_node_max_error_m`` keeps the fit's), each within ``value_error_bound_m`` of the fit's.
+    ``check``: points that were not fit sites (``latitude``, ``longitude``, ``truth``
+    arrays and a ``description``, as :func:`geoidspline.fitting.check_points.check_points`
+    gives), or None.
     """
     root = Path(path)
     _previous_store(root, overwrite)  # refuse before writing anything
@@ -559,18 +560,22 @@ def _fit_manifest(root, result, provenance, check, previous, version, extra, att
     coverage = result.coverage if result.coverage is not None else Coverage.of_region(result.region)
     node_stats = error_stats(node_errors)
     check_stats = error_stats(check_errors if check is not None else [])
-    return {
-        "format": FORMAT_NAME,
-        "format_version": format_version,
+    record = {
+        "action": "fit",
+        "time": utc_now(),
         "store_version": version,
-        "store_id": store_id,
-        "created": previous["created"] if previous else utc_now(),
-        "updated": utc_now(),
-        "software": f"geoidspline {__version__}",
-        "provenance": provenance.as_dict(),
+        "source": provenance.source,
+        "sha256": provenance.sha256,
         "region": list(result.region.as_tuple()),
-        "coverage": coverage_record(coverage, provenance.source),
-        "spline": {
+    }
+    return build_manifest(
+        record, entries, previous,
+        format_version=format_version,
+        store_id=store_id,
+        provenance=provenance.as_dict(),
+        region=list(result.region.as_tuple()),
+        coverage=coverage_record(coverage, provenance.source),
+        spline={
             "reference_manifold": "unit sphere; direction u = (cos lat cos lon, cos lat sin lon, sin lat)",
             "order": params.order,
             "h0": params.h0,
@@ -581,8 +586,8 @@ def _fit_manifest(root, result, provenance, check, previous, version, extra, att
             "coefficients": spline.coefficient_count,
             **quantisation,
         },
-        "fit": {
-            "method": "hierarchical overlays (Lehmann 2013, section 5.2)",
+        fit={
+            "method": result.method,
             "parameters": params.as_dict(),
             "tolerance_m": params.tolerance_m,
             "converged": bool(result.converged),
@@ -590,7 +595,7 @@ def _fit_manifest(root, result, provenance, check, previous, version, extra, att
             "level_reports": [vars(r) for r in result.levels],
             **(extra or {}),
         },
-        "accuracy": {
+        accuracy={
             "nodes": node_stats["count"],
             "node_max_error_m": node_stats["max_error_m"],
             "node_rms_error_m": node_stats["rms_error_m"],
@@ -603,13 +608,4 @@ def _fit_manifest(root, result, provenance, check, previous, version, extra, att
             "p99_error_m": check_stats["p99_error_m"],
             "units": "m",
         },
-        "tiles": entries,
-        "history": (previous.get("history", []) if previous else []) + [{
-            "action": "fit",
-            "time": utc_now(),
-            "store_version": version,
-            "source": provenance.source,
-            "sha256": provenance.sha256,
-            "region": list(result.region.as_tuple()),
-        }],
-    }
+    )

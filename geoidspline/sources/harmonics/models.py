@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ...errors import InputFileError
+from ...errors import InputFileError, ParameterError
 from ...geodesy.ellipsoids import PERMANENT_TIDE, TIDE_SYSTEMS
 from ...geodesy.limits import MAX_ABS_C20, MAX_ABS_COEFFICIENT, MAX_ABS_UNDULATION_M, MAX_MODEL_DEGREE
 from ..files import reader_faults
@@ -109,9 +109,9 @@ class HarmonicModel:
         A0H0 = −1.39119e-8, k20 = 0.3 as NGA). Only C̄20 changes.
         """
         if target not in TIDE_SYSTEMS:
-            raise ValueError(f"unknown tide system {target!r}; expected one of {TIDE_SYSTEMS}")
+            raise ParameterError(f"unknown tide system {target!r}; expected one of {TIDE_SYSTEMS}")
         if self.tide_system is None:
-            raise ValueError(f"{self.name}: tide system unknown, cannot convert to {target}")
+            raise ParameterError(f"{self.name}: tide system unknown, cannot convert to {target}")
         if target == self.tide_system:
             return self
         C = np.array(self.C)
@@ -122,7 +122,7 @@ class HarmonicModel:
     def truncated(self, max_degree: int) -> "HarmonicModel":
         """The model cut to degree ``max_degree`` (≤ its own)."""
         if not 2 <= max_degree <= self.max_degree:
-            raise ValueError(f"max_degree must be in 2..{self.max_degree}, got {max_degree}")
+            raise ParameterError(f"max_degree must be in 2..{self.max_degree}, got {max_degree}")
         if max_degree == self.max_degree:
             return self
         cut = slice(0, max_degree + 1)
@@ -161,7 +161,7 @@ class CorrectionModel:
 
     def truncated(self, max_degree: int) -> "CorrectionModel":
         if not 0 <= max_degree <= self.max_degree:
-            raise ValueError(f"max_degree must be in 0..{self.max_degree}, got {max_degree}")
+            raise ParameterError(f"max_degree must be in 0..{self.max_degree}, got {max_degree}")
         if max_degree == self.max_degree:
             return self
         cut = slice(0, max_degree + 1)
@@ -726,7 +726,7 @@ def read_nga(
             f"pass {', '.join(missing)} (and tide_system) explicitly",
         )
     if tide_system is not None and tide_system not in TIDE_SYSTEMS:
-        raise ValueError(f"tide_system must be one of {TIDE_SYSTEMS} or None, got {tide_system!r}")
+        raise ParameterError(f"tide_system must be one of {TIDE_SYSTEMS} or None, got {tide_system!r}")
     text, digest = _read_text(path)
     rows, nmax = _rows_and_degree(path, text, 6, "n m C S sigmaC sigmaS", max_degree, "model", 2)
     coll = _Collector(path, nmax, True)
@@ -747,7 +747,7 @@ def read_nga_correction(path, *, unit: str = "cm", name: str | None = None, max_
     0, in centimetres; ``unit`` = "cm", "mm" or "m"). Every (n, m) with 0 ≤ n ≤ nmax must
     be present exactly once."""
     if unit not in _UNITS:
-        raise ValueError(f"unit must be one of {sorted(_UNITS)}, got {unit!r}")
+        raise ParameterError(f"unit must be one of {sorted(_UNITS)}, got {unit!r}")
     text, digest = _read_text(path)
     rows, nmax = _rows_and_degree(path, text, 4, "n m C S", max_degree, "correction", 0)
     coll = _Collector(path, nmax, False)

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..._kernels import legendre
-from ...errors import CoordinateError, InputFileError
+from ...errors import CoordinateError, InputFileError, ParameterError
 from ...geodesy.ellipsoids import WGS84, Ellipsoid
 from ...geodesy.limits import MAX_ABS_UNDULATION_M
 from ...sphere.region import GLOBAL, Region
@@ -228,14 +228,14 @@ class GeoidSynthesis:
         if correction is not None and not isinstance(correction, CorrectionModel):
             raise TypeError(f"correction must be a CorrectionModel or None, got {type(correction).__name__}")
         if preset not in PRESETS:
-            raise ValueError(f"preset must be one of {PRESETS}, got {preset!r}")
+            raise ParameterError(f"preset must be one of {PRESETS}, got {preset!r}")
         if preset.startswith("nga-") and (ellipsoid.a, ellipsoid.f, ellipsoid.gm) != (WGS84.a, WGS84.f, WGS84.gm):
-            raise ValueError(f"preset {preset!r} is defined for WGS84 only, got {ellipsoid.name}")
+            raise ParameterError(f"preset {preset!r} is defined for WGS84 only, got {ellipsoid.name}")
         nmax = model.max_degree if max_degree is None else int(max_degree)
         if not 2 <= nmax <= model.max_degree:
-            raise ValueError(f"max_degree must be in 2..{model.max_degree}, got {max_degree}")
+            raise ParameterError(f"max_degree must be in 2..{model.max_degree}, got {max_degree}")
         if zero_degree_term_m is not None and not math.isfinite(zero_degree_term_m):
-            raise ValueError(f"zero_degree_term_m must be finite, got {zero_degree_term_m}")
+            raise ParameterError(f"zero_degree_term_m must be finite, got {zero_degree_term_m}")
         _check_correction_degree(correction, nmax, max_degree is not None)
 
         self.model = model.truncated(nmax)
@@ -382,7 +382,7 @@ class GeoidSynthesis:
             spacing_deg = 90.0 / self.max_degree
         spacing_deg = float(spacing_deg)
         if not (math.isfinite(spacing_deg) and spacing_deg > 0):
-            raise ValueError(f"spacing_deg must be a positive number, got {spacing_deg}")
+            raise ParameterError(f"spacing_deg must be a positive number, got {spacing_deg}")
         k = max(1, math.ceil(180.0 / spacing_deg - 1e-9))
         return 180.0 / k
 

@@ -12,9 +12,9 @@ import numpy as np
 
 from .._kernels import query as _qk
 from .._kernels._jit import numba_threads
-from ..bspline.basis import refinement_weights
-from ..bspline.keys import KEY_BITS, KEY_OFFSET, pack_keys, unpack_keys
-from ..bspline.level import LevelSpline
+from .basis import refinement_weights
+from .keys import KEY_BITS, KEY_OFFSET, pack_keys, unpack_keys
+from .level import LevelSpline
 
 FOLD_BAND_CELLS = 2.0
 """Half-width of a level's folded band, in cells of that level: the folded table of a
@@ -230,7 +230,7 @@ class BrickIndex:
     A point is evaluated from the finest level down: the first level with a brick at
     the point whose band holds the point is evaluated from its folded table and ends
     the sum; a level with a brick there but outside its band adds its own table and
-    the descent goes on (see :func:`geoidspline._qk.evaluate_bricks`). Points on
+    the descent goes on (see :func:`geoidspline._kernels.query.evaluate_bricks`). Points on
     the sphere thus cost one level; the result is the exact sum Σ_ℓ S_ℓ (up to
     rounding) at every point of R³, on or off the sphere. Levels of equal spacing are
     summed; a level not nested in the coarser ones (and every finer one) is not
@@ -401,7 +401,7 @@ class BrickIndex:
         """Add the spline (nderiv 0) or value and derivatives (1, 2) at points (M, 3) to out.
 
         From :data:`_ORDER_THRESHOLD` points on, the points are evaluated in a
-        locality-preserving order (:func:`geoidspline._qk.query_order`, a counting
+        locality-preserving order (:func:`geoidspline._kernels.query.query_order`, a counting
         sort on a coarse Z-order grid) so that neighbours share bricks and cache lines;
         each point's result does not depend on the order.
         """
@@ -417,7 +417,7 @@ class BrickIndex:
 
     def undulation_latlon(self, latitude, longitude):
         """Values (M,) at the directions of 1-D latitude/longitude arrays (degrees), in
-        one compiled call (:func:`geoidspline._qk.undulation_latlon`).
+        one compiled call (:func:`geoidspline._kernels.query.undulation_latlon`).
 
         Returns ``(values, invalid)``: ``invalid`` counts the coordinates
         :func:`check_coordinates` refuses, and when it is not 0 the values are unset.

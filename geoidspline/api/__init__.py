@@ -1,0 +1,218 @@
+"""The one front door: fit a source into a store, update it, open it, query it in batches.
+
+The packages below compose here (docs/ARCHITECTURE.md): :mod:`geoidspline.fitting`
+fits, :mod:`geoidspline.store` persists, :mod:`geoidspline.sources` reads,
+:mod:`geoidspline.query` evaluates; the command line (``geoidspline.cli``) only parses,
+calls this module and prints. Importing it is light (neither numba nor scipy): every
+operation imports what it needs when called, and the names the command line needs for
+its options (:data:`PRESETS`, :data:`FIT_METHODS`, ...) are re-exported on first access.
+
+:func:`build_store` is the one way the command line, the tests and :func:`fit` make a
+store: fit, measure at check points that were not fit sites, write atomically.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import logging
+import time
+from typing import TYPE_CHECKING
+
+from ..sphere.region import GLOBAL, Region
+
+if TYPE_CHECKING:  # annotations only
+    from ..fitting.choose import Choice
+    from ..fitting.driver import FitResult
+    from ..fitting.executors import Executor
+    from ..fitting.parameters import FitParameters
+    from ..store.reader import TileStore
+
+__all__ = ["build_store", "fit", "run_fit", "FitRun", "open_store", "update", "query_rows", "query_point",
+           "BatchQuery"]
+
+log = logging.getLogger("geoidspline.api")
+
+#: Names re-exported from the layers below, imported on first access (PEP 562): what
+#: the command line needs for its options and messages, without importing it all.
+_EXPORTS = {
+    "__version__": "geoidspline._version",
+    "pin_mmap_threshold": "geoidspline._memory",
+    "PRESETS": "geoidspline.sources.harmonics.presets",
+    "FIT_METHODS": "geoidspline.fitting.parameters",
+    "REFINEMENTS": "geoidspline.fitting.parameters",
+    "FitParameters": "geoidspline.fitting.parameters",
+    "for_terminal": "geoidspline.fitting.progress",
+    "open_source": "geoidspline.sources.resolve",
+    "load_synthesis": "geoidspline.sources.resolve",
+    "resolve_source": "geoidspline.sources.resolve",
+    "is_model_file": "geoidspline.sources.resolve",
+    "verify_store": "geoidspline.store.reader",
+    "upgrade_store": "geoidspline.store.upgrade",
+    "check_against": "geoidspline.api.validation",
+    "export_grid": "geoidspline.api.export",
+    "plot_store": "geoidspline.query.plot",
+    "crs_info": "geoidspline.query.crs",
+    "BatchQuery": "geoidspline.query.batch",
+    "HEIGHT_OUTPUT": "geoidspline.query.batch",
+    "query_rows": "geoidspline.query.batch",
+    "query_point": "geoidspline.query.batch",
+}
+
+
+def __getattr__(name):
+    if name not in _EXPORTS:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(_EXPORTS[name]), name)
+    globals()[name] = value
+    return value
+
+
+def open_store(path, *, lazy: bool = True, verify: bool = True) -> TileStore:
+    """Open a tile store read-only.
+
+    ``lazy`` (default) reads a tile when a query first needs it; ``lazy=False`` reads and
+    checks every tile now. ``verify`` checks each tile's sha256 as it is read (sizes are
+    always checked). See :class:`geoidspline.store.TileStore`.
+    """
+    from ..store.reader import TileStore
+
+    return TileStore.open(path, verify=verify, lazy=lazy)
+
+
+def build_store(source, path, region: Region | None = None, params: FitParameters | None = None,
+                progress=None, overwrite=False, check_count=20_000,
+                executor: Executor | None = None, extra: dict | None = None) -> tuple[FitResult, dict]:
+    """Fit ``source`` over ``region``, measure it and write the store at ``path``.
+
+    ``progress``: a :class:`~geoidspline.fitting.progress.Progress` (every stage) or a
+    callable given the number of blocks just solved. ``extra``: more entries of the
+    manifest's ``fit`` section (``choices``: why the parameters are what they are).
+    Returns the fit result and the store's summary (``TileStore.info()``).
+    """
+    from ..fitting.check_points import check_points
+    from ..fitting.driver import fit_source
+    from ..fitting.parameters import FitParameters
+    from ..fitting.progress import as_progress
+    from ..store.reader import TileStore
+    from ..store.writer import write_store
+
+    region = region or GLOBAL
+    params = params or FitParameters()
+    progress = as_progress(progress)
+    result = fit_source(source, region, params, progress=progress, executor=executor)
+    if result.refinement_fallback:
+        extra = {**(extra or {}), "refinement_fallback": result.refinement_fallback}
+    check = check_points(source, region, count=check_count, progress=progress)
+    with progress.stage("write", 1, "store") as advance:
+        write_store(path, result, source.provenance, check=check, overwrite=overwrite, extra=extra)
+        advance(1)
+    return result, TileStore.open(path).info()
+
+
+def _as_region(region) -> Region:
+    if region is None:
+        return GLOBAL
+    return region if isinstance(region, Region) else Region.from_bounds(*region)
+
+
+def _is_path(source) -> bool:
+    return isinstance(source, (str, bytes)) or hasattr(source, "__fspath__")
+
+
+@dataclasses.dataclass
+class FitRun:
+    """A fit as :func:`run_fit` made it: what ``geoid-fit`` prints.
+
+    ``source``: the source object fitted; ``region``; ``result``: the
+    :class:`~geoidspline.fitting.result.FitResult`; ``info``: the store's summary
+    (``TileStore.info()``); ``choice``: the :class:`~geoidspline.fitting.choose.Choice`
+    of parameters and its reasons (None when ``choose=False``); ``seconds``: wall time of
+    fitting, measuring and writing."""
+
+    source: object
+    region: Region
+    result: FitResult
+    info: dict
+    choice: Choice | None
+    seconds: float
+
+    @property
+    def parameters(self) -> FitParameters:
+        return self.result.parameters if self.choice is None else self.choice.parameters
+
+
+def run_fit(source, store, *, region=None, overwrite: bool = False, workers: int = 1, scheduler: str | None = None,
+            correction=None, preset: str | None = None, progress=None, choose: bool = True,
+            **parameters) -> FitRun:
+    """:func:`fit`, returning the whole account of it (:class:`FitRun`) instead of the store."""
+    from ..fitting.executors import Executor
+    from ..fitting.parameters import FitParameters
+
+    executor = Executor(workers=workers, scheduler=scheduler)
+    fit_region = _as_region(region)
+    if _is_path(source):
+        from ..sources.resolve import open_source
+
+        source = open_source(source, correction, preset)
+    choice, extra = None, None
+    if choose:
+        from ..fitting.choose import choose_parameters
+        from ..fitting.driver import check_method
+
+        tolerance = parameters.pop("tolerance_m", FitParameters().tolerance_m)
+        choice = choose_parameters(source, tolerance, fit_region, given=parameters)
+        params, extra = choice.parameters, {"choices": choice.as_manifest()}
+        check_method(source, params)
+    else:
+        params = dataclasses.replace(FitParameters(), **parameters)
+    log.info("source %s (%s), region %s", source.provenance.source, source.provenance.model, fit_region.as_tuple())
+    started = time.perf_counter()
+    result, info = build_store(source, store, fit_region, params, progress=progress, overwrite=overwrite,
+                               executor=executor, extra=extra)
+    return FitRun(source, fit_region, result, info, choice, time.perf_counter() - started)
+
+
+def fit(source, store, *, region=None, overwrite: bool = False, workers: int = 1, scheduler: str | None = None,
+        correction=None, preset: str | None = None, progress=None, choose: bool = True,
+        **parameters) -> TileStore:
+    """Fit a geoid source into a new tile store at ``store`` and open it; the same store,
+    coefficient for coefficient, as ``geoid-fit`` with the same arguments.
+
+    ``source``: a grid or model file path, a catalogue name (``"egm96-15"``) or a source
+    object (:class:`~geoidspline.sources.grid.GeoidGrid`,
+    :class:`~geoidspline.sources.harmonics.GeoidSynthesis`); ``correction`` and
+    ``preset`` apply to a model file. ``region``: (south, west, north, east) degrees or a
+    :class:`~geoidspline.sphere.Region` (default global). ``parameters``: any field of
+    :class:`~geoidspline.fitting.parameters.FitParameters` (``tolerance_m``, ``h0``,
+    ``max_level``, ``order``, ``method``, ...). ``workers``/``scheduler``: where blocks are
+    solved (:class:`~geoidspline.fitting.executors.Executor`), never stored. ``choose``
+    (default, as ``geoid-fit``): the fields not in ``parameters`` are chosen from
+    ``tolerance_m`` (default 0.5 m) for the fewest coefficients
+    (:func:`~geoidspline.fitting.choose.choose_parameters`; the reasons go into the
+    manifest's ``fit.choices``); ``choose=False`` keeps FitParameters' defaults for them.
+    """
+    run_fit(source, store, region=region, overwrite=overwrite, workers=workers, scheduler=scheduler,
+            correction=correction, preset=preset, progress=progress, choose=choose, **parameters)
+    return open_store(store)
+
+
+def update(store, source, region, *, blend_width_km: float = 100.0, tolerance_m: float | None = None,
+           workers: int = 1, correction=None, preset: str | None = None, progress=None,
+           wait_seconds: float = 0.0) -> dict:
+    """Replace the store's geoid inside ``region`` by ``source`` (a regional update,
+    :func:`geoidspline.api.regional.update_store`); returns the update's history record,
+    the same as ``geoid-update`` with the same arguments.
+
+    ``tolerance_m``: this update's tolerance in metres (default: the store's);
+    ``wait_seconds``: how long to wait for another process writing the store."""
+    from ..fitting.executors import Executor
+    from .regional import update_store
+
+    if _is_path(source):
+        from ..sources.resolve import open_source
+
+        source = open_source(source, correction, preset)
+    return update_store(store, source, _as_region(region), blend_width_km=blend_width_km,
+                        executor=Executor(workers=workers), tolerance_m=tolerance_m, progress=progress,
+                        wait_seconds=wait_seconds)
