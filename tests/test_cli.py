@@ -473,7 +473,7 @@ def test_info_shows_the_update_history(store_copy, tmp_path):
     from geoidspline.sources.formats import write_gtx
     from geoidspline.sources.grid import GeoidGrid
     from geoidspline.sphere.region import Region
-    from geoidspline.store.update import update_store
+    from geoidspline.api.regional import update_store
 
     lat = np.arange(14.0, 26.0 + 1e-9, 0.5)
     lon = np.arange(24.0, 36.0 + 1e-9, 0.5)

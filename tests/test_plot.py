@@ -308,10 +308,11 @@ def test_titles_name_the_method_the_store_was_fitted_with(store, hierarchical_st
     overlays, hierarchical = gplot.level_map(store, spacing=0.5), gplot.level_map(hierarchical_store, spacing=0.5)
     assert overlays.title == "Overlay levels of bumps v1"
     assert hierarchical.title == "Hierarchical basis levels of bumps_h v1"
-    assert "overlay levels (§5.2), level 0 by least squares" in overlays.subtitle
-    assert "hierarchical B-spline basis (§5.3), least squares" in hierarchical.subtitle
-    assert "hierarchical B-spline basis (§5.3)" in gplot.undulation_map(hierarchical_store, spacing=0.5).subtitle
-    assert "Overlay" not in hierarchical.title + hierarchical.subtitle + hierarchical.label
+    # the subtitles name the method the manifest records
+    assert "; hierarchical overlays (Lehmann 2013, section 5.2), order 4" in overlays.subtitle
+    assert "; hierarchical B-spline basis by least squares (Lehmann 2013, section 5.3), order 4" in hierarchical.subtitle
+    assert hierarchical_store.manifest["fit"]["method"] in gplot.undulation_map(hierarchical_store, spacing=0.5).subtitle
+    assert "verlay" not in hierarchical.title + hierarchical.subtitle + hierarchical.label
 
 
 def test_level_colours_only_for_levels_on_the_map(store, hierarchical_store, tmp_path):

@@ -227,26 +227,18 @@ def _lon_text(value) -> str:
 
 
 def refinement(store) -> str:
-    """How the store's levels were made: ``"hierarchical"`` (one linearly independent
-    hierarchical basis, thesis §5.3) or ``"overlays"`` (each level fitted to the residual
-    of the coarser ones, §5.2), as the fit recorded it (a hierarchical fit that fell back
-    to overlays is overlays). Stores written before the choice existed are overlays."""
-    fit = store.manifest.get("fit", {})
-    if fit.get("refinement_fallback"):
-        return "overlays"
-    return (fit.get("parameters") or {}).get("refinement") or "overlays"
+    """How the store's levels were made, as the fit ran (``fit.parameters``): ``"hierarchical"``
+    (one linearly independent hierarchical basis, thesis §5.3) or ``"overlays"`` (§5.2;
+    also a hierarchical fit that fell back to overlays, and stores from before the choice)."""
+    return (store.manifest.get("fit", {}).get("parameters") or {}).get("refinement") or "overlays"
 
 
 def method_text(store) -> str:
-    """The store's fitting method in words, regional updates included."""
-    params = store.manifest.get("fit", {}).get("parameters") or {}
-    level0 = "quasi-interpolation" if params.get("method") == "interpolation" else "least squares"
-    if refinement(store) == "hierarchical":
-        text = f"hierarchical B-spline basis (§5.3), {level0}"
-    else:
-        text = f"overlay levels (§5.2), level 0 by {level0}"
+    """The store's fitting method in words: the manifest's ``fit.method``, and the
+    regional updates' overlays."""
+    text = store.manifest.get("fit", {}).get("method") or "method not recorded"
     if _update_records(store):
-        text += " + update overlays"
+        text += " + regional update overlays"
     return text
 
 
