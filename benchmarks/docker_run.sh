@@ -8,7 +8,8 @@
 # of the regional update (it must cover -46..-14 N, -82..-48 E: the update region
 # -40 -75 -20 -55 and its 100 km blend); POINTS_CSV rows lat,lon with a header. Without
 # them the update and the CSV query are skipped. Prints the image size, then one line per
-# command: seconds of wall time (docker run included) and the command's last output line.
+# command: seconds of the whole docker run, milliseconds of the command inside the
+# container, and the command's last output line.
 set -euo pipefail
 image="${1:-geoidspline}"
 national="${2:-}"
@@ -20,13 +21,20 @@ chmod 777 "$work"  # the image's user (uid 1000) writes the store here
 [ -n "$points" ] && install -m 644 "$points" "$work/points.csv"
 
 echo "image $image: $(docker image inspect -f '{{.Size}}' "$image") bytes"
+# each command timed twice: the whole `docker run` (container set-up included, which the
+# storage driver dominates: vfs copies the image for every container) and the command
+# inside the container
 run() {
   local name="$1"; shift
-  local start end out
+  local start end out inside
   start=$(date +%s.%N)
-  out="$(docker run --rm -v "$work:/data" "$image" "$@" 2>&1)" || { echo "$name FAILED: $out"; return 1; }
+  out="$(docker run --rm -v "$work:/data" "$image" sh -c \
+    's=$(date +%s%N); "$@"; rc=$?; e=$(date +%s%N); echo "inside $(( (e - s) / 1000000 )) ms"; exit $rc' sh "$@" 2>&1)" \
+    || { echo "$name FAILED: $out"; return 1; }
   end=$(date +%s.%N)
-  printf '%-8s %7.2f s  %s\n' "$name" "$(awk "BEGIN {print $end - $start}")" "$(printf '%s\n' "$out" | tail -1)"
+  inside="$(printf '%s\n' "$out" | tail -1)"
+  printf '%-8s docker run %7.2f s, %s  | %s\n' "$name" "$(awk "BEGIN {print $end - $start}")" "$inside" \
+    "$(printf '%s\n' "$out" | tail -2 | head -1)"
 }
 run none    true
 run fit     geoid-fit egm96-15 --region -60 -90 15 -30 --tolerance 0.5 --store /data/andes
