@@ -449,7 +449,7 @@ def payload(race_base, tmp_path_factory):
     spline = AmbientSpline(list(result.spline.levels))
     fields = dict(spline=spline, parameters=result.parameters, region=result.region, coverage=result.coverage,
                   node_directions=result.node_directions, node_errors=result.node_errors,
-                  converged=result.converged, seconds=result.seconds, levels=[])
+                  converged=result.converged, seconds=result.seconds, levels=[], method=result.method)
     path = tmp_path_factory.mktemp("payload") / "fit.pickle"
     with open(path, "wb") as fh:
         pickle.dump({"result": fields, "provenance": Provenance(source="rewrite")}, fh)
