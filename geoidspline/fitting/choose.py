@@ -269,7 +269,8 @@ def _for_grid(source, tolerance_m, region, given):
                    if given.get("refinement") == "hierarchical" and getattr(source, "max_degree", None)
                    else "least squares: a grid is known at its nodes only"),
         "order": f"{defaults.order} (cubic, C²), h0 {defaults.h0:g}: the thesis's Andes headline "
-                 "(benchmarks scenario andes: < 0.5 m with 29,005 coefficients, results/fits.jsonl 2026-11-23T18:57)",
+                 "(benchmarks scenario andes: < 0.5 m with 21,472 coefficients of the hierarchical basis, "
+                 "results/fits.jsonl 2026-12-02T13:52)",
         "h0": f"{defaults.h0:g}: as the Andes headline",
     }
     h0 = given.get("h0", defaults.h0)

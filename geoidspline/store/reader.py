@@ -413,6 +413,8 @@ class TileStore:
         """The manifest summary that ``geoid-info --json`` prints."""
         m = self.manifest
         acc = m["accuracy"]
+        params = m["fit"].get("parameters") or {}
+        max_level = int(params.get("max_level", max((lv["level"] for lv in m["spline"]["levels"]), default=0)))
         size = sum(e["bytes"] for e in m["tiles"])
         signature = signature_name(m["store_version"])
         signed = os.path.isfile(self.path / signature)
@@ -434,6 +436,12 @@ class TileStore:
             "converged": m["fit"]["converged"],
             "coefficients": m["spline"]["coefficients"],
             "levels": m["spline"]["levels"],
+            # levels 0..max_level were allowed; a hierarchical fit may leave coarse ones
+            # empty (their B-splines replaced by children) and stop before the finest
+            "levels_chosen": max_level + 1,
+            "levels_used": sum(1 for lv in m["spline"]["levels"] if lv["coefficients"] and lv["level"] <= max_level),
+            "fit_method": m["fit"]["method"],
+            "fit_parameters": params,
             "tiles": len(m["tiles"]),
             "max_error_m": acc["max_error_m"],
             "rms_error_m": acc["rms_error_m"],
@@ -445,6 +453,7 @@ class TileStore:
             "nodes": acc["nodes"],
             "bytes": size,
             "fit_seconds": m["fit"]["seconds"],
+            "history": m.get("history", []),
             "coverage": [
                 {"region": list(part.region.as_tuple()), "source": part.source,
                  "nodata_nodes": int(part.lattice.nodata.sum()) if part.lattice is not None else 0}
