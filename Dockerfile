@@ -10,8 +10,10 @@
 # The container runs as the non-root user "geoid" (uid 1000); if your uid differs and the
 # mounted directory is not writable for uid 1000, add --user "$(id -u):$(id -g)".
 #
-# Python 3.11.7 is the interpreter requirements.lock was frozen from (pip freeze of the
-# runtime dependency closure); the base image is pinned to that patch release.
+# requirements.lock is what this image installs (`pip freeze --exclude geoidspline` in the
+# built image: the closure of geoidspline[plot]); the build fails if `pip install` would
+# bring anything else. The base image is pinned to the patch release it was frozen on.
+# .dockerignore keeps the build context to the files copied below.
 FROM python:3.11.7-slim-bookworm
 
 # egm96_15.gtx (and PROJ's other grids) in /usr/share/proj, where the catalogue looks
@@ -34,9 +36,12 @@ COPY pyproject.toml README.md ./
 COPY geoidspline ./geoidspline
 COPY cli ./cli
 COPY grids ./grids
-# the same command as README.md's set-up (non-editable; cli/ and grids/ install as
-# geoidspline.cli and geoidspline.grids)
-RUN pip install .
+# README.md's set-up command plus the plot extra, so geoid-plot works in the image
+# (non-editable; cli/ and grids/ install as geoidspline.cli and geoidspline.grids). Then
+# the installed set must be the lock exactly, and consistent.
+RUN pip install '.[plot]' \
+ && pip freeze --exclude geoidspline | diff -u requirements.lock - \
+ && pip check
 
 # Compile every numba kernel into the image's cache (NUMBA_CACHE_DIR), the README's set-up
 # step: a container's first fit or query loads them instead of compiling for a minute or

@@ -6,7 +6,8 @@
 # Reads the Dockerfile (default: the repository's), follows its WORKDIR and COPY
 # instructions into a scratch "image root" and replays every `RUN pip install ...` line
 # there with a fresh venv's pip (python3 -m venv $TMP/venv), so the COPY set and the
-# pinned requirements.lock are checked too, and each `geoid-warmup` step
+# pinned requirements.lock are checked too (with the image's `pip freeze | diff` against
+# the lock and `pip check`), and each `geoid-warmup` step
 # (the numba kernels compiled into a scratch NUMBA_CACHE_DIR). Then runs the image's commands
 # (geoid-fit --help, geoid-query --help, geoid-info --help) from that venv.
 # Needs network access to the package index (or a local mirror in pip's configuration);
@@ -61,16 +62,22 @@ for line in lines:
             print(f"copy\t{src}\t{posixpath.normpath(target)}")
     elif instr == "RUN":
         words = shlex.split(rest)
-        if words[:2] == ["pip", "install"]:
-            found += 1
-            print("run\t" + workdir + "\t" + "\t".join(words[2:]))
-        # the kernel warm-up: each `geoid-warmup ...` of a `a && b` chain
+        # each command of a `a && b` chain: pip install, the lock check (pip freeze ... |
+        # diff, pip check) and the kernel warm-up (geoid-warmup ...)
         part = []
         for w in words + ["&&"]:
             if w != "&&":
                 part.append(w)
                 continue
-            if part[:1] == ["geoid-warmup"]:
+            if part[:2] == ["pip", "install"]:
+                found += 1
+                print("run\t" + workdir + "\t" + "\t".join(part[2:]))
+            elif part[:2] == ["pip", "freeze"] and "|" in part:
+                bar = part.index("|")
+                print("freeze\t" + workdir + "\t" + "\t".join(part[2:bar]) + "\t|\t" + "\t".join(part[bar + 1:]))
+            elif part == ["pip", "check"]:
+                print("check\t" + workdir + "\t")
+            elif part[:1] == ["geoid-warmup"]:
                 print("warm\t" + workdir + "\t" + "\t".join(part[1:]))
             part = []
 if not found:
@@ -101,6 +108,17 @@ while IFS=$'\t' read -r kind a b rest; do
       fi
       echo "+ (cd $a) pip install ${args[*]}" >&2
       (cd "$root$a" && PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1 "$venv_bin/pip" install -q "${args[@]}")
+      ;;
+    freeze)
+      # `pip freeze ARGS | CMD...`: the installed set against the lock (CMD reads stdin)
+      IFS=$'\t' read -r -a all <<<"$b${rest:+$'\t'$rest}"
+      bar=0; while [ "${all[$bar]}" != "|" ]; do bar=$((bar + 1)); done
+      echo "+ (cd $a) pip freeze ${all[*]:0:$bar} | ${all[*]:$((bar + 1))}" >&2
+      (cd "$root$a" && "$venv_bin/pip" freeze "${all[@]:0:$bar}" | "${all[@]:$((bar + 1))}")
+      ;;
+    check)
+      echo "+ pip check" >&2
+      "$venv_bin/pip" check
       ;;
     warm)
       # the image's NUMBA_CACHE_DIR, here a scratch directory, empty at first

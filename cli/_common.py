@@ -18,10 +18,11 @@ import logging
 import os
 import re
 import sys
+import warnings
 
 import click
 
-from geoidspline.api import __version__, pin_mmap_threshold
+from geoidspline.api import RULES, OptionError, __version__, check_number, pin_mmap_threshold
 from geoidspline.errors import GeoidSplineError
 
 CONTEXT = {"help_option_names": ["-h", "--help"]}
@@ -34,6 +35,8 @@ OPTION_NAMES = {
     "blend_width_km": "--blend-width",
     "tolerance_m": "--tolerance",
     "max_level": "--max-level",
+    "wait_seconds": "--wait",
+    "spacing_deg": "--spacing",
 }
 _OPTION_PATTERN = re.compile("|".join(re.escape(k) for k in sorted(OPTION_NAMES, key=len, reverse=True)))
 
@@ -88,6 +91,30 @@ def command(name: str, **kwargs):
                          **kwargs)
 
 
+class Number(click.ParamType):
+    """A numeric option checked by the library's rule for the parameter it sets
+    (:func:`geoidspline.options.check_number`): the same range, the same sentence, as
+    an ``ERROR: Invalid value for '--h0': ...`` usage line (exit 2)."""
+
+    def __init__(self, rule: str):
+        self.rule = rule
+        self.name = "integer" if RULES[rule].integer else "float"
+
+    def convert(self, value, param, ctx):
+        try:
+            return check_number(self.rule, value)
+        except OptionError as exc:
+            self.fail(f"must be {exc.requirement}, got {value!r}", param, ctx)
+
+    def get_metavar(self, param, ctx=None):
+        return "INTEGER" if RULES[self.rule].integer else "FLOAT"
+
+
+#: ``--region S W N E``: four plain finite numbers (what they make together is
+#: :class:`geoidspline.sphere.region.Region`'s to say, exit 1 naming the bound).
+REGION = (Number("region_bound_deg"),) * 4
+
+
 def version_option(func):
     return click.version_option(__version__, "--version", prog_name="geoidspline",
                                 message="%(prog)s %(version)s")(func)
@@ -102,12 +129,27 @@ def verbosity_options(func):
     def wrapper(*args, verbose, quiet, **kwargs):
         level = logging.ERROR if quiet else (logging.WARNING, logging.INFO, logging.DEBUG)[min(verbose, 2)]
         logging.basicConfig(level=level, stream=sys.stderr, format="%(levelname)s: %(message)s", force=True)
+        warnings.showwarning = _warning_as_log_line
         # a command owns its process: freed arrays go back to the system (the library
         # itself leaves the process's allocator alone; see geoidspline._memory)
         pin_mmap_threshold()
         return func(*args, quiet=quiet, verbose=verbose, **kwargs)
 
     return version_option(wrapper)
+
+
+def _warning_as_log_line(message, category, filename, lineno, file=None, line=None):
+    """geoidspline's own warnings (a tide system corrected from C̄20, say) as one
+    ``WARNING: ...`` line through logging, like every other statement on stderr (``-q``
+    silences it); the library also records them in the provenance notes. Other
+    packages' warnings keep Python's own format."""
+    if issubclass(category, Warning) and category.__module__.startswith("geoidspline"):
+        logging.getLogger("geoidspline").warning("%s", message)
+    else:
+        _python_showwarning(message, category, filename, lineno, file, line)
+
+
+_python_showwarning = warnings.showwarning
 
 
 def store_options(help_text: str, *, positional: bool = False, aliases=()):

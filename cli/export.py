@@ -10,7 +10,7 @@ import click
 
 from geoidspline.api import TIDE_SYSTEM_NAMES
 
-from ._common import command, echo, store_options, user_errors, verbosity_options
+from ._common import REGION, Number, command, echo, store_options, user_errors, verbosity_options
 
 log = logging.getLogger("geoidspline.cli")
 
@@ -19,8 +19,8 @@ log = logging.getLogger("geoidspline.cli")
 @store_options("Tile store directory (may also be given as the argument STORE).", positional=True)
 @click.option("--out", "out", required=True, type=click.Path(dir_okay=False),
               help="Grid file to write: FILE.gtx (PROJ GTX), FILE.nc (CF netCDF) or FILE.tif (GeoTIFF, needs rasterio).")
-@click.option("--spacing", type=float, required=True, help="Node spacing in degrees (latitude and longitude).")
-@click.option("--region", nargs=4, type=float, metavar="S W N E", default=None,
+@click.option("--spacing", type=Number("spacing_deg"), required=True, help="Node spacing in degrees (latitude and longitude).")
+@click.option("--region", nargs=4, type=REGION, metavar="S W N E", default=None,
               help="Region in degrees: south west north east [default: the store's region].")
 @click.option("--tide-system", type=click.Choice(TIDE_SYSTEM_NAMES), default=None,
               help="Tide system of the grid written: the store's values are converted to it [default: the store's].")

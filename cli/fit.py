@@ -9,7 +9,7 @@ import click
 
 from geoidspline.api import FIT_METHODS, PRESETS, REFINEMENTS, TIDE_SYSTEM_NAMES, FitParameters
 
-from ._common import command, echo, store_options, user_errors, verbosity_options
+from ._common import REGION, Number, command, echo, store_options, user_errors, verbosity_options
 
 _DEFAULTS = FitParameters()
 
@@ -28,17 +28,17 @@ _FIT_ONLY = ("h0", "max_level", "order", "method", "refinement", "sample_spacing
 @store_options("Store directory to write (must not exist unless --overwrite).", aliases=("--out",))
 @click.option("--update", "update", type=click.Path(file_okay=False), default=None, hidden=True,
               help="Old spelling of 'geoid-update SOURCE --store DIR'.")
-@click.option("--blend-width", type=click.FloatRange(min=0.0), default=100.0, show_default=True, hidden=True,
+@click.option("--blend-width", type=Number("blend_width_km"), default=100.0, show_default=True, hidden=True,
               help="With --update: width in km outside --region over which SOURCE fades into the store.")
-@click.option("--region", nargs=4, type=float, metavar="S W N E", default=None,
+@click.option("--region", nargs=4, type=REGION, metavar="S W N E", default=None,
               help="Region in degrees: south west north east (default: global).")
-@click.option("--tolerance", type=click.FloatRange(min=0.0, min_open=True), default=_DEFAULTS.tolerance_m,
+@click.option("--tolerance", type=Number("tolerance_m"), default=_DEFAULTS.tolerance_m,
               show_default=True, help="Largest |error| in metres accepted. The options below that are not "
                                       "given are chosen from it for the fewest coefficients (the summary says why).")
-@click.option("--h0", type=float, default=None, help="Level-0 grid spacing on the unit sphere [default: chosen].")
-@click.option("--max-level", type=int, default=None, help="Finest level (h = h0 / 2**level) [default: chosen].")
-@click.option("--order", type=int, default=None, help="Spline order (4 = cubic, C²) [default: chosen].")
-@click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
+@click.option("--h0", type=Number("h0"), default=None, help="Level-0 grid spacing on the unit sphere [default: chosen].")
+@click.option("--max-level", type=Number("max_level"), default=None, help="Finest level (h = h0 / 2**level) [default: chosen].")
+@click.option("--order", type=Number("order"), default=None, help="Spline order (4 = cubic, C²) [default: chosen].")
+@click.option("--workers", type=Number("workers"), default=1, show_default=True,
               help="Worker processes solving blocks (same coefficients, not stored).")
 @click.option("--scheduler", type=str, default=None, metavar="TEXT",
               help="dask scheduler address, or 'local' for a LocalCluster of --workers processes.")
@@ -46,7 +46,7 @@ _FIT_ONLY = ("h0", "max_level", "order", "method", "refinement", "sample_spacing
               help="NGA zeta-to-N correction coefficients (CORRCOEF) for a model SOURCE.")
 @click.option("--preset", type=click.Choice(PRESETS), default=None,
               help="Synthesis conventions for a model SOURCE [default: chosen from the model].")
-@click.option("--sample-spacing", type=float, default=None,
+@click.option("--sample-spacing", type=Number("sample_spacing_deg"), default=None,
               help="Lattice spacing in degrees at which a model SOURCE is synthesised "
                    "[default: chosen].")
 @click.option("--method", type=click.Choice(FIT_METHODS), default=None,
@@ -70,13 +70,15 @@ _FIT_ONLY = ("h0", "max_level", "order", "method", "refinement", "sample_spacing
 @click.option("--accept-quasi-geoid", is_flag=True,
               help="Fit a quasi-geoid SOURCE (height anomalies): the store then says it holds a quasi-geoid.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing store at --store.")
+@click.option("--sign", "sign", type=click.Path(dir_okay=False), default=None, metavar="KEYFILE",
+              help="Sign the store's manifest with this Ed25519 private key (PEM; see geoid-info --generate-key).")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @verbosity_options
 @user_errors
 @click.pass_context
 def main(ctx, source, store_path, update, blend_width, region, tolerance, h0, max_level, order, workers, scheduler,
          correction, preset, sample_spacing, method, refinement, band, variable, tide_system, accept_datum,
-         accept_quasi_geoid, overwrite, as_json, quiet, verbose):
+         accept_quasi_geoid, overwrite, sign, as_json, quiet, verbose):
     """Fit SOURCE into ambient B-spline tiles stored at --store.
 
     SOURCE is a grid file (.gtx, .nc, WW15MGH.DAC, .pgm), a catalogue name such as
@@ -103,12 +105,14 @@ def main(ctx, source, store_path, update, blend_width, region, tolerance, h0, ma
         return run_update(source, update, region, blend_width, workers, correction, preset, as_json, quiet,
                           tolerance if ctx.get_parameter_source("tolerance") is not ParameterSource.DEFAULT else None,
                           band=band, variable=variable, accept_datum=accept_datum,
-                          accept_quasi_geoid=accept_quasi_geoid)
+                          accept_quasi_geoid=accept_quasi_geoid, sign=sign)
     if store_path is None:
         raise click.UsageError("give --store DIR, the store to write (or use geoid-update for a regional update)")
-    out = store_path
     from click.core import ParameterSource
 
+    if ctx.get_parameter_source("blend_width") is not ParameterSource.DEFAULT:
+        raise click.UsageError("--blend-width goes with --update (a new fit has no blend zone)")
+    out = store_path
     options = {"method": method, "refinement": refinement, "order": order, "h0": h0, "max_level": max_level,
                "sample_spacing": sample_spacing, "tolerance": tolerance}
     given = {field: options[name] for name, field in _CHOSEN.items()
@@ -116,7 +120,7 @@ def main(ctx, source, store_path, update, blend_width, region, tolerance, h0, ma
     run = run_fit(source, out, region=region, overwrite=overwrite, workers=workers, scheduler=scheduler,
                   correction=correction, preset=preset, progress=for_terminal(quiet, verbose), tolerance_m=tolerance,
                   band=band, variable=variable, tide_system=tide_system, accept_datum=accept_datum,
-                  accept_quasi_geoid=accept_quasi_geoid, **given)
+                  accept_quasi_geoid=accept_quasi_geoid, sign=sign, **given)
     result, info, choice, params, src, fit_region = (run.result, run.info, run.choice, run.parameters, run.source,
                                                      run.region)
     info["wall_seconds"] = round(run.seconds, 2)

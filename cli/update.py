@@ -10,28 +10,28 @@ import click
 
 from geoidspline.api import PRESETS
 
-from ._common import command, echo, store_options, user_errors, verbosity_options
+from ._common import REGION, Number, command, echo, store_options, user_errors, verbosity_options
 
 
 @command("update")
 @click.argument("source")
 @store_options("The store to update (it must exist; it is changed atomically).")
-@click.option("--region", nargs=4, type=float, metavar="S W N E", required=True,
+@click.option("--region", nargs=4, type=REGION, metavar="S W N E", required=True,
               help="Region in degrees where SOURCE replaces the store's geoid: south west north east.")
-@click.option("--blend-width", type=click.FloatRange(min=0.0), default=100.0, show_default=True,
+@click.option("--blend-width", type=Number("blend_width_km"), default=100.0, show_default=True,
               help="Width in km outside --region over which SOURCE fades into the store; outside it the store "
                    "is unchanged (0: the change stays inside the region, so SOURCE is reached only away from its "
                    "edge).")
-@click.option("--tolerance", type=click.FloatRange(min=0.0, min_open=True), default=None,
-              help="Largest |error| in metres accepted inside --region [default: the store's]; the levels "
-                   "available stay the store's.")
-@click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
+@click.option("--tolerance", type=Number("tolerance_m"), default=None,
+              help="Largest |error| in metres accepted inside --region [default: the store's]. The update "
+                   "may add levels finer than the store's, down to what SOURCE's node spacing determines.")
+@click.option("--workers", type=Number("workers"), default=1, show_default=True,
               help="Worker processes solving blocks (same coefficients).")
 @click.option("--correction", type=click.Path(exists=True, dir_okay=False), default=None,
               help="NGA zeta-to-N correction coefficients (CORRCOEF) for a model SOURCE.")
 @click.option("--preset", type=click.Choice(PRESETS), default=None,
               help="Synthesis conventions for a model SOURCE [default: chosen from the model].")
-@click.option("--wait", "wait_seconds", type=click.FloatRange(min=0.0), default=0.0, show_default=True,
+@click.option("--wait", "wait_seconds", type=Number("wait_seconds"), default=0.0, show_default=True,
               metavar="SECONDS", help="Wait this long for another process writing the store, then give up.")
 @click.option("--band", type=click.IntRange(min=1), default=None, metavar="N",
               help="The band of a GeoTIFF SOURCE with several (1-based); required for such a file.")
@@ -45,11 +45,13 @@ from ._common import command, echo, store_options, user_errors, verbosity_option
 @click.option("--accept-implausible", is_flag=True,
               help="Skip the plausibility check (a change beyond 10 m from the store, or a slope beyond 2e-3 m/m "
                    "between SOURCE's nodes, is refused otherwise).")
+@click.option("--sign", "sign", type=click.Path(dir_okay=False), default=None, metavar="KEYFILE",
+              help="Sign the updated store's manifest with this Ed25519 private key (PEM; see geoid-info --generate-key).")
 @click.option("--json", "as_json", is_flag=True, help="Print the update's history record as JSON.")
 @verbosity_options
 @user_errors
 def main(source, store_path, region, blend_width, tolerance, workers, correction, preset, wait_seconds, band, variable,
-         accept_datum, accept_quasi_geoid, accept_implausible, as_json, quiet, verbose):
+         accept_datum, accept_quasi_geoid, accept_implausible, sign, as_json, quiet, verbose):
     """Replace the geoid of the store at --store by SOURCE inside --region.
 
     The update fits overlays to w·(N_new − N_store) with the store's own parameters (w
@@ -69,19 +71,19 @@ def main(source, store_path, region, blend_width, tolerance, workers, correction
     if store_path is None:
         raise click.UsageError("give --store DIR, the store to update")
     run_update(source, store_path, region, blend_width, workers, correction, preset, as_json, quiet, tolerance,
-               wait_seconds, band=band, variable=variable, accept_datum=accept_datum,
+               wait_seconds, sign, band=band, variable=variable, accept_datum=accept_datum,
                accept_quasi_geoid=accept_quasi_geoid, accept_implausible=accept_implausible)
 
 
 def run_update(source, store, region, blend_width, workers, correction, preset, as_json, quiet, tolerance=None,
-               wait_seconds=0.0, **choices):
+               wait_seconds=0.0, sign=None, **choices):
     from geoidspline.api import update
 
     if region is None:
         raise click.UsageError("a regional update needs --region S W N E")
     started = time.perf_counter()
     record = update(store, source, region, blend_width_km=blend_width, tolerance_m=tolerance, workers=workers,
-                    correction=correction, preset=preset, wait_seconds=wait_seconds, **choices)
+                    correction=correction, preset=preset, wait_seconds=wait_seconds, sign=sign, **choices)
     record["wall_seconds"] = round(time.perf_counter() - started, 2)
     if as_json:
         echo(json.dumps(record, indent=1))
@@ -100,6 +102,8 @@ def run_update(source, store, region, blend_width, workers, correction, preset, 
         echo(f"tolerance  {record['tolerance_m']:g} m NOT reached inside the region")
         if record.get("hint"):
             echo(f"hint       {record['hint']}")
+    if record.get("signed_by"):
+        echo(f"signed     by key {record['signed_by']}")
     echo(f"time       {record['wall_seconds']:.1f} s")
     if not record["converged"]:
         sys.exit(3)

@@ -28,16 +28,17 @@ __all__ = ["open_store", "fit", "update", "Region", "GLOBAL", "__version__", "Ge
            "InputFileError", "CoordinateError", "StoreError", "StoreCorruptError", "FitError", "ParameterError"]
 
 
-def open_store(path, *, lazy: bool = True, verify: bool = True):
+def open_store(path, *, lazy: bool = True, verify: bool = True, key=None):
     """Open a tile store read-only (:func:`geoidspline.api.open_store`).
 
     ``lazy`` (default) reads a tile when a query first needs it; ``lazy=False`` reads and
     checks every tile now. ``verify`` checks each tile's sha256 as it is read (sizes are
-    always checked). Imports neither numba nor scipy: a one-point query stays fast.
+    always checked). ``key``: the Ed25519 public key (PEM file) that must have signed
+    the store (docs/signing.md). Imports neither numba nor scipy: a one-point query stays fast.
     """
     from .store.reader import TileStore
 
-    return TileStore.open(path, verify=verify, lazy=lazy)
+    return TileStore.open(path, verify=verify, lazy=lazy, key=key)
 
 
 def fit(source, store, **options):

@@ -14,6 +14,7 @@ __all__ = [
     "StoreCorruptError",
     "StoreFileMissingError",
     "FitError",
+    "ExportError",
     "ParameterError",
 ]
 
@@ -58,3 +59,8 @@ class ParameterError(GeoidSplineError, ValueError):
 
 class FitError(GeoidSplineError):
     """A fit cannot be set up with the given data and parameters."""
+
+
+class ExportError(GeoidSplineError):
+    """A grid export cannot be written (a full disk, a read-only file system, ...); the
+    message names the file and the cause, and no partial file is left."""

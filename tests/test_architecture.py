@@ -8,7 +8,8 @@ that counts as an edge (the root package's own imports are checked on their own)
 The layers, bottom to top (docs/ARCHITECTURE.md draws them):
 
 0. ``_kernels``: the numeric bottom, imports nothing of the package outside itself;
-1. base: ``errors``, ``_version``, ``_files``, ``_memory``, ``geodesy``, ``grids`` (data);
+1. base: ``errors``, ``options`` (the numeric rules), ``_version``, ``_files``, ``_memory``, ``geodesy``,
+   ``grids`` (data);
 2. ``sphere`` (geometry); 3. ``bspline`` (basis, levels, brick index); 4. ``hierarchy``;
 5. side by side, importing none of each other: ``sources``, ``fitting``, ``store``, ``query``;
 6. the front door: ``api`` (and the root package, ``warmup``), composing the four;
@@ -29,8 +30,8 @@ PACKAGE = REPO / "geoidspline"
 # cli/ and grids/ install inside the package (pyproject's package-dir)
 FOLDERS = {"geoidspline": PACKAGE, "geoidspline.cli": REPO / "cli", "geoidspline.grids": REPO / "grids"}
 
-BASE = ("geoidspline.errors", "geoidspline._version", "geoidspline._files", "geoidspline._memory",
-        "geoidspline.geodesy", "geoidspline.grids")
+BASE = ("geoidspline.errors", "geoidspline.options", "geoidspline._version", "geoidspline._files",
+        "geoidspline._memory", "geoidspline.geodesy", "geoidspline.grids")
 SIDE_BY_SIDE = ("geoidspline.sources", "geoidspline.fitting", "geoidspline.store", "geoidspline.query")
 LAYERS = [  # (rank, prefixes)
     (0, ("geoidspline._kernels",)),

@@ -227,13 +227,17 @@ def test_fit_not_converged_exits_3(synthetic_gtx, tmp_path):
 
 
 @pytest.mark.parametrize(
-    "args, words",
-    [(["--h0", "0.9"], "h0"), (["--region", "30", "20", "10", "40"], "south"), (["--order", "1"], "order")],
+    "args, words, code",
+    # a number outside its option's range is a usage error (exit 2, geoidspline.options);
+    # bounds that do not make a region are the region's error (exit 1)
+    [(["--h0", "0.9"], "'--h0': must be a finite number in [0.0001, 0.5]", 2),
+     (["--region", "30", "20", "10", "40"], "south", 1),
+     (["--order", "1"], "'--order': must be a whole number in [2, 8]", 2)],
     ids=["h0", "region", "order"],
 )
-def test_fit_bad_parameters_are_user_errors(synthetic_gtx, tmp_path, args, words):
+def test_fit_bad_parameters_are_user_errors(synthetic_gtx, tmp_path, args, words, code):
     result = invoke(fit_main, [synthetic_gtx, "--out", tmp_path / "store", *args, "-q"])
-    assert_user_error(result)
+    assert_user_error(result, code)
     assert words in result.stderr
     assert not (tmp_path / "store" / "manifest.json").exists()
 
@@ -421,6 +425,81 @@ def test_info_text(small_store):
         assert re.search(rf"level {lv['level']}\s+h {lv['h']:g}\s+{lv['coefficients']:,} coefficients", result.stdout)
     assert f"coefficients {info['coefficients']:,} in {info['tiles']} tiles, {info['bytes']:,} bytes" in result.stdout
     assert info["provenance"]["sha256"][:16] in result.stdout
+
+
+def _info_lines(path):
+    result = invoke(info_main, ["--store", path])
+    assert result.exit_code == 0, result.output
+    return result.stdout.splitlines()
+
+
+def test_info_names_the_source_file_with_its_full_sha256(small_store):
+    lines = _info_lines(small_store.path)
+    prov = json.loads((small_store.path / "manifest.json").read_text())["provenance"]
+    assert prov["source"] == "synthetic.gtx" and len(prov["sha256"]) == 64
+    assert lines[1] == "source       synthetic.gtx"
+    assert lines[2] == f"  sha256     {prov['sha256']}"
+    import hashlib
+
+    assert prov["sha256"] == hashlib.sha256(small_store.gtx.read_bytes()).hexdigest()
+
+
+def test_info_lists_every_level_from_0_with_chosen_against_used(synthetic_gtx, tmp_path):
+    """A hierarchical fit allowed levels 0-4 that stops early and leaves coarse levels
+    emptied by refinement: every level is listed, 0 included, with its coefficients."""
+    from geoidspline.api import build_store
+    from geoidspline.fitting.parameters import FitParameters
+    from geoidspline.sources.formats import read_grid
+    from geoidspline.sphere.region import Region
+
+    path = tmp_path / "hier"
+    params = FitParameters(h0=0.2, max_level=4, tolerance_m=0.05, refinement="hierarchical")
+    build_store(read_grid(synthetic_gtx), path, Region.from_bounds(10, 20, 30, 40), params)
+    manifest = json.loads((path / "manifest.json").read_text())
+    stored = {lv["level"]: lv["coefficients"] for lv in manifest["spline"]["levels"]}
+    used = sorted(level for level, count in stored.items() if count)
+    assert 0 < len(used) < 5  # the case this test is about: not every allowed level holds coefficients
+    lines = _info_lines(path)
+    rows = [ln for ln in lines if re.match(r"  level \d", ln)]
+    assert [int(ln.split()[1]) for ln in rows] == [0, 1, 2, 3, 4]
+    for ln in rows:
+        level, count = int(ln.split()[1]), int(ln.split()[4].replace(",", ""))
+        assert count == stored.get(level, 0)
+        assert float(ln.split()[3]) == pytest.approx(0.2 / 2 ** level, rel=1e-5)
+    assert f"levels       {len(used)} of 5 chosen levels used (levels 0-4 allowed; " in "\n".join(lines)
+    info = geoidspline.open_store(path).info()
+    assert (info["levels_chosen"], info["levels_used"]) == (5, len(used))
+    assert info["fit_parameters"]["refinement"] == "hierarchical"
+
+
+def test_info_shows_the_update_history(store_copy, tmp_path):
+    from geoidspline.sources.base import Provenance
+    from geoidspline.sources.formats import write_gtx
+    from geoidspline.sources.grid import GeoidGrid
+    from geoidspline.sphere.region import Region
+    from geoidspline.api.regional import update_store
+
+    lat = np.arange(14.0, 26.0 + 1e-9, 0.5)
+    lon = np.arange(24.0, 36.0 + 1e-9, 0.5)
+    values = (np.full((lat.size, lon.size), 30.0) + 0.1 * lat[:, None]).astype(np.float32).astype(float)
+    national = write_gtx(tmp_path / "national.gtx",
+                         GeoidGrid(lat, lon, values, Provenance(source="national", model="national", kind="grid")))
+    from geoidspline.sources.formats import read_grid
+
+    record = update_store(store_copy, read_grid(national), Region(18.0, 28.0, 22.0, 32.0), blend_width_km=100.0)
+    lines = _info_lines(store_copy)
+    history = lines[lines.index("history      2 records") + 1:]
+    manifest = json.loads((store_copy / "manifest.json").read_text())
+    fit_record, update_record = manifest["history"]
+    assert history[0].startswith(f"  {fit_record['time']}  fit     v1  synthetic.gtx sha256 {fit_record['sha256'][:12]}...")
+    assert history[0].endswith("region S 10 W 20 N 30 E 40")
+    assert history[1] == (
+        f"  {update_record['time']}  update  v2  national.gtx sha256 {record['sha256'][:12]}...  "
+        f"region S 18 W 28 N 22 E 32, blend 100 km, {record['tiles_rewritten']} tiles rewritten, "
+        f"{record['coefficients_added']:+,d} coefficients, max |error| inside {record['max_error_m']:.4f} m of "
+        f"{record['tolerance_m']:g} m" + ("" if record["converged"] else " (NOT reached)"))
+    assert record["coefficients_added"] > 0 and record["tiles_rewritten"] > 0
+    assert geoidspline.open_store(store_copy).info()["history"] == manifest["history"]
 
 
 def test_info_errors(tmp_path):

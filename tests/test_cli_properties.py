@@ -47,16 +47,28 @@ def unquote(field):
     return field
 
 
+#: What README documents as a number in a row: a plain ASCII decimal (optional sign,
+#: digits, optional fraction, optional exponent); not 1_000, non-ASCII digits, nan, inf.
+PLAIN_DECIMAL = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+
+
 def as_number(field):
+    text = unquote(field)
+    return float(text) if PLAIN_DECIMAL.fullmatch(text) else None
+
+
+def python_float(text):
+    """Whether Python's float() reads ``text`` (nan, inf, 1_0 are never column names)."""
     try:
-        return float(unquote(field))
+        float(text)
+        return True
     except ValueError:
-        return None
+        return False
 
 
 def is_name(field):
     text = unquote(field)
-    return as_number(text) is None and bool(NAME.fullmatch(text)) and not HEMISPHERE_FIRST.match(text)
+    return not python_float(text) and bool(NAME.fullmatch(text)) and not HEMISPHERE_FIRST.match(text)
 
 
 def expected_point(row):

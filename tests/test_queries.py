@@ -26,7 +26,7 @@ from geoidspline.api import build_store
 from geoidspline.cli.export import main as export_main
 from geoidspline.cli.info import main as info_main
 from geoidspline.cli.query import main as query_main
-from geoidspline.errors import CoordinateError, GeoidSplineError
+from geoidspline.errors import CoordinateError, GeoidSplineError, ParameterError
 from geoidspline.fitting.parameters import FitParameters
 from geoidspline.geodesy.ellipsoids import WGS84
 from geoidspline.api import export, validation
@@ -623,7 +623,7 @@ def test_export_lattice_rules(store):
         export.export_lattice(store, 0.5, Region.from_bounds(5, 20, 15, 30))
     with pytest.raises(CoordinateError, match="not inside"):
         export.export_lattice(store, 0.5, Region.from_bounds(12, 35, 15, 45))
-    with pytest.raises(CoordinateError, match="positive"):
+    with pytest.raises(ParameterError, match=r"spacing_deg must be a finite number in \[1e-06, 180\] degrees"):
         export.export_lattice(store, 0.0)
     with pytest.raises(CoordinateError, match="2 x 2"):
         export.export_lattice(store, 30.0)

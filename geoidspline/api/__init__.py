@@ -48,6 +48,11 @@ _EXPORTS = {
     "resolve_source": "geoidspline.sources.resolve",
     "is_model_file": "geoidspline.sources.resolve",
     "verify_store": "geoidspline.store.reader",
+    "generate_key": "geoidspline.store.signing",
+    "key_fingerprint": "geoidspline.store.signing",
+    "RULES": "geoidspline.options",
+    "OptionError": "geoidspline.options",
+    "check_number": "geoidspline.options",
     "upgrade_store": "geoidspline.store.upgrade",
     "check_against": "geoidspline.api.validation",
     "export_grid": "geoidspline.api.export",
@@ -69,26 +74,30 @@ def __getattr__(name):
     return value
 
 
-def open_store(path, *, lazy: bool = True, verify: bool = True) -> TileStore:
+def open_store(path, *, lazy: bool = True, verify: bool = True, key=None) -> TileStore:
     """Open a tile store read-only.
 
     ``lazy`` (default) reads a tile when a query first needs it; ``lazy=False`` reads and
     checks every tile now. ``verify`` checks each tile's sha256 as it is read (sizes are
-    always checked). See :class:`geoidspline.store.TileStore`.
+    always checked). ``key``: the Ed25519 public key (PEM file or key object) that must
+    have signed the store; an unsigned or forged store is refused
+    (:class:`~geoidspline.store.signing.SignatureError`) and every tile is checked as it
+    is read. See :class:`geoidspline.store.TileStore` and docs/signing.md.
     """
     from ..store.reader import TileStore
 
-    return TileStore.open(path, verify=verify, lazy=lazy)
+    return TileStore.open(path, verify=verify, lazy=lazy, key=key)
 
 
 def build_store(source, path, region: Region | None = None, params: FitParameters | None = None,
                 progress=None, overwrite=False, check_count=20_000,
-                executor: Executor | None = None, extra: dict | None = None) -> tuple[FitResult, dict]:
+                executor: Executor | None = None, extra: dict | None = None, sign=None) -> tuple[FitResult, dict]:
     """Fit ``source`` over ``region``, measure it and write the store at ``path``.
 
     ``progress``: a :class:`~geoidspline.fitting.progress.Progress` (every stage) or a
     callable given the number of blocks just solved. ``extra``: more entries of the
     manifest's ``fit`` section (``choices``: why the parameters are what they are).
+    ``sign``: an Ed25519 private key (PEM file or key object) that signs the manifest.
     Returns the fit result and the store's summary (``TileStore.info()``).
     """
     from ..fitting.check_points import check_points
@@ -101,12 +110,16 @@ def build_store(source, path, region: Region | None = None, params: FitParameter
     region = region or GLOBAL
     params = params or FitParameters()
     progress = as_progress(progress)
+    if sign is not None:
+        from ..store.signing import load_private_key
+
+        sign = load_private_key(sign)  # a bad key file before the fit, not after it
     result = fit_source(source, region, params, progress=progress, executor=executor)
     if result.refinement_fallback:
         extra = {**(extra or {}), "refinement_fallback": result.refinement_fallback}
     check = check_points(source, region, count=check_count, progress=progress)
     with progress.stage("write", 1, "store") as advance:
-        write_store(path, result, source.provenance, check=check, overwrite=overwrite, extra=extra)
+        write_store(path, result, source.provenance, check=check, overwrite=overwrite, extra=extra, sign=sign)
         advance(1)
     return result, TileStore.open(path).info()
 
@@ -147,7 +160,7 @@ class FitRun:
 
 
 def run_fit(source, store, *, region=None, overwrite: bool = False, workers: int = 1, scheduler: str | None = None,
-            correction=None, preset: str | None = None, progress=None, choose: bool = True,
+            correction=None, preset: str | None = None, progress=None, choose: bool = True, sign=None,
             band: int | None = None, variable: str | None = None, tide_system: str | None = None,
             accept_datum: bool = False, accept_quasi_geoid: bool = False, **parameters) -> FitRun:
     """:func:`fit`, returning the whole account of it (:class:`FitRun`) instead of the store."""
@@ -177,12 +190,12 @@ def run_fit(source, store, *, region=None, overwrite: bool = False, workers: int
     log.info("source %s (%s), region %s", source.provenance.source, source.provenance.model, fit_region.as_tuple())
     started = time.perf_counter()
     result, info = build_store(source, store, fit_region, params, progress=progress, overwrite=overwrite,
-                               executor=executor, extra=extra)
+                               executor=executor, extra=extra, sign=sign)
     return FitRun(source, fit_region, result, info, choice, time.perf_counter() - started, notes)
 
 
 def fit(source, store, *, region=None, overwrite: bool = False, workers: int = 1, scheduler: str | None = None,
-        correction=None, preset: str | None = None, progress=None, choose: bool = True,
+        correction=None, preset: str | None = None, progress=None, choose: bool = True, sign=None,
         band: int | None = None, variable: str | None = None, tide_system: str | None = None,
         accept_datum: bool = False, accept_quasi_geoid: bool = False, **parameters) -> TileStore:
     """Fit a geoid source into a new tile store at ``store`` and open it; the same store,
@@ -200,6 +213,8 @@ def fit(source, store, *, region=None, overwrite: bool = False, workers: int = 1
     ``tolerance_m`` (default 0.5 m) for the fewest coefficients
     (:func:`~geoidspline.fitting.choose.choose_parameters`; the reasons go into the
     manifest's ``fit.choices``); ``choose=False`` keeps FitParameters' defaults for them.
+    ``sign``: an Ed25519 private key (PEM file or key object) that signs the store
+    (docs/signing.md).
     ``band``/``variable``: the GeoTIFF band or netCDF variable of a file with several.
     The source is taken into the store by the one rule of
     :func:`geoidspline.sources.reference.for_new_store`: converted to ``tide_system``
@@ -207,15 +222,15 @@ def fit(source, store, *, region=None, overwrite: bool = False, workers: int = 1
     refused unless ``accept_datum`` / ``accept_quasi_geoid``.
     """
     run_fit(source, store, region=region, overwrite=overwrite, workers=workers, scheduler=scheduler,
-            correction=correction, preset=preset, progress=progress, choose=choose, band=band, variable=variable,
-            tide_system=tide_system, accept_datum=accept_datum, accept_quasi_geoid=accept_quasi_geoid,
-            **parameters)
+            correction=correction, preset=preset, progress=progress, choose=choose, sign=sign, band=band,
+            variable=variable, tide_system=tide_system, accept_datum=accept_datum,
+            accept_quasi_geoid=accept_quasi_geoid, **parameters)
     return open_store(store)
 
 
 def update(store, source, region, *, blend_width_km: float = 100.0, tolerance_m: float | None = None,
            workers: int = 1, correction=None, preset: str | None = None, progress=None,
-           wait_seconds: float = 0.0, band: int | None = None, variable: str | None = None,
+           wait_seconds: float = 0.0, sign=None, band: int | None = None, variable: str | None = None,
            accept_datum: bool = False, accept_quasi_geoid: bool = False, accept_implausible: bool = False) -> dict:
     """Replace the store's geoid inside ``region`` by ``source`` (a regional update,
     :func:`geoidspline.api.regional.update_store`); returns the update's history record,
@@ -223,6 +238,7 @@ def update(store, source, region, *, blend_width_km: float = 100.0, tolerance_m:
 
     ``tolerance_m``: this update's tolerance in metres (default: the store's);
     ``wait_seconds``: how long to wait for another process writing the store;
+    ``sign``: an Ed25519 private key (PEM file or key object) that signs the new version;
     ``band``/``variable``: the GeoTIFF band or netCDF variable of a file with several;
     ``accept_datum``/``accept_quasi_geoid``: take such a source's values as they are;
     ``accept_implausible``: skip the plausibility check against the store."""
@@ -236,5 +252,5 @@ def update(store, source, region, *, blend_width_km: float = 100.0, tolerance_m:
     bounds = {"max_change_m": None, "max_slope": None} if accept_implausible else {}
     return update_store(store, source, _as_region(region), blend_width_km=blend_width_km,
                         executor=Executor(workers=workers), tolerance_m=tolerance_m, progress=progress,
-                        wait_seconds=wait_seconds, accept_datum=accept_datum, accept_quasi_geoid=accept_quasi_geoid,
-                        **bounds)
+                        wait_seconds=wait_seconds, sign=sign, accept_datum=accept_datum,
+                        accept_quasi_geoid=accept_quasi_geoid, **bounds)

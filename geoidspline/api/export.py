@@ -9,7 +9,9 @@ from pathlib import Path
 import numpy as np
 
 log = logging.getLogger(__name__)
-from ..errors import CoordinateError, GeoidSplineError, InputFileError
+from .._files import fault_cause
+from ..errors import CoordinateError, ExportError, GeoidSplineError, InputFileError
+from ..options import check_number
 from ..sphere.region import Region
 
 #: Export formats by file suffix.
@@ -22,10 +24,13 @@ _AXIS_TOL = 1e-9
 _MAX_EXPORT_NODES = 200_000_000  # 0.8 GB of float32 in a GTX, 1.6 GB of doubles in memory
 
 
+def _lattice_count(start, stop, step):
+    return int(math.floor((stop - start) / step + _AXIS_TOL)) + 1
+
+
 def _lattice(start, stop, step):
     """start, start + step, ... up to stop (inclusive within 1e-9°)."""
-    count = int(math.floor((stop - start) / step + _AXIS_TOL)) + 1
-    return start + step * np.arange(count)
+    return start + step * np.arange(_lattice_count(start, stop, step))
 
 
 def export_lattice(store, spacing_deg, region=None):
@@ -36,9 +41,7 @@ def export_lattice(store, spacing_deg, region=None):
     edge. For a region spanning all longitudes the column at west + 360° is left out
     (the grid is periodic). The region defaults to the store's and must lie inside it.
     """
-    spacing = float(spacing_deg)
-    if not (math.isfinite(spacing) and spacing > 0):
-        raise CoordinateError(f"spacing must be a positive number of degrees, got {spacing_deg}")
+    spacing = check_number("spacing_deg", spacing_deg)
     store_region = Region(*store.manifest["region"])
     if region is None:
         region = store_region
@@ -62,6 +65,12 @@ def export_lattice(store, spacing_deg, region=None):
                 f"{store_region.as_tuple()} (S W N E degrees): outside it the store has no meaningful values"
             )
     east = west + region.longitude_span
+    rows, columns = _lattice_count(region.south, region.north, spacing), _lattice_count(west, east, spacing)
+    if rows * columns > 2 * _MAX_EXPORT_NODES:  # refused before allocating; the exact count is below
+        raise CoordinateError(
+            f"spacing {spacing:g} degrees gives about {rows} x {columns} nodes, more than "
+            f"{_MAX_EXPORT_NODES:,}: use a coarser spacing or a smaller region"
+        )
     latitude = _lattice(region.south, region.north, spacing)
     longitude = _lattice(west, east, spacing)
     if region.longitude_span >= 360.0:
@@ -168,11 +177,12 @@ def export_grid(store, path, spacing_deg, region=None, tide_system=None):
         finite = values[np.isfinite(values)]
         if finite.size and np.abs(finite).max() >= 1000.0:
             log.warning("%s: values beyond ±1000 m, which PROJ treats as no data in GTX grids", path)
-        write_gtx(path, grid)
-    elif suffix == ".nc":
-        write_netcdf(path, grid)
-    else:
-        _write_geotiff(path, grid)
+    writer = {".gtx": write_gtx, ".nc": write_netcdf}.get(suffix, _write_geotiff)
+    try:
+        writer(path, grid)  # atomic: the partial file is removed on a fault
+    except (OSError, RuntimeError) as exc:  # the cause behind it (geoidspline._files.write_fault)
+        raise ExportError(f"{path}: cannot write the {EXPORT_FORMATS[suffix]} export: {fault_cause(exc)}; "
+                          f"nothing was written there") from None
     return grid
 
 

@@ -16,6 +16,7 @@ from ..fitting.executors import Executor
 from ..fitting.parameters import FitParameters
 from ..fitting.update import fit_update
 from ..geodesy.ellipsoids import KM_PER_DEGREE
+from ..options import check_number
 from ..sources.plausibility import MAX_CHANGE_M, MAX_SLOPE, check_update
 from ..sources.reference import Target, conform
 from ..sphere.region import Region
@@ -92,7 +93,7 @@ def _stored_parameters(store: TileStore) -> FitParameters:
 
 
 def update_store(path, source, region: Region, blend_width_km: float = 100.0, executor: Executor | None = None,
-                 tolerance_m: float | None = None, progress=None, wait_seconds: float = 0.0, *,
+                 tolerance_m: float | None = None, progress=None, wait_seconds: float = 0.0, sign=None, *,
                  accept_datum: bool = False, accept_quasi_geoid: bool = False,
                  max_change_m: float | None = MAX_CHANGE_M, max_slope: float | None = MAX_SLOPE) -> dict:
     """Replace the store's geoid inside ``region`` by ``source``; return the update report.
@@ -115,9 +116,14 @@ def update_store(path, source, region: Region, blend_width_km: float = 100.0, ex
     store keeps its own values (the residual fitted there is 0) and its coverage.
     ``tolerance_m`` (metres), when given, is this update's tolerance instead of the
     store's. The update may add levels finer than the store's, as far as the new
-    source's node spacing determines them.
+    source's node spacing determines them. ``sign``: an Ed25519 private key that signs
+    the new version (:func:`geoidspline.store.update.update_transaction`).
     """
-    with update_transaction(path, blend_width_km, wait_seconds) as transaction:
+    # the user's numbers by the rules every entry point shares (geoidspline.options)
+    blend_width_km = check_number("blend_width_km", blend_width_km)
+    tolerance_m = check_number("tolerance_m", tolerance_m, rule="update_tolerance_m")
+    wait_seconds = check_number("wait_seconds", wait_seconds)
+    with update_transaction(path, blend_width_km, wait_seconds, sign=sign) as transaction:
         store = transaction.store
         source, notes = conform(source, Target.of_store(store.manifest, store.path), accept_datum=accept_datum,
                                 accept_quasi_geoid=accept_quasi_geoid)

@@ -53,9 +53,18 @@ def solve_level(problems, executor: Executor, progress=None):
     return keys[order], coefs[order], len(results)
 
 
+def finer_data_hint(source) -> str:
+    """How to get data finer than ``source``'s nodes, for its kind: a model is sampled
+    finer (``sample_spacing_deg``), a grid's nodes are what they are."""
+    if getattr(source.provenance, "kind", None) == "harmonic" and hasattr(source, "lattice_step"):
+        return "sample the model finer with sample_spacing_deg"
+    return f"a grid with finer nodes than {source.provenance.source}'s is needed for a finer level"
+
+
 def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, progress=None,
               force_tiles=False, base_is_overlay=False, first_level=None,
-              executor: Executor | None = None, interpolant=None, started=None) -> FitResult:
+              executor: Executor | None = None, interpolant=None, started=None,
+              finer_hint: str = "finer data are needed for a finer level") -> FitResult:
     """Fit the nodes of a :class:`~geoidspline.sphere.sample.NodeSample` over ``region``.
 
     ``sample`` must cover the region plus the support margin of level 0 (see
@@ -87,6 +96,13 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
         raise FitError(str(exc)) from None
     if not np.any(nodes.in_region):
         raise FitError(f"no data nodes inside the region {region.as_tuple()}")
+    if (first_level is None and not base_is_overlay
+            and params.h0 < MIN_H_PER_DATA_SPACING * nodes.spacing_rad):
+        # level 0 finer than the data: its B-splines are not determined between the
+        # nodes, and there are (spacing / h0)² times more of them than nodes to pay for
+        raise FitError(f"h0 {params.h0:.4g} is finer than {MIN_H_PER_DATA_SPACING:g} x the data spacing "
+                       f"({nodes.spacing_rad:.4g} on the unit sphere): give h0 >= "
+                       f"{MIN_H_PER_DATA_SPACING * nodes.spacing_rad:.4g}, or a finer source")
     fallback = None
     if hierarchical:
         from .hierarchical import BasisTooLarge, fit_hierarchical  # §5.3: one basis over all levels
@@ -114,8 +130,8 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
             data_limited = True
             log.warning(
                 "stopping at level %d: level %d (h=%.4g) would be finer than %.1f x the data spacing "
-                "(%.4g on the unit sphere); sample a model source finer with sample_spacing_deg",
-                level - 1, level, h, MIN_H_PER_DATA_SPACING, data_spacing,
+                "(%.4g on the unit sphere); %s",
+                level - 1, level, h, MIN_H_PER_DATA_SPACING, data_spacing, finer_hint,
             )
             break
         if level == 0 and first_level is not None:
@@ -297,7 +313,8 @@ def fit_source(source, region: Region | None = None, params: FitParameters | Non
         # handful of nodes: keep at least a few per level-0 cell
         spacing = min(source.lattice_step(None), math.degrees(params.h0) / 4.0)
     sample = sample_nodes(source, clip_to_extent(data_region, source), spacing, as_progress(progress))
-    return fit_nodes(sample, region, params, progress=progress, force_tiles=force_tiles, executor=executor)
+    return fit_nodes(sample, region, params, progress=progress, force_tiles=force_tiles, executor=executor,
+                     finer_hint=finer_data_hint(source))
 
 
 def check_method(source, params: FitParameters):
@@ -325,7 +342,7 @@ def _fit_by_interpolation(source, region, params, spacing, progress, force_tiles
 
         band, interpolant = hierarchical_interpolant(source, cells, params, spacing, as_progress(progress))
         return fit_nodes(band, region, params, progress=progress, force_tiles=force_tiles, executor=executor,
-                         interpolant=interpolant, started=start)
+                         interpolant=interpolant, started=start, finer_hint=finer_data_hint(source))
     keys = touching_keys(cells, params.order)
     spacing = lattice_spacing(source, h, spacing)
     coefficients, band, lattice_points = interpolate_level(source, keys, h, params.order, spacing,
@@ -333,7 +350,8 @@ def _fit_by_interpolation(source, region, params, spacing, progress, force_tiles
     level0 = LevelSpline(0, h, params.order, keys, coefficients)
     # the band's lattice holds every node of the region: it is the nodes' sample too
     return fit_nodes(band, region, params, progress=progress, force_tiles=force_tiles,
-                     first_level=(level0, time.perf_counter() - start, lattice_points), executor=executor)
+                     first_level=(level0, time.perf_counter() - start, lattice_points), executor=executor,
+                     finer_hint=finer_data_hint(source))
 
 
 def clip_to_extent(region: Region, source) -> Region:

@@ -24,6 +24,7 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 
 from ..errors import FitError
+from ..options import check_number
 
 __all__ = ["Executor", "solve_problems", "SCHEDULER_PREFIXES"]
 
@@ -56,8 +57,9 @@ class Executor:
     scheduler: str | None = None
 
     def __post_init__(self):
-        if not (isinstance(self.workers, int) and self.workers >= 1):
+        if not isinstance(self.workers, int):  # 2.0 is not a count of processes
             raise FitError(f"workers must be a whole number >= 1, got {self.workers!r}")
+        check_number("workers", self.workers)
         if self.scheduler is not None and not (
             isinstance(self.scheduler, str)
             and (self.scheduler == "local" or self.scheduler.startswith(SCHEDULER_PREFIXES))

@@ -6,6 +6,7 @@ from dataclasses import asdict, dataclass
 
 from ..bspline.keys import MAX_INDEX
 from ..errors import FitError
+from ..options import RULES, check_number
 
 #: How level 0 is computed: by least squares on the data rays (any source), or by
 #: quasi-interpolation of a source exact everywhere (:mod:`geoidspline.fitting.interpolation`).
@@ -21,7 +22,7 @@ REFINEMENTS = ("overlays", "hierarchical")
 MIN_H_PER_DATA_SPACING = 0.5
 
 #: Deepest level index a fit may reach.
-MAX_LEVEL = 12
+MAX_LEVEL = RULES["max_level"].high
 
 
 def finest_level(h0: float) -> int:
@@ -81,22 +82,15 @@ class FitParameters:
     refinement: str = "overlays"
 
     def __post_init__(self):
-        if not 2 <= self.order <= 8:
-            raise FitError(f"spline order must be within 2..8 (4 = cubic, C²), got {self.order}")
-        if not 0.0 < self.h0 <= 0.5:
-            raise FitError(f"h0 must be within (0, 0.5] on the unit sphere, got {self.h0}")
-        if not self.tolerance_m > 0:
-            raise FitError(f"tolerance must be positive metres, got {self.tolerance_m}")
-        if not 0 <= self.max_level <= MAX_LEVEL:
-            raise FitError(f"max level must be within 0..{MAX_LEVEL}, got {self.max_level}")
+        # the user's numbers by the rules every entry point shares (geoidspline.options)
+        for name in ("order", "h0", "tolerance_m", "max_level", "sample_spacing_deg"):
+            object.__setattr__(self, name, check_number(name, getattr(self, name)))
         if self.max_level > finest_level(self.h0):
             raise FitError("h0 / 2**max_level is too small for the coefficient index range")
         if not self.tile_size >= self.h0:
             raise FitError(f"tile size ({self.tile_size}) must be at least h0 ({self.h0})")
         if self.margin_cells < self.order:
             raise FitError(f"margin_cells must be at least the spline order ({self.order})")
-        if self.sample_spacing_deg is not None and not 0 < self.sample_spacing_deg <= 5:
-            raise FitError(f"sample spacing must be within (0, 5] degrees, got {self.sample_spacing_deg}")
 
         if self.method not in FIT_METHODS:
             raise FitError(f"fit method must be one of {FIT_METHODS}, got {self.method!r}")

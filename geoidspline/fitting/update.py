@@ -36,7 +36,7 @@ from ..hierarchy.overlays import OverlayRefinement
 from ..sphere.coverage import Coverage
 from ..sphere.region import Region
 from ..sphere.sample import NodeSample
-from .driver import clip_to_extent, fit_nodes
+from .driver import clip_to_extent, finer_data_hint, fit_nodes
 from .parameters import FitParameters, finest_level
 from .result import FitResult
 
@@ -188,7 +188,7 @@ def fit_update(old: AmbientSpline, old_coverage: Coverage, source, region: Regio
         raise FitError(str(exc)) from None
     delta = fit_nodes(NodeSample(sample.latitude, sample.longitude, residual), zone, params,
                       refinement=_ResidualRefinement(params.refine_radius, zone), progress=progress, executor=executor,
-                      base_is_overlay=True)
+                      base_is_overlay=True, finer_hint=finer_data_hint(source))
     inside = region.contains(lat2, lon2) & has_new
     return RegionalUpdate(
         delta=delta, merged=_merge(old, delta.spline), parameters=params, coverage=old_coverage.union(new_coverage),

@@ -20,6 +20,7 @@ import re
 import select
 
 from ..errors import CoordinateError
+from ..options import DECIMAL
 from ..sphere.region import MAX_ABS_POINT_LONGITUDE_DEG
 
 __all__ = ["BatchQuery", "query_rows", "query_point", "HEIGHT_OUTPUT", "DEFLECTION_COLUMNS"]
@@ -135,8 +136,18 @@ def _unquoted(field):
 
 
 def _number(field):
-    """The float in a (possibly quoted) CSV field; ValueError if it holds none."""
-    return float(_unquoted(field))
+    """The float a (possibly quoted) CSV field spells as a plain ASCII decimal
+    (:data:`geoidspline.options.DECIMAL`: no ``1_000``, no non-ASCII digits, no nan or
+    inf); ValueError for anything else. nan, inf (in Python's spellings) and a decimal
+    beyond float's range come back as the non-finite float they spell, for the
+    message "must be finite numbers"."""
+    text = _unquoted(field)
+    if DECIMAL.fullmatch(text):
+        return float(text)
+    value = float(text)  # ValueError: not a number in any spelling
+    if math.isfinite(value):  # 1_000, non-ASCII digits: Python-only spellings
+        raise ValueError(f"not a plain decimal number: {text!r}")
+    return value
 
 
 #: A column name: a letter or underscore, then letters, digits, underscores, blanks,
@@ -482,7 +493,7 @@ class BatchQuery:
 def query_point(q: BatchQuery, coordinates) -> str:
     """One point (its coordinate values): the line of values (CSV or JSON), or a
     :class:`~geoidspline.errors.CoordinateError` with the message a CSV row would get."""
-    fields = [repr(float(v)) for v in coordinates]
+    fields = [v.strip() if isinstance(v, str) else repr(float(v)) for v in coordinates]  # as typed: a row's rules
     _, numbers, problems = q.parse([",".join(fields)], [1])
     out, lat, lon = q.evaluate(numbers, [1], problems)
     if problems:

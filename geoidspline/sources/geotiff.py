@@ -19,12 +19,11 @@ rasterio ships GDAL in its wheels; it is the optional extra ``geotiff``
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from .._files import atomic_path
 from ..errors import GeoidSplineError, InputFileError
 from .files import finish_grid, provenance_of
 from .reference import crs_datum
@@ -270,18 +269,22 @@ def write_geotiff(path, grid: GeoidGrid, *, crs_epsg: int | str | None = None, p
     vertical = _VERTICAL_EPSG.get(str(prov.model).upper().replace(" ", ""))
     if vertical is not None:
         tags["target_crs_epsg_code"] = str(vertical)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp.tif")
-    os.close(fd)
     try:
-        with rasterio.open(tmp, "w", **profile) as ds:
-            ds.update_tags(**tags)  # before the data: GDAL writes the GeoKeys (PixelIsPoint) at close
-            ds.set_band_description(1, "geoid_undulation")
-            ds.set_band_unit(1, "metre")
-            ds.write(data, 1)
-        os.replace(tmp, path)
+        with atomic_path(path, suffix=".tmp.tif") as tmp:
+            with rasterio.open(tmp, "w", **profile) as ds:
+                ds.update_tags(**tags)  # before the data: GDAL writes the GeoKeys (PixelIsPoint) at close
+                ds.set_band_description(1, "geoid_undulation")
+                ds.set_band_unit(1, "metre")
+                ds.write(data, 1)
+            # GDAL reports a failed write at close (a full disk) on stderr only, and
+            # returns: read the file back, so that an incomplete one is never renamed
+            # into place as if it were the grid
+            with rasterio.open(tmp) as written:
+                complete = np.array_equal(written.read(1), data)
+            if not complete:
+                raise RuntimeError("GDAL wrote an incomplete file")
     except RasterioError as exc:
+        if isinstance(exc, OSError):
+            raise
         raise InputFileError(path, f"cannot write GeoTIFF: {exc}") from None
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
     return path

@@ -160,6 +160,7 @@ class CoveragePart:
     source: str | None = None
 
     def covers(self, latitude, longitude):
+        latitude, longitude = self._pole_inside(latitude, longitude)
         if self.lattice is not None and np.size(latitude) >= COMPILED_FROM_POINTS:
             return self.lattice.cells_have_data(latitude, longitude, region=self.region)
         inside = self.region.contains(latitude, longitude)
@@ -173,6 +174,18 @@ class CoveragePart:
         out = inside.copy()
         out[inside] = self.lattice.cells_have_data(np.asarray(latitude)[inside], np.asarray(longitude)[inside])
         return out
+
+
+    def _pole_inside(self, latitude, longitude):
+        """A pole is one point, on every meridian: a point at latitude ±90 is tested at
+        the middle longitude of this part's region, so a region reaching the pole covers
+        it whatever longitude it is given with (a NaN longitude stays NaN)."""
+        latitude = np.asarray(latitude, dtype=float)
+        longitude = np.asarray(longitude, dtype=float)
+        pole = (np.abs(latitude) == 90.0) & np.isfinite(longitude)
+        if pole.any():
+            longitude = np.where(pole, self.region.west + 0.5 * self.region.longitude_span, longitude)
+        return latitude, longitude
 
 
 @dataclass(frozen=True, eq=False)
@@ -255,7 +268,7 @@ class Coverage:
         covered = np.asarray(self.covers(lat, lon))
         in_region = np.zeros(lat.shape, dtype=bool)
         for part in self.parts:
-            in_region |= part.region.contains(lat, lon)
+            in_region |= part.region.contains(*part._pole_inside(lat, lon))
         out = np.where(covered, INSIDE, np.where(in_region, NO_DATA, OUTSIDE)).astype(object)
         return str(out[()]) if out.ndim == 0 else out
 

@@ -62,6 +62,10 @@ MANIFEST = "manifest.json"
 MANIFEST_TMP = MANIFEST + ".tmp"
 
 
+#: The detached signature of store version N (:mod:`geoidspline.store.signing`).
+SIGNATURE_NAME = re.compile(re.escape(MANIFEST) + r"\.v([1-9]\d{0,9})\.sig")
+
+
 TILE_DIR = "tiles"
 
 
@@ -104,7 +108,7 @@ def tile_name(tile, version, format_version=FORMAT_VERSION):
 
 def is_store_file(relative: str) -> bool:
     """Whether a path relative to a store directory is one of the names the format owns."""
-    if relative in (MANIFEST, MANIFEST_TMP, LOCK, MARKER):
+    if relative in (MANIFEST, MANIFEST_TMP, LOCK, MARKER) or SIGNATURE_NAME.fullmatch(relative):
         return True
     head, _, name = relative.partition("/")
     return head == TILE_DIR and "/" not in name and bool(TILE_NAME.fullmatch(name) or TILE_TMP_NAME.fullmatch(name))

@@ -23,6 +23,7 @@ from ..hierarchy.ambient import FOLDED_FROM_POINTS, AmbientSpline
 from ..sphere.coordinates import check_coordinates, directions
 from .coverage import coverage_of
 from .format import LOCK, MANIFEST, MARKER, TileDirectory, load_manifest, read_tile_levels
+from .signing import SignatureError, load_signed_manifest, signature_name
 
 #: Fraction of a store's tiles from which a small batch that needs them loads them all
 #: (one full read instead of many partial rebuilds).
@@ -310,12 +311,19 @@ class TileStore:
             self.spline._full = spline
 
     @classmethod
-    def open(cls, path, verify=True, lazy=True):
+    def open(cls, path, verify=True, lazy=True, key=None):
         """Open the store at ``path``: the manifest now, the tiles when needed (all now
         with ``lazy=False``). ``verify=False`` skips the sha256 checks (sizes, names and
-        the tiles' own records are always checked)."""
+        the tiles' own records are always checked). ``key``: an Ed25519 public key
+        (object or PEM file) that must have signed the manifest
+        (:mod:`geoidspline.store.signing`); the tiles' sha256 are then always checked,
+        since the signature covers the tiles through them."""
         root = Path(path)
-        manifest = load_manifest(root)
+        if key is not None:
+            manifest = load_signed_manifest(root, key)
+            verify = True
+        else:
+            manifest = load_manifest(root)
         with TileDirectory(root) as tiles:
             for entry in manifest["tiles"]:
                 problem = tiles.stat_problem(entry)
@@ -405,8 +413,12 @@ class TileStore:
         """The manifest summary that ``geoid-info --json`` prints."""
         m = self.manifest
         acc = m["accuracy"]
+        params = m["fit"].get("parameters") or {}
+        max_level = int(params.get("max_level", max((lv["level"] for lv in m["spline"]["levels"]), default=0)))
         size = sum(e["bytes"] for e in m["tiles"])
-        for name in (MANIFEST, MARKER, LOCK):  # the store's own small files
+        signature = signature_name(m["store_version"])
+        signed = os.path.isfile(self.path / signature)
+        for name in (MANIFEST, MARKER, LOCK) + ((signature,) if signed else ()):  # the store's own small files
             try:
                 size += os.stat(self.path / name, follow_symlinks=False).st_size
             except OSError:
@@ -415,6 +427,7 @@ class TileStore:
             "store": str(self.path),
             "format_version": m["format_version"],
             "store_version": m["store_version"],
+            "signature": signature if signed else None,
             "provenance": m["provenance"],
             "region": m["region"],
             "order": m["spline"]["order"],
@@ -423,6 +436,12 @@ class TileStore:
             "converged": m["fit"]["converged"],
             "coefficients": m["spline"]["coefficients"],
             "levels": m["spline"]["levels"],
+            # levels 0..max_level were allowed; a hierarchical fit may leave coarse ones
+            # empty (their B-splines replaced by children) and stop before the finest
+            "levels_chosen": max_level + 1,
+            "levels_used": sum(1 for lv in m["spline"]["levels"] if lv["coefficients"] and lv["level"] <= max_level),
+            "fit_method": m["fit"]["method"],
+            "fit_parameters": params,
             "tiles": len(m["tiles"]),
             "max_error_m": acc["max_error_m"],
             "rms_error_m": acc["rms_error_m"],
@@ -434,6 +453,7 @@ class TileStore:
             "nodes": acc["nodes"],
             "bytes": size,
             "fit_seconds": m["fit"]["seconds"],
+            "history": m.get("history", []),
             "coverage": [
                 {"region": list(part.region.as_tuple()), "source": part.source,
                  "nodata_nodes": int(part.lattice.nodata.sum()) if part.lattice is not None else 0}
@@ -442,17 +462,26 @@ class TileStore:
         }
 
 
-def verify_store(path) -> list[str]:
+def verify_store(path, key=None) -> list[str]:
     """Every problem of a store's files, one message each naming the tile file:
     missing, not a regular file, truncated or altered (size or sha256 differs from
     the manifest), or in the wrong place (its own record of tile, store and spline,
     or the support centres of its coefficients, disagree with its manifest entry);
     then whether the tiles together hold the coefficients the manifest counts.
     An empty list means every tile matches its manifest entry. A manifest that
-    cannot be read or breaks the schema raises :class:`StoreError`.
+    cannot be read or breaks the schema raises :class:`StoreError`. ``key``: an Ed25519
+    public key that must have signed the manifest; a missing or mismatching signature
+    is a problem naming the file (checksums find damage; only a signature finds a
+    forgery that recomputed them).
     """
     root = Path(path)
-    manifest = load_manifest(root)
+    if key is not None:
+        try:
+            manifest = load_signed_manifest(root, key)  # the tiles below are this manifest's
+        except SignatureError as exc:
+            return [str(exc)]
+    else:
+        manifest = load_manifest(root)
     store = TileStore(root, manifest, verify=True)  # decodes the coverage record
     spline = store.spline
     problems = []

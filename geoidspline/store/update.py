@@ -11,6 +11,7 @@ owning Δ's B-splines are rewritten: every other tile file stays byte-identical.
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 from pathlib import Path
 
@@ -24,6 +25,7 @@ from .coverage import coverage_record
 from .format import TILE_DIR, error_stats, load_manifest, utc_now
 from .manifest import build_manifest
 from .reader import TileStore
+from .signing import key_fingerprint, load_private_key, signature_name
 from .writer import (
     StoreLock,
     _Attempt,
@@ -39,6 +41,8 @@ from .writer import (
 )
 
 __all__ = ["update_transaction", "UpdateTransaction"]
+
+log = logging.getLogger("geoidspline.store")
 
 
 def _check_writable(root: Path):
@@ -61,17 +65,18 @@ class UpdateTransaction:
         self.store = store
         self.attempt = attempt
         self.manifest: dict | None = None
+        self.record: dict | None = None
 
     def write(self, update, source, region, blend_width_km: float) -> dict:
         """Write the tiles Δ (a :class:`geoidspline.fitting.update.RegionalUpdate`)
         changes; return the update's history record (the manifest waits for the commit)."""
-        record, self.manifest = _write_update(self.root, self.store, update, source, region, blend_width_km,
-                                              self.attempt)
-        return record
+        self.record, self.manifest = _write_update(self.root, self.store, update, source, region, blend_width_km,
+                                                   self.attempt)
+        return self.record
 
 
 @contextlib.contextmanager
-def update_transaction(path, blend_width_km: float = 100.0, wait_seconds: float = 0.0):
+def update_transaction(path, blend_width_km: float = 100.0, wait_seconds: float = 0.0, sign=None):
     """Lock the store at ``path`` for an update and commit what :meth:`UpdateTransaction.write`
     wrote when the block ends; an error in the block leaves the store as it was.
 
@@ -79,24 +84,40 @@ def update_transaction(path, blend_width_km: float = 100.0, wait_seconds: float 
     writer (after ``wait_seconds``). The manifest is read once the writer lock is held,
     so concurrent updates apply one after the other (a second one started meanwhile
     waits up to ``wait_seconds`` for the first, then is refused; it is never lost).
+
+    ``sign``: an Ed25519 private key (object or PEM file) that signs the new manifest
+    (:mod:`geoidspline.store.signing`). The signer vouches for the whole store, so a
+    store whose current version is signed must be signed by the same key (checked
+    before the update); an unsigned update of a signed store leaves it unsigned, with a
+    warning.
     """
     root = Path(path)
+    signing_key = load_private_key(sign) if sign is not None else None  # a bad key before any work
     if not blend_width_km >= 0.0:
         raise StoreError(f"blend width must be a non-negative number of km, got {blend_width_km}")
     load_manifest(root)  # a store, before a lock file is created in it
     _check_writable(root)
     with StoreLock(root, wait_seconds):
         crash_point("after-lock")
-        store = TileStore.open(root)  # the manifest as it is now that the lock is held
+        version = load_manifest(root)["store_version"]
+        signed = (root / signature_name(version)).exists()
+        # the manifest as it is now that the lock is held (and, to be signed again, as signed)
+        store = TileStore.open(root, key=signing_key.public_key() if signing_key and signed else None)
         state = _manifest_state(root)
+        if signed and signing_key is None:
+            log.warning("%s: store version %d is signed (%s); this update is not, so the store will not be: "
+                        "sign it with the key (sign=KEY, geoid-update --sign KEY)", root, version,
+                        signature_name(version))
         manifest = store.manifest
         with _Attempt(root, manifest["store_version"]) as attempt:
             transaction = UpdateTransaction(root, store, attempt)
             yield transaction
             if transaction.manifest is None:
                 raise StoreError(f"{root}: the update wrote nothing; nothing was changed")
+            if transaction.record is not None:
+                transaction.record["signed_by"] = key_fingerprint(signing_key) if signing_key is not None else None
             commit(root, transaction.manifest, keep_files=[e["file"] for e in manifest["tiles"]],
-                   expect_state=state, attempt=attempt)
+                   expect_state=state, attempt=attempt, signing_key=signing_key)
 
 
 def _write_update(root, store, update, source, region, blend_width_km, attempt):

@@ -13,6 +13,7 @@ manifest's accuracy figures are the fit's and stay, the bound is stated beside t
 
 from __future__ import annotations
 
+import logging
 import uuid
 from pathlib import Path
 
@@ -25,12 +26,15 @@ from .coverage import coverage_record
 from .format import FORMAT_VERSION, load_manifest, utc_now
 from .manifest import build_manifest
 from .reader import TileStore
+from .signing import signature_name
 from .writer import (StoreLock, _Attempt, _manifest_state, commit, crash_point, quantisation_meta, tolerance_asked,
                      write_tile_entry)
 
 __all__ = ["upgrade_store"]
 
 _STAT_KEYS = ("max_error_m", "rms_error_m", "check_points", "node_max_error_m", "node_rms_error_m", "nodes")
+
+log = logging.getLogger("geoidspline.store")
 
 
 def upgrade_store(path) -> dict:
@@ -50,10 +54,14 @@ def upgrade_store(path) -> dict:
         state = _manifest_state(root)
         manifest = store.manifest
         _refuse_current(root, manifest)
+        was_signed = (root / signature_name(manifest["store_version"])).exists()
         with _Attempt(root, manifest["store_version"]) as attempt:
             record, new_manifest = _upgrade(root, store, attempt)
             commit(root, new_manifest, keep_files=[e["file"] for e in manifest["tiles"]], expect_state=state,
                    attempt=attempt)
+    if was_signed:  # the signature went with the old version
+        log.warning("%s: store version %d was signed; the upgraded store is not: sign it again with a signed "
+                    "update (docs/signing.md)", root, manifest["store_version"])
     return record
 
 

@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .._files import fsync_dir, sha256_file
+from .._files import fault_cause, fsync_dir, sha256_file, write_fault
 from ..bspline import keys as _keys
 from ..bspline.level import cube_of_support_centres
 from ..errors import StoreCorruptError, StoreError
@@ -47,6 +47,7 @@ from .format import (
     MANIFEST,
     MANIFEST_TMP,
     MARKER,
+    SIGNATURE_NAME,
     TILE_DIR,
     error_stats,
     is_store_file,
@@ -56,6 +57,7 @@ from .format import (
     utc_now,
     write_tile_file,
 )
+from .signing import load_private_key, signature_name, write_signature
 
 if TYPE_CHECKING:  # annotations only
     from ..hierarchy.ambient import AmbientSpline
@@ -82,25 +84,6 @@ def crash_point(name):
 
 
 # -- faults ---------------------------------------------------------------------------
-
-_CAUSES = {
-    errno.ENOSPC: "no space left on the device (disk full)",
-    errno.EDQUOT: "disk quota exceeded",
-    errno.EROFS: "read-only file system",
-    errno.EACCES: "permission denied",
-    errno.EPERM: "operation not permitted",
-    errno.EIO: "input/output error",
-    errno.EFBIG: "file too large for the file system",
-}
-
-
-def fault_cause(exc: BaseException) -> str:
-    """What went wrong, in words, for an I/O fault (errno first, never a guess)."""
-    if isinstance(exc, OSError) and exc.errno is not None:
-        return _CAUSES.get(exc.errno, exc.strerror or str(exc))
-    if isinstance(exc, MemoryError):
-        return "out of memory"
-    return str(exc) or type(exc).__name__
 
 
 class _Attempt:
@@ -133,30 +116,11 @@ class _Attempt:
         raise StoreError(f"{self.current}: cannot write the store {self.root}: {fault_cause(exc)}; {kept}") from None
 
 
-def _netcdf_fault(directory: Path, exc: Exception) -> BaseException:
-    """netCDF/HDF5 report a failed write as 'NetCDF: HDF error', or as 'Permission
-    denied' on a full disk: find the cause from the file system while the partial file
-    still exists."""
-    if isinstance(exc, OSError) and exc.errno not in (errno.EACCES, errno.EPERM, None):
-        return exc  # a cause the library did name
-    try:
-        st = os.statvfs(directory)
-    except OSError:
-        return exc
-    if st.f_flag & os.ST_RDONLY:
-        return OSError(errno.EROFS, f"Read-only file system ({exc})")
-    if isinstance(exc, OSError) and not os.access(directory, os.W_OK):
-        return exc  # really no permission
-    if st.f_bavail * st.f_frsize < (1 << 20) or (st.f_files and st.f_favail == 0):
-        return OSError(errno.ENOSPC, f"No space left on device ({exc}; {st.f_bavail * st.f_frsize} bytes free)")
-    return exc
-
-
 def _write_tile(path: Path, tile, levels, indices, values, attrs, format_version=FORMAT_VERSION):
     try:
         write_tile_file(path, tile, levels, indices, values, attrs, format_version)
     except (RuntimeError, OSError) as exc:
-        raise _netcdf_fault(path.parent, exc) from None
+        raise write_fault(path.parent, exc) from None
 
 
 # -- the lock -------------------------------------------------------------------------
@@ -448,13 +412,18 @@ def _write_all(fd, data: bytes):
 
 
 def commit(root: Path, manifest: dict, keep_files=(), expect_state: str | None = None,
-           attempt: _Attempt | None = None):
+           attempt: _Attempt | None = None, signing_key=None):
     """Make ``manifest`` the store's state in one atomic rename, then remove tile files
     that neither it nor ``keep_files`` (the previous version's, for readers that
     opened it just before) name. Only names the store format owns are removed.
 
     ``expect_state`` is :func:`_manifest_state` as the writer read it under the lock:
     a manifest changed since (a writer that ignored the lock) is never overwritten.
+
+    ``signing_key`` (an Ed25519 private key, :mod:`~geoidspline.store.signing`): the
+    signature of the new manifest's bytes is written and flushed under its version's
+    own name before the rename, and the previous version's removed only after it, so a
+    crash leaves each manifest with its own signature (or none, if it had none).
     """
     fsync_dir(root / TILE_DIR)
     crash_point("before-manifest")
@@ -466,9 +435,18 @@ def commit(root: Path, manifest: dict, keep_files=(), expect_state: str | None =
         attempt.writing(tmp)
         attempt.created.append(tmp)
     tmp.unlink(missing_ok=True)  # a killed writer's; never followed if a symlink
+    text = manifest_text(manifest)
+    signature = signature_name(manifest["store_version"])
+    if signing_key is not None:
+        if attempt is not None:
+            attempt.writing(root / signature)
+            attempt.created.append(root / signature)
+        write_signature(root, text, manifest["store_version"], signing_key)
+        fsync_dir(root)
+        crash_point("signature-written")
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
     try:
-        _write_all(fd, manifest_text(manifest))
+        _write_all(fd, text)
         os.fsync(fd)
     finally:
         os.close(fd)
@@ -482,14 +460,16 @@ def commit(root: Path, manifest: dict, keep_files=(), expect_state: str | None =
     try:
         ours, _ = scan_directory(root)
         for rel in ours:
-            if rel.startswith(f"{TILE_DIR}/") and rel not in live:
+            stale_signature = SIGNATURE_NAME.fullmatch(rel) and (signing_key is None or rel != signature)
+            if (rel.startswith(f"{TILE_DIR}/") and rel not in live) or stale_signature:
                 (root / rel).unlink(missing_ok=True)
     except OSError as exc:  # committed already: stale files are removed by the next write
         log.warning("%s: stale tile files not removed (%s)", root, fault_cause(exc))
 
 
 def write_store(path, result, provenance, check=None,
-                overwrite=False, extra=None, format_version=FORMAT_VERSION, value_step_m=None) -> Path:
+                overwrite=False, extra=None, format_version=FORMAT_VERSION, value_step_m=None,
+                sign=None) -> Path:
     """Write a fit (:class:`geoidspline.fitting.driver.FitResult`) as a tile store at ``path``.
 
     An existing store is refused unless ``overwrite``; even then its files stay valid
@@ -505,8 +485,11 @@ def write_store(path, result, provenance, check=None,
     ``check``: points that were not fit sites (``latitude``, ``longitude``, ``truth``
     arrays and a ``description``, as :func:`geoidspline.fitting.check_points.check_points`
     gives), or None.
+    ``sign``: an Ed25519 private key (object or PEM file) that signs the manifest
+    (:mod:`geoidspline.store.signing`).
     """
     root = Path(path)
+    signing_key = load_private_key(sign) if sign is not None else None  # a bad key before any work
     _previous_store(root, overwrite)  # refuse before writing anything
     _create_store_directory(root)
     with StoreLock(root):
@@ -518,7 +501,7 @@ def write_store(path, result, provenance, check=None,
             manifest = _fit_manifest(root, result, provenance, check, previous, version, extra, attempt,
                                      format_version, value_step_m)
             keep = [e["file"] for e in previous["tiles"]] if previous else []
-            commit(root, manifest, keep, expect_state=state, attempt=attempt)
+            commit(root, manifest, keep, expect_state=state, attempt=attempt, signing_key=signing_key)
     return root
 
 
