@@ -496,7 +496,9 @@ def test_names_are_only_hints(tmp_path):
     # an extension picks the rule quoted when the content matches nothing
     refused(r"x\.gtx: GTX file is 12 bytes, shorter than its 40-byte header", read_grid, write(tmp_path / "x.gtx", b"1" * 12))
     refused(r"x\.nc: not a netCDF file", read_grid, write(tmp_path / "x.nc", b"1" * 12))
-    refused(r"x\.bin: unrecognised grid format: the content matches none of", read_grid, write(tmp_path / "x.bin", b"1" * 12))
+    refused(r"x\.bin: NGS \.bin file is 12 bytes, shorter than its 44-byte header", read_grid,
+            write(tmp_path / "x.bin", b"1" * 12))
+    refused(r"x\.raw: unrecognised grid format: the content matches none of", read_grid, write(tmp_path / "x.raw", b"1" * 12))
 
 
 # ------------------------------------------------------------------ 6. faults are messages

@@ -440,7 +440,7 @@ class TileStore:
             # empty (their B-splines replaced by children) and stop before the finest
             "levels_chosen": max_level + 1,
             "levels_used": sum(1 for lv in m["spline"]["levels"] if lv["coefficients"] and lv["level"] <= max_level),
-            "fit_method": m["fit"]["method"],
+            "fit_method": m["fit"].get("method"),  # absent from damaged manifests: shown as unknown
             "fit_parameters": params,
             "tiles": len(m["tiles"]),
             "max_error_m": acc["max_error_m"],
