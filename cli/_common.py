@@ -120,6 +120,14 @@ def version_option(func):
                                 message="%(prog)s %(version)s")(func)
 
 
+def band_options(func):
+    """Add ``--band`` and ``--variable``: which band or variable of a SOURCE with several."""
+    func = click.option("--variable", default=None, metavar="NAME",
+                        help="The variable of a netCDF SOURCE with several 2-D candidates; required for such a file.")(func)
+    return click.option("--band", type=click.IntRange(min=1), default=None, metavar="N",
+                        help="The band of a GeoTIFF SOURCE with several (1-based); required for such a file.")(func)
+
+
 def verbosity_options(func):
     """Add ``--version``, ``-v/--verbose`` (repeatable) and ``-q/--quiet``, and set up logging."""
 

@@ -9,7 +9,7 @@ import click
 
 from geoidspline.api import FIT_METHODS, PRESETS, REFINEMENTS, TIDE_SYSTEM_NAMES, FitParameters
 
-from ._common import REGION, Number, command, echo, store_options, user_errors, verbosity_options
+from ._common import REGION, Number, band_options, command, echo, store_options, user_errors, verbosity_options
 
 _DEFAULTS = FitParameters()
 
@@ -58,10 +58,7 @@ _FIT_ONLY = ("h0", "max_level", "order", "method", "refinement", "sample_spacing
                    "5.2) or one linearly independent hierarchical B-spline basis over all levels (5.3; least "
                    "squares, or with --method interpolation its quasi-interpolant for a model SOURCE) "
                    "[default: chosen: hierarchical for least squares, overlays after quasi-interpolation].")
-@click.option("--band", type=click.IntRange(min=1), default=None, metavar="N",
-              help="The band of a GeoTIFF SOURCE with several (1-based); required for such a file.")
-@click.option("--variable", default=None, metavar="NAME",
-              help="The variable of a netCDF SOURCE with several 2-D candidates; required for such a file.")
+@band_options
 @click.option("--tide-system", type=click.Choice(TIDE_SYSTEM_NAMES), default=None,
               help="Tide system of the store: SOURCE is converted to it [default: SOURCE's own].")
 @click.option("--accept-datum", is_flag=True,

@@ -10,7 +10,7 @@ import click
 
 from geoidspline.api import PRESETS
 
-from ._common import REGION, Number, command, echo, store_options, user_errors, verbosity_options
+from ._common import REGION, Number, band_options, command, echo, store_options, user_errors, verbosity_options
 
 
 @command("update")
@@ -33,10 +33,7 @@ from ._common import REGION, Number, command, echo, store_options, user_errors, 
               help="Synthesis conventions for a model SOURCE [default: chosen from the model].")
 @click.option("--wait", "wait_seconds", type=Number("wait_seconds"), default=0.0, show_default=True,
               metavar="SECONDS", help="Wait this long for another process writing the store, then give up.")
-@click.option("--band", type=click.IntRange(min=1), default=None, metavar="N",
-              help="The band of a GeoTIFF SOURCE with several (1-based); required for such a file.")
-@click.option("--variable", default=None, metavar="NAME",
-              help="The variable of a netCDF SOURCE with several 2-D candidates; required for such a file.")
+@band_options
 @click.option("--accept-datum", is_flag=True,
               help="Take a SOURCE on another datum that PROJ cannot convert well as it is (or with PROJ's less "
                    "accurate transformation).")

@@ -30,9 +30,9 @@ from .files import check_catalogue_copy, reader_faults
 from .geotiff import looks_like_geotiff, read_geotiff
 from .grid import GeoidGrid
 from .gsi import looks_like_gsi, read_gsi
-from .gtx import GTX_NODATA, gtx_header, looks_like_gtx, read_gtx, write_gtx
+from .gtx import GTX_NODATA, gtx_header, read_gtx, write_gtx
 from .isg import looks_like_isg, read_isg
-from .ngs import looks_like_ngs, ngs_header, read_ngs
+from .ngs import ngs_header, read_ngs
 from .netcdf import NETCDF_MAGIC, NETCDF_SUFFIXES, check_netcdf_header, read_netcdf, write_netcdf
 from .pgm import check_pgm_header, looks_like_pgm, pgm_header, read_pgm
 
@@ -65,6 +65,17 @@ class GridFormat:
     by_path: bool = False
 
 
+def _header_accepts(check_header):
+    """``looks_like`` of a format recognised by its header alone: the header check passes."""
+    def looks_like(head: bytes, size: int) -> bool:
+        try:
+            check_header("", head, size)
+        except InputFileError:
+            return False
+        return True
+    return looks_like
+
+
 #: The formats, in the order their content is tested: magic bytes first, then a header
 #: that must agree with the size, then the size alone.
 GRID_FORMATS = (
@@ -75,8 +86,8 @@ GRID_FORMATS = (
     GridFormat("pgm", "GeographicLib PGM", (".pgm",), looks_like_pgm, read_pgm, check_pgm_header),
     GridFormat("isg", "ISG", (".isg",), lambda head, size: looks_like_isg(head), read_isg),
     GridFormat("gsi", "GSI ASCII", (".asc",), lambda head, size: looks_like_gsi(head), read_gsi),
-    GridFormat("ngs", "NGS .bin", (".bin",), looks_like_ngs, read_ngs, ngs_header),
-    GridFormat("gtx", "PROJ GTX", (".gtx",), looks_like_gtx, read_gtx, gtx_header),
+    GridFormat("ngs", "NGS .bin", (".bin",), _header_accepts(ngs_header), read_ngs, ngs_header),
+    GridFormat("gtx", "PROJ GTX", (".gtx",), _header_accepts(gtx_header), read_gtx, gtx_header),
     GridFormat("dac", "NGA WW15MGH.DAC", (".dac",), looks_like_dac, read_dac, check_dac_size),
 )
 

@@ -79,15 +79,6 @@ def gtx_header(path, head: bytes, size: int) -> GtxHeader:
     return header
 
 
-def looks_like_gtx(head: bytes, size: int) -> bool:
-    """Whether a file starts with a GTX header that agrees with its size."""
-    try:
-        gtx_header("", head, size)
-    except InputFileError:
-        return False
-    return True
-
-
 # -- PROJ GTX ------------------------------------------------------------------------
 def read_gtx(path: Path, data: bytes, sha256: str, complete: bool) -> GeoidGrid:
     h = gtx_header(path, data[:GTX_HEADER_BYTES], len(data))

@@ -34,7 +34,7 @@ from ..geodesy.limits import MAX_GRID_NODES
 from .files import finish_grid, provenance_of
 from .grid import GeoidGrid
 
-__all__ = ["NGS_HEADER_BYTES", "NgsHeader", "ngs_header", "looks_like_ngs", "read_ngs", "write_ngs"]
+__all__ = ["NGS_HEADER_BYTES", "NgsHeader", "ngs_header", "read_ngs", "write_ngs"]
 
 NGS_HEADER_BYTES = 44
 _ORDERS = {"<": "little-endian", ">": "big-endian"}
@@ -100,15 +100,6 @@ def ngs_header(path, head: bytes, size: int) -> NgsHeader:
     if not found:
         raise InputFileError(path, "not an NGS .bin geoid grid in either byte order (" + "; ".join(reasons) + ")")
     raise InputFileError(path, "NGS .bin header is plausible in both byte orders; cannot tell which one the file uses")
-
-
-def looks_like_ngs(head: bytes, size: int) -> bool:
-    """Whether a file starts with an NGS header plausible in exactly one byte order."""
-    try:
-        ngs_header("", head, size)
-    except InputFileError:
-        return False
-    return True
 
 
 def read_ngs(path: Path, data: bytes, sha256: str, complete: bool) -> GeoidGrid:
