@@ -37,6 +37,7 @@ OPTION_NAMES = {
     "max_level": "--max-level",
     "wait_seconds": "--wait",
     "spacing_deg": "--spacing",
+    "max_memory_gb": "--max-memory",
 }
 _OPTION_PATTERN = re.compile("|".join(re.escape(k) for k in sorted(OPTION_NAMES, key=len, reverse=True)))
 

@@ -20,7 +20,8 @@ _CHOSEN = {"method": "method", "refinement": "refinement", "order": "order", "h0
 
 #: Options of a new fit that a regional update cannot honour: it refits with the store's
 #: own parameters, so that the result is one spline.
-_FIT_ONLY = ("h0", "max_level", "order", "method", "refinement", "sample_spacing", "overwrite", "scheduler")
+_FIT_ONLY = ("h0", "max_level", "order", "method", "refinement", "sample_spacing", "overwrite", "scheduler",
+             "max_memory")
 
 
 @command("fit")
@@ -31,13 +32,17 @@ _FIT_ONLY = ("h0", "max_level", "order", "method", "refinement", "sample_spacing
 @click.option("--blend-width", type=Number("blend_width_km"), default=100.0, show_default=True, hidden=True,
               help="With --update: width in km outside --region over which SOURCE fades into the store.")
 @click.option("--region", nargs=4, type=REGION, metavar="S W N E", default=None,
-              help="Region in degrees: south west north east (default: global).")
+              help="Region in degrees: south west north east (default: the source's extent; global for a "
+                   "global grid or a model).")
 @click.option("--tolerance", type=Number("tolerance_m"), default=_DEFAULTS.tolerance_m,
               show_default=True, help="Largest |error| in metres accepted. The options below that are not "
                                       "given are chosen from it for the fewest coefficients (the summary says why).")
 @click.option("--h0", type=Number("h0"), default=None, help="Level-0 grid spacing on the unit sphere [default: chosen].")
 @click.option("--max-level", type=Number("max_level"), default=None, help="Finest level (h = h0 / 2**level) [default: chosen].")
 @click.option("--order", type=Number("order"), default=None, help="Spline order (4 = cubic, C²) [default: chosen].")
+@click.option("--max-memory", "max_memory", type=Number("max_memory_gb"), default=None, metavar="GB",
+              help="Memory in GB the fit plans against; a fit that needs more is refused before any work, "
+                   "naming the figure [default: 60 % of the machine's].")
 @click.option("--workers", type=Number("workers"), default=1, show_default=True,
               help="Worker processes solving blocks (same coefficients, not stored).")
 @click.option("--scheduler", type=str, default=None, metavar="TEXT",
@@ -73,8 +78,8 @@ _FIT_ONLY = ("h0", "max_level", "order", "method", "refinement", "sample_spacing
 @verbosity_options
 @user_errors
 @click.pass_context
-def main(ctx, source, store_path, update, blend_width, region, tolerance, h0, max_level, order, workers, scheduler,
-         correction, preset, sample_spacing, method, refinement, band, variable, tide_system, accept_datum,
+def main(ctx, source, store_path, update, blend_width, region, tolerance, h0, max_level, order, max_memory, workers,
+         scheduler, correction, preset, sample_spacing, method, refinement, band, variable, tide_system, accept_datum,
          accept_quasi_geoid, overwrite, sign, as_json, quiet, verbose):
     """Fit SOURCE into ambient B-spline tiles stored at --store.
 
@@ -117,17 +122,19 @@ def main(ctx, source, store_path, update, blend_width, region, tolerance, h0, ma
     run = run_fit(source, out, region=region, overwrite=overwrite, workers=workers, scheduler=scheduler,
                   correction=correction, preset=preset, progress=for_terminal(quiet, verbose), tolerance_m=tolerance,
                   band=band, variable=variable, tide_system=tide_system, accept_datum=accept_datum,
-                  accept_quasi_geoid=accept_quasi_geoid, sign=sign, **given)
+                  accept_quasi_geoid=accept_quasi_geoid, sign=sign, max_memory_gb=max_memory, **given)
     result, info, choice, params, src, fit_region = (run.result, run.info, run.choice, run.parameters, run.source,
                                                      run.region)
+    promise = run.promise
     info["wall_seconds"] = round(run.seconds, 2)
     info["converged"] = bool(result.converged)
     info["choices"] = choice.as_manifest()
+    info["promise"] = promise
     if run.source_notes:  # what was converted or taken, as the manifest's provenance notes say
         info["source_notes"] = run.source_notes
     if as_json:
         echo(json.dumps(info, indent=1))
-        sys.exit(0 if result.converged else 3)
+        sys.exit(0 if promise["kept"] else 3)
     echo(f"store      {out}  ({info['tiles']} tiles, {info['bytes']:,} bytes)")
     echo(f"source     {src.provenance.source} ({src.provenance.model})")
     for note in run.source_notes:
@@ -150,18 +157,33 @@ def main(ctx, source, store_path, update, blend_width, region, tolerance, h0, ma
                  f"{r.nodes_above_tolerance:9d}  {r.seconds:7.1f}")
     if result.refinement_fallback:
         echo(f"fallback   {result.refinement_fallback}")
-    state = ("reached" if result.converged else
-             "NOT reached (the finest level the data determine was reached)" if result.data_limited else
-             "NOT reached (raise --max-level)")
-    echo(f"total      {info['coefficients']:,} coefficients; tolerance {params.tolerance_m:.3g} m at the nodes {state}")
+    where = "at the nodes and check points" if promise["check_max_m"] is not None else "at the nodes"
+    state = "kept" if promise["kept"] else f"NOT kept ({_why_not(result, choice)})"
+    echo(f"total      {info['coefficients']:,} coefficients; tolerance {promise['tolerance_m']:.3g} m {where} {state} "
+         "in the store")
     echo(f"nodes      {info['nodes']:,}: max |error| {info['node_max_error_m']:.4f} m, "
-               f"RMS {info['node_rms_error_m']:.4f} m")
+         f"RMS {info['node_rms_error_m']:.4f} m")
     if info["check_points"]:
         echo(f"check      {info['check_points']:,} points ({info['check_truth']}): "
-                   f"max {info['max_error_m']:.4f} m, RMS {info['rms_error_m']:.4f} m")
+             f"max {info['max_error_m']:.4f} m, RMS {info['rms_error_m']:.4f} m")
+    if promise["cell_centre_max_m"] is not None:
+        echo(f"between    cell centres: at most {promise['cell_centre_max_m']:.4f} m outside the interval of the "
+             "grid's bilinear and bicubic interpolants")
     echo(f"time       {info['wall_seconds']:.1f} s")
-    if not result.converged:
+    if not promise["kept"]:
         sys.exit(3)
+
+
+def _why_not(result, choice) -> str:
+    """Why a fit left nodes above its tolerance, and only advice that can help."""
+    given = {name for name, reason in choice.reasons.items() if reason.startswith("given")}
+    if result.data_limited:
+        return "the finest level the data determine was reached"
+    if "max_level" in given:
+        return "the given --max-level stopped the refinement: raise it, or leave it to be chosen"
+    if given & {"h0", "order", "method", "refinement", "sample_spacing_deg"}:
+        return "with the given options: leave them to be chosen"
+    return "the refinement stopped"
 
 
 if __name__ == "__main__":  # pragma: no cover

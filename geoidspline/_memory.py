@@ -55,3 +55,35 @@ def available_bytes() -> float | None:
     except OSError:
         pass
     return None
+
+
+#: Share of the machine's memory a fit plans against when no ``max_memory`` is given:
+#: the machine is often shared (other fits, the desktop), and a fit's estimate is a
+#: measured average, not a bound.
+MEMORY_FRACTION = 0.6
+
+
+def total_bytes() -> float | None:
+    """The machine's memory (Linux's ``MemTotal``), in bytes; ``None`` where not known."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemTotal:"):
+                    return float(line.split()[1]) * 1024.0
+    except OSError:
+        pass
+    return None
+
+
+def memory_budget(max_memory_bytes: float | None = None) -> float | None:
+    """The memory a fit may plan for, in bytes: ``max_memory_bytes`` when given, else
+    :data:`MEMORY_FRACTION` of the machine's; never more than the system has available
+    now. ``None`` where neither is known."""
+    limit = float(max_memory_bytes) if max_memory_bytes is not None else None
+    if limit is None:
+        total = total_bytes()
+        limit = MEMORY_FRACTION * total if total is not None else None
+    available = available_bytes()
+    if limit is None:
+        return available
+    return limit if available is None else min(limit, available)

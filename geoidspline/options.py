@@ -129,6 +129,7 @@ RULES: dict[str, NumberRule] = {
     # a model synthesised finer than 3.6" (degree ~50 000) is beyond any published model
     "sample_spacing_deg": NumberRule(1e-3, 5.0, "degrees", optional=True),
     "workers": NumberRule(1, 1024, "processes", integer=True),
+    "max_memory_gb": NumberRule(0.01, 1e6, "GB", optional=True),
     # regional updates (geoid-update, update())
     "blend_width_km": NumberRule(0.0, 20_000.0, "km"),
     "update_tolerance_m": NumberRule(1e-9, 1000.0, "metres", optional=True),

@@ -139,7 +139,7 @@ def test_fit_prints_levels_and_coefficients(synthetic_gtx, tmp_path, small_store
     assert [float(row[1]) for row in table] == [lv["h"] for lv in info["levels"]]
     assert [int(row[2].replace(",", "")) for row in table] == [lv["coefficients"] for lv in info["levels"]]
     assert f"total      {info['coefficients']:,} coefficients" in result.stdout
-    assert "reached" in result.stdout and "NOT reached" not in result.stdout
+    assert "kept in the store" in result.stdout and "NOT kept" not in result.stdout
     assert "progress" not in result.stderr  # stderr is not a terminal: progress only with -v
 
 
@@ -158,7 +158,7 @@ def test_a_hierarchical_fit_prints_one_row_per_refinement_step(synthetic_gtx, tm
     assert [int(row[0]) for row in table] == list(range(len(table)))
     assert int(table[-1][1]) == max(lv["level"] for lv in info["levels"])
     assert int(table[-1][3].replace(",", "")) == info["coefficients"]
-    assert "reached" in result.stdout and "NOT reached" not in result.stdout
+    assert "kept in the store" in result.stdout and "NOT kept" not in result.stdout
 
 
 def test_fit_quiet_has_no_progress_bar(synthetic_gtx, tmp_path):
@@ -184,7 +184,8 @@ def test_fit_json_output_parses(synthetic_gtx, tmp_path):
         assert key in data
     assert data["wall_seconds"] >= 0
     info = geoidspline.open_store(out).info()
-    assert {k: v for k, v in data.items() if k not in ("wall_seconds", "choices")} == json.loads(json.dumps(info))
+    assert {k: v for k, v in data.items() if k not in ("wall_seconds", "choices", "promise")} == json.loads(json.dumps(info))
+    assert data["promise"]["kept"] is True and data["promise"]["node_max_m"] == info["node_max_error_m"]
     assert data["region"] == [10.0, 20.0, 30.0, 40.0]
     assert data["provenance"]["source"] == "synthetic.gtx"
 
@@ -222,7 +223,7 @@ def test_fit_not_converged_exits_3(synthetic_gtx, tmp_path):
             "--h0", "0.2", "--max-level", "0", "--tolerance", "1e-6", "-q"]
     result = invoke(fit_main, args)
     assert result.exit_code == 3
-    assert "NOT reached" in result.stdout
+    assert "NOT kept (the given --max-level stopped the refinement" in result.stdout
     assert geoidspline.open_store(out).info()["converged"] is False
 
 

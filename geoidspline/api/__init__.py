@@ -102,6 +102,7 @@ def build_store(source, path, region: Region | None = None, params: FitParameter
     """
     from ..fitting.check_points import check_points
     from ..fitting.driver import fit_source
+    from ..fitting.executors import Executor
     from ..fitting.parameters import FitParameters
     from ..fitting.progress import as_progress
     from ..store.reader import TileStore
@@ -114,6 +115,11 @@ def build_store(source, path, region: Region | None = None, params: FitParameter
         from ..store.signing import load_private_key
 
         sign = load_private_key(sign)  # a bad key file before the fit, not after it
+    from ..fitting.memory import check_plan
+    from ..fitting.parameters import check_promise
+
+    check_promise(params)  # a tolerance the store can keep, and the memory for it, before any work
+    check_plan(source, region, params, (executor or Executor()).memory_budget)
     result = fit_source(source, region, params, progress=progress, executor=executor)
     if result.refinement_fallback:
         extra = {**(extra or {}), "refinement_fallback": result.refinement_fallback}
@@ -124,9 +130,12 @@ def build_store(source, path, region: Region | None = None, params: FitParameter
     return result, TileStore.open(path).info()
 
 
-def _as_region(region) -> Region:
+def _as_region(region, source=None) -> Region:
+    """``region`` as a :class:`Region`; when not given, the source's own extent (a
+    regional grid covers only part of the globe), else the globe."""
     if region is None:
-        return GLOBAL
+        extent = getattr(source, "extent", None) if source is not None else None
+        return GLOBAL if extent is None or extent.is_global else extent
     return region if isinstance(region, Region) else Region.from_bounds(*region)
 
 
@@ -158,24 +167,44 @@ class FitRun:
     def parameters(self) -> FitParameters:
         return self.result.parameters if self.choice is None else self.choice.parameters
 
+    @property
+    def promise(self) -> dict:
+        """Whether the store keeps the tolerance, from the store read back: at every node
+        of the region, and for a model (exact everywhere) at the random check points too.
+        A grid's cell-centre figure (the store against the interval of its bilinear and
+        bicubic interpolants) is reported, not part of the promise: the truth between a
+        grid's nodes is unknown."""
+        tolerance = self.choice.tolerance_m if self.choice is not None else self.result.parameters.tolerance_m
+        model = getattr(self.source.provenance, "kind", None) == "harmonic"
+        node_max = self.info["node_max_error_m"]
+        check_max = self.info["max_error_m"] if model and self.info["check_points"] else None
+        kept = node_max is not None and node_max <= tolerance and (check_max is None or check_max <= tolerance)
+        return {"tolerance_m": tolerance, "node_max_m": node_max, "check_max_m": check_max,
+                "cell_centre_max_m": self.info.get("cell_centre_max_m"), "kept": bool(kept)}
+
 
 def run_fit(source, store, *, region=None, overwrite: bool = False, workers: int = 1, scheduler: str | None = None,
             correction=None, preset: str | None = None, progress=None, choose: bool = True, sign=None,
             band: int | None = None, variable: str | None = None, tide_system: str | None = None,
-            accept_datum: bool = False, accept_quasi_geoid: bool = False, **parameters) -> FitRun:
+            accept_datum: bool = False, accept_quasi_geoid: bool = False, max_memory_gb: float | None = None,
+            **parameters) -> FitRun:
     """:func:`fit`, returning the whole account of it (:class:`FitRun`) instead of the store."""
     from ..fitting.executors import Executor
     from ..fitting.parameters import FitParameters
     from ..sources.reference import for_new_store
 
-    executor = Executor(workers=workers, scheduler=scheduler)
-    fit_region = _as_region(region)
+    from ..options import check_number
+
+    max_memory_gb = check_number("max_memory_gb", max_memory_gb)
+    executor = Executor(workers=workers, scheduler=scheduler,
+                        max_memory_bytes=None if max_memory_gb is None else max_memory_gb * 1e9)
     if _is_path(source):
         from ..sources.resolve import open_source
 
         source = open_source(source, correction, preset, band=band, variable=variable)
     source, notes = for_new_store(source, tide_system=tide_system, accept_datum=accept_datum,
                                   accept_quasi_geoid=accept_quasi_geoid)
+    fit_region = _as_region(region, source)
     choice, extra = None, None
     if choose:
         from ..fitting.choose import choose_parameters
@@ -197,7 +226,8 @@ def run_fit(source, store, *, region=None, overwrite: bool = False, workers: int
 def fit(source, store, *, region=None, overwrite: bool = False, workers: int = 1, scheduler: str | None = None,
         correction=None, preset: str | None = None, progress=None, choose: bool = True, sign=None,
         band: int | None = None, variable: str | None = None, tide_system: str | None = None,
-        accept_datum: bool = False, accept_quasi_geoid: bool = False, **parameters) -> TileStore:
+        accept_datum: bool = False, accept_quasi_geoid: bool = False, max_memory_gb: float | None = None,
+        **parameters) -> TileStore:
     """Fit a geoid source into a new tile store at ``store`` and open it; the same store,
     coefficient for coefficient, as ``geoid-fit`` with the same arguments.
 
@@ -205,7 +235,8 @@ def fit(source, store, *, region=None, overwrite: bool = False, workers: int = 1
     object (:class:`~geoidspline.sources.grid.GeoidGrid`,
     :class:`~geoidspline.sources.harmonics.GeoidSynthesis`); ``correction`` and
     ``preset`` apply to a model file. ``region``: (south, west, north, east) degrees or a
-    :class:`~geoidspline.sphere.Region` (default global). ``parameters``: any field of
+    :class:`~geoidspline.sphere.Region` (default: the source's extent, global for a
+    global grid or a model). ``parameters``: any field of
     :class:`~geoidspline.fitting.parameters.FitParameters` (``tolerance_m``, ``h0``,
     ``max_level``, ``order``, ``method``, ...). ``workers``/``scheduler``: where blocks are
     solved (:class:`~geoidspline.fitting.executors.Executor`), never stored. ``choose``
@@ -220,11 +251,14 @@ def fit(source, store, *, region=None, overwrite: bool = False, workers: int = 1
     :func:`geoidspline.sources.reference.for_new_store`: converted to ``tide_system``
     (default: its own) and to WGS 84 where a well-defined conversion exists, else
     refused unless ``accept_datum`` / ``accept_quasi_geoid``.
+    ``max_memory_gb``: the memory the fit plans against (default: a share of the
+    machine's, :data:`geoidspline._memory.MEMORY_FRACTION`); a fit that needs more is
+    refused before any work, naming the figure.
     """
     run_fit(source, store, region=region, overwrite=overwrite, workers=workers, scheduler=scheduler,
             correction=correction, preset=preset, progress=progress, choose=choose, sign=sign, band=band,
             variable=variable, tide_system=tide_system, accept_datum=accept_datum,
-            accept_quasi_geoid=accept_quasi_geoid, **parameters)
+            accept_quasi_geoid=accept_quasi_geoid, max_memory_gb=max_memory_gb, **parameters)
     return open_store(store)
 
 

@@ -18,6 +18,17 @@ class CheckPoints:
     longitude: np.ndarray
     truth: np.ndarray
     description: str
+    #: a grid's (low, high) at each point: the interval its bilinear and bicubic
+    #: interpolants span (its truth between the nodes is unknown but lies near them);
+    #: None for a model, exact everywhere
+    interval: tuple | None = None
+
+    def interval_distance(self, values) -> np.ndarray | None:
+        """How far ``values`` at the points lie outside :attr:`interval` (0 inside), metres."""
+        if self.interval is None:
+            return None
+        low, high = self.interval
+        return np.maximum(np.maximum(low - values, values - high), 0.0)
 
 
 #: Exact points a step of the check-point stage synthesises.
@@ -28,7 +39,8 @@ def check_points(source, region: Region, count: int = 20_000, seed: int = 0, pro
     """Points that were not fit sites, with the source's truth there.
 
     A grid's truth between its nodes is unknown: its check points are the centres of
-    the grid cells inside the region, compared with the grid's bicubic interpolation.
+    the grid cells inside the region, compared with the grid's bicubic interpolation
+    (and with the interval its bilinear and bicubic interpolants span there).
     A model is exact everywhere: ``count`` random points uniform in area over the region,
     synthesised in chunks reported to ``progress`` as the stage "check points".
     """
@@ -41,10 +53,13 @@ def check_points(source, region: Region, count: int = 20_000, seed: int = 0, pro
         lat2, lon2 = np.meshgrid(lat, lon, indexing="ij")
         lat2, lon2 = lat2.ravel(), lon2.ravel()
         truth = source.undulation(lat2, lon2)
-        keep = np.isfinite(truth)
+        bilinear = source.undulation(lat2, lon2, method="bilinear")
+        keep = np.isfinite(truth) & np.isfinite(bilinear)
+        truth, bilinear = truth[keep], bilinear[keep]
         return CheckPoints(
-            lat2[keep], lon2[keep], truth[keep],
+            lat2[keep], lon2[keep], truth,
             "bicubic (Catmull-Rom) interpolation of the source grid at the centres of its cells",
+            interval=(np.minimum(truth, bilinear), np.maximum(truth, bilinear)),
         )
     rng = np.random.default_rng(seed)
     z_lo, z_hi = math.sin(math.radians(region.south)), math.sin(math.radians(region.north))

@@ -108,8 +108,11 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
         from .hierarchical import BasisTooLarge, fit_hierarchical  # §5.3: one basis over all levels
 
         try:
-            return fit_hierarchical(nodes, coverage, region, params, progress, force_tiles, start,
-                                    interpolant=interpolant)
+            result = fit_hierarchical(nodes, coverage, region, params, progress, force_tiles, start,
+                                      interpolant=interpolant, memory_budget=executor.memory_budget)
+            if not result.converged:  # the promise is kept, not given up: local passes take the rest
+                result = complete_at_finest_level(result, nodes, region, params, force_tiles, executor, progress)
+            return result
         except BasisTooLarge as exc:  # a result in bounded memory rather than none
             fallback = f"{exc}: fitted by overlays instead"
             log.warning("%s", fallback)
@@ -119,7 +122,7 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
     levels: list[LevelSpline] = []
     reports: list[LevelReport] = []
     converged = False
-    violating = region_dirs[np.abs(errors) > params.tolerance_m] if base_is_overlay else region_dirs
+    violating = region_dirs[np.abs(errors) > params.node_target_m] if base_is_overlay else region_dirs
     # a level much finer than the data spacing is not determined between the nodes
     data_spacing = nodes.spacing_rad
     data_limited = False
@@ -149,7 +152,7 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
                                                level > 0 or base_is_overlay, executor, progress)
         levels.append(lv)
         subtract_level(errors, lv, region_dirs, progress, f"level {level} node errors")
-        above = np.abs(errors) > params.tolerance_m
+        above = np.abs(errors) > params.node_target_m
         violating = region_dirs[above]
         report = LevelReport(
             level=level, h=h, coefficients=len(lv), marked_cells=int(marked), sites=int(site_count),
@@ -161,7 +164,7 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
         log.info(
             "level %d: h=%.6g, %d coefficients, %d sites, max |error| %.4f m, %d nodes above %.4g m (%.1f s)",
             level, h, len(lv), site_count, report.max_error_m, report.nodes_above_tolerance,
-            params.tolerance_m, report.seconds,
+            params.node_target_m, report.seconds,
         )
         if not above.any():
             converged = True
@@ -253,7 +256,7 @@ def _finest_level_passes(nodes, levels, reports, errors, region_dirs, violating,
             break
         errors[:] = trial
         levels[-1] = add_levels(levels[-1], extra)
-        above = np.abs(errors) > params.tolerance_m
+        above = np.abs(errors) > params.node_target_m
         violating = region_dirs[above]
         report.passes += 1
         report.coefficients = len(levels[-1])
@@ -267,11 +270,87 @@ def _finest_level_passes(nodes, levels, reports, errors, region_dirs, violating,
         report.pass_nodes_above_tolerance.append(report.nodes_above_tolerance)
         report.seconds += time.perf_counter() - t0
         log.info("%s: %d coefficients, %d sites, max |error| %.4f m, %d nodes above %.4g m (%.1f s)",
-                 name, len(extra), site_count, largest, report.nodes_above_tolerance, params.tolerance_m,
+                 name, len(extra), site_count, largest, report.nodes_above_tolerance, params.node_target_m,
                  time.perf_counter() - t0)
         if not above.any():
             return violating, True
     return violating, False
+
+
+#: Local passes :func:`complete_at_finest_level` may take after a hierarchical fit.
+COMPLETION_PASSES = 12
+
+
+def complete_at_finest_level(result: FitResult, nodes, region: Region, params: FitParameters, force_tiles=False,
+                             executor: Executor | None = None, progress=None) -> FitResult:
+    """Take what a hierarchical fit left above the tolerance by local passes at the
+    finest admissible level (``max_level``, and not finer than half the data spacing).
+
+    The hierarchical refinement stops when a step adds nothing near the remaining bad
+    nodes (their nearest B-spline refined already, or their leaf at the finest level),
+    often one level before the finest the data allow. Each pass is a least-squares
+    overlay at that level of the B-splines around the nodes still above
+    :attr:`FitParameters.node_target_m`, fitted on the region's nodes on the sphere to
+    the residual (as :func:`_finest_level_passes` does for overlays), and added to the
+    spline's level of that spacing. Passes stop when no node is above, when a pass
+    lowers neither the largest error nor the count above (that pass is dropped), or after
+    :data:`COMPLETION_PASSES`. Returns the result with the passes' levels, errors and
+    one :class:`LevelReport` per pass (its ``coefficients`` the spline's total)."""
+    from .hierarchical import finest_admissible_level
+
+    executor = executor or Executor()
+    progress = as_progress(progress)
+    level = finest_admissible_level(params, nodes)
+    h = params.spacing(level)
+    refinement = OverlayRefinement(params.refine_radius)
+    levels = list(result.spline.levels)
+    region_dirs = result.node_directions
+    errors = result.node_errors.copy()
+    reports = list(result.levels)
+    target = params.node_target_m
+    above = np.abs(errors) > target
+    largest = float(np.abs(errors).max())
+    converged = False
+    for number in range(1, COMPLETION_PASSES + 1):
+        t0 = time.perf_counter()
+        name = f"level {level} local pass {number}"
+        keys, marked, site_cells = refinement.level_keys(level, h, params.order, region, region_dirs[above])
+        if keys.size == 0:
+            break
+        extra, site_count, solved = fit_level(nodes, levels, level, h, keys, site_cells, params, force_tiles, True,
+                                              executor, progress, node_mask=nodes.in_region,
+                                              radial_offsets=ON_THE_SPHERE, name=name)
+        trial = errors.copy()
+        subtract_level(trial, extra, region_dirs, progress, f"{name} node errors")
+        trial_above = np.abs(trial) > target
+        trial_largest = float(np.abs(trial).max())
+        if not (trial_largest < largest or (trial_above.sum() < above.sum() and trial_largest <= largest)):
+            log.info("%s: max |error| %.4f m, %d nodes above: no better, pass dropped", name, trial_largest,
+                     int(trial_above.sum()))
+            break
+        errors, above, largest = trial, trial_above, trial_largest
+        at = next((i for i, lv in enumerate(levels) if lv.level == level), None)
+        if at is None:
+            levels.append(extra)
+            levels.sort(key=lambda lv: lv.level)
+        else:
+            levels[at] = add_levels(levels[at], extra)
+        reports.append(LevelReport(
+            level=level, h=h, coefficients=sum(len(lv) for lv in levels), marked_cells=int(marked),
+            sites=int(site_count), blocks_solved=solved, max_error_m=largest,
+            rms_error_m=float(np.sqrt(np.mean(errors ** 2))), nodes_above_tolerance=int(above.sum()),
+            seconds=time.perf_counter() - t0,
+        ))
+        log.info("%s: %d coefficients, max |error| %.4f m, %d nodes above %.4g m (%.1f s)", name, len(extra),
+                 largest, int(above.sum()), target, reports[-1].seconds)
+        if not above.any():
+            converged = True
+            break
+    return dataclasses.replace(
+        result, spline=AmbientSpline(levels), levels=reports, node_errors=errors,
+        node_max_error_m=float(np.abs(errors).max()), node_rms_error_m=float(np.sqrt(np.mean(errors ** 2))),
+        converged=converged, data_limited=result.data_limited or level < params.max_level,
+    )
 
 
 #: Nodes a step of the node-error stage evaluates (large enough for the compiled path).

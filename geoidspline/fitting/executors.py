@@ -50,13 +50,18 @@ class Executor:
     processes; ``"local"``: a dask ``LocalCluster`` of ``workers`` single-threaded
     processes started for each level; any other value: the address of a running dask
     scheduler (``tcp://``, ``tls://``, ``inproc://`` or ``ucx://``), whose workers solve the
-    blocks.
+    blocks. ``max_memory_bytes``: the memory the fit plans against.
     """
 
     workers: int = 1
     scheduler: str | None = None
+    #: memory (bytes) the fit plans against (:func:`geoidspline._memory.memory_budget`:
+    #: default a share of the machine's), like the workers a resource of the run
+    max_memory_bytes: float | None = None
 
     def __post_init__(self):
+        if self.max_memory_bytes is not None:
+            check_number("max_memory_gb", self.max_memory_bytes / 1e9)
         if not isinstance(self.workers, int):  # 2.0 is not a count of processes
             raise FitError(f"workers must be a whole number >= 1, got {self.workers!r}")
         check_number("workers", self.workers)
@@ -68,6 +73,13 @@ class Executor:
                 f"scheduler must be 'local' or a dask scheduler address (tcp://, tls://, inproc:// "
                 f"or ucx://), got {self.scheduler!r}"
             )
+
+    @property
+    def memory_budget(self) -> float | None:
+        """Bytes the fit may plan for (:func:`geoidspline._memory.memory_budget`)."""
+        from .._memory import memory_budget
+
+        return memory_budget(self.max_memory_bytes)
 
     def solve(self, problems, progress=None) -> list:
         """:func:`solve_problems` with this executor's workers and scheduler."""

@@ -188,7 +188,7 @@ def _gather(sorted_bins, order, wanted):
 
 
 def solve_basis(basis: HierarchicalBasis, points, values, params: FitParameters, force_tiles=False,
-                progress=None, name="hierarchical fit", start=None):
+                progress=None, name="hierarchical fit", start=None, memory_budget=None):
     """Coefficients (all levels, in :meth:`HierarchicalBasis.offsets` order) of the
     least-squares fit of ``values`` at ``points`` (one array each per level) over the
     whole basis, and the number of local problems factorised.
@@ -209,7 +209,8 @@ def solve_basis(basis: HierarchicalBasis, points, values, params: FitParameters,
             advance(1)
         return coefs, 1
     need = basis.coefficient_count * BYTES_PER_UNKNOWN
-    available = available_bytes()
+    limits = [b for b in (memory_budget, available_bytes()) if b is not None]
+    available = min(limits) if limits else None
     if available is not None and need > available:
         raise BasisTooLarge(f"{name}: the hierarchical basis has grown to {basis.coefficient_count:,} unknowns, "
                             f"which need about {need / 1e9:.3g} GB at once; {available / 1e9:.3g} GB are available; "
@@ -235,7 +236,7 @@ def solve_basis(basis: HierarchicalBasis, points, values, params: FitParameters,
     return coefs, len(index_sets)
 
 
-def _finest_level(params: FitParameters, nodes: DataNodes) -> int:
+def finest_admissible_level(params: FitParameters, nodes: DataNodes) -> int:
     """Finest level allowed: ``max_level``, and not finer than the data resolve."""
     level = 0
     while level < params.max_level and params.spacing(level + 1) >= MIN_H_PER_DATA_SPACING * nodes.spacing_rad:
@@ -244,7 +245,8 @@ def _finest_level(params: FitParameters, nodes: DataNodes) -> int:
 
 
 def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitParameters, progress=None,
-                     force_tiles=False, start=None, on_step=None, interpolant=None) -> FitResult:
+                     force_tiles=False, start=None, on_step=None, interpolant=None,
+                     memory_budget=None) -> FitResult:
     """Fit ``nodes`` (:class:`~geoidspline.fitting.sites.DataNodes`) over ``region`` with
     the hierarchical basis; :func:`geoidspline.fitting.driver.fit_nodes` calls it for
     ``params.refinement == "hierarchical"``. ``coverage`` goes into the result as it is.
@@ -254,6 +256,8 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
     normal matrices (benchmarks/hierarchical_vs_overlays.py). ``interpolant`` (an exact
     source's :class:`~geoidspline.fitting.hierarchical_interpolation.HierarchicalQuasiInterpolant`)
     gives each step's coefficients, on its basis (``shell``), instead of least squares.
+    ``memory_budget`` (bytes): a step whose whole problem would need more is not built
+    (:class:`BasisTooLarge`).
     """
     start = time.perf_counter() if start is None else start
     progress = as_progress(progress)
@@ -261,7 +265,7 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
         params = dataclasses.replace(params, radial_offsets=RADIAL_OFFSETS)
     region_dirs = nodes.directions[nodes.in_region]
     region_values = nodes.values[nodes.in_region]
-    finest = _finest_level(params, nodes)
+    finest = finest_admissible_level(params, nodes)
     strategy = HierarchicalRefinement(params.order, params.h0, MARK_RADIUS,
                                       SHELL if interpolant is None else interpolant.shell)
     basis = strategy.initial(region)
@@ -278,7 +282,8 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
             points, values = [p for p, _ in sites], [nodes.values[i] for _, i in sites]
             x0 = carry_over(*previous, basis) if previous is not None else None
             coefs, solved = solve_basis(basis, points, values, params, force_tiles, progress,
-                                        f"hierarchical step {step} ({basis.coefficient_count:,} unknowns)", x0)
+                                        f"hierarchical step {step} ({basis.coefficient_count:,} unknowns)", x0,
+                                        memory_budget)
             previous = (basis, coefs)
         else:  # §5.3.1: the hierarchical quasi-interpolant, no solve
             (coefs, points, values), solved = interpolant.coefficients(basis, progress), 0
@@ -286,7 +291,7 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
             on_step(basis, points, values, coefs)
         spline = AmbientSpline(basis.level_splines(coefs))
         errors = region_values - spline.evaluate_points(region_dirs)
-        above = np.abs(errors) > params.tolerance_m
+        above = np.abs(errors) > params.node_target_m
         top = basis.levels - 1
         reports.append(LevelReport(
             level=top, h=basis.spacing(top), coefficients=basis.coefficient_count,
@@ -298,7 +303,7 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
         log.info("hierarchical step %d: levels 0-%d, %d coefficients (%s), max |error| %.4f m, %d nodes above "
                  "%.4g m (%.1f s)", step, top, basis.coefficient_count,
                  "/".join(str(a.size) for a in basis.active), reports[-1].max_error_m, int(above.sum()),
-                 params.tolerance_m, reports[-1].seconds)
+                 params.node_target_m, reports[-1].seconds)
         if not above.any():
             converged = True
             break

@@ -24,6 +24,38 @@ MIN_H_PER_DATA_SPACING = 0.5
 #: Deepest level index a fit may reach.
 MAX_LEVEL = RULES["max_level"].high
 
+#: Share of the tolerance a fit leaves to the store's rounding of its coefficients: the
+#: fit aims at the nodes at ``(1 - share) T``, so that a quantisation step whose proven
+#: bound fits in the room left always exists and the store, read back, is within T
+#: (:func:`geoidspline.store.codec.node_safe_step`).
+QUANTISATION_RESERVE = 0.01
+
+#: The store's smallest quantisation step (metres): whole micrometres
+#: (:func:`geoidspline.store.codec.value_step`).
+SMALLEST_STEP_M = 1e-6
+
+
+def quantisation_reserve(tolerance_m: float, levels: int) -> float:
+    """Room (metres) a fit to ``tolerance_m`` leaves for the rounding of a store of
+    ``levels`` levels: :data:`QUANTISATION_RESERVE` of it, and at least the proven bound
+    of the smallest step (``levels`` x 1 µm / 2)."""
+    return max(QUANTISATION_RESERVE * tolerance_m, max(int(levels), 1) * SMALLEST_STEP_M / 2.0)
+
+
+def finest_promise_m(levels: int) -> float:
+    """The finest tolerance a store of ``levels`` levels can promise: below it the
+    rounding to whole micrometres would take more than half the tolerance."""
+    return 2.0 * max(int(levels), 1) * SMALLEST_STEP_M / 2.0
+
+
+def check_promise(params: "FitParameters") -> None:
+    """Refuse, before any work, a tolerance no store of these levels can keep."""
+    finest = finest_promise_m(params.max_level + 1)
+    if params.tolerance_m < finest:
+        raise FitError(f"tolerance_m {params.tolerance_m:g} m is finer than a store of {params.max_level + 1} "
+                       f"levels can promise: {finest:g} m (coefficients are rounded to whole micrometres, each "
+                       "level adding up to half of one); give tolerance_m >= " f"{finest:g}")
+
 
 def finest_level(h0: float) -> int:
     """The finest level (≤ :data:`MAX_LEVEL`) whose coefficient indices stay in range for ``h0``."""
@@ -38,8 +70,9 @@ class FitParameters:
     """Parameters of a fit. Lengths are on the unit sphere (1 = Earth radius).
 
     ``h0`` is the level-0 grid spacing; level ℓ has ``h0 / 2**ℓ``. ``tolerance_m`` is the
-    largest |error| accepted at the data nodes; refinement stops there or at
-    ``max_level``. ``radial_offsets`` are the site radii ``1 + ρ h`` in units of the
+    largest |error| the store promises at the data nodes; the fit refines until its
+    nodes are within :attr:`node_target_m` (a little less: the store's rounding takes
+    the rest). ``radial_offsets`` are the site radii ``1 + ρ h`` in units of the
     level's spacing. ``rays_per_cell`` caps how many data directions a cell width holds
     at coarse levels (more are thinned out: they would cost time, not accuracy).
     ``regularization`` weighs the second-difference penalty relative to the mean
@@ -99,6 +132,13 @@ class FitParameters:
 
     def spacing(self, level: int) -> float:
         return self.h0 / 2.0 ** level
+
+    @property
+    def node_target_m(self) -> float:
+        """The largest |error| the fit accepts at its nodes: ``tolerance_m`` less the room
+        kept for the store's rounding (:func:`quantisation_reserve`), so that the store
+        keeps ``tolerance_m``."""
+        return self.tolerance_m - quantisation_reserve(self.tolerance_m, self.max_level + 1)
 
     def as_dict(self) -> dict:
         data = asdict(self)

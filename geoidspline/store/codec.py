@@ -83,15 +83,28 @@ def node_safe_step(spline, node_directions, node_errors, tolerance_m: float, sta
     (:func:`value_step` divides the share by the level count); more halvings follow where
     the fit left no room (:func:`slack_step` when the nodes are not at hand).
 
+    Halving stops at :func:`slack_step` of the room the fit left under ``tolerance_m``
+    (a fit aims at a little less than its tolerance for this:
+    :attr:`geoidspline.fitting.parameters.FitParameters.node_target_m`), whose proven
+    bound keeps every node within ``tolerance_m``.
+
     ``start_step``: start there and halve exactly instead (a regional update's tiles,
     whose step must nest in the store's: :func:`geoidspline.store.format.steps_nest`).
     """
     errors = np.asarray(node_errors, dtype=np.float64)
-    target = max(float(tolerance_m), float(np.abs(errors).max()) if errors.size else 0.0)
+    fit_max = float(np.abs(errors).max()) if errors.size else 0.0
+    target = max(float(tolerance_m), fit_max)
     step = value_step(tolerance_m, len(spline.levels)) if start_step is None else float(start_step)
+    # a fit that left room under the tolerance has a step whose proven bound fits in it:
+    # halving stops there, so the store keeps the tolerance at every node (and within the
+    # room of the fit everywhere else)
+    floor = slack_step(tolerance_m, fit_max, len(spline.levels)) \
+        if start_step is None and fit_max < float(tolerance_m) else 0.0
     while True:
         stored_errors = errors - quantisation_change(spline, step, node_directions)
         following = max(1, int(round(step / 1e-6)) // 2) * 1e-6 if start_step is None else step / 2.0
+        if following < floor <= step:  # the proven step, once halving reaches it
+            following = floor
         if following < 1e-6 or following >= step or not stored_errors.size \
                 or np.abs(stored_errors).max() <= target:
             return step, stored_errors

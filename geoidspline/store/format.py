@@ -703,6 +703,7 @@ def validate_manifest(path, manifest: dict):
         s.number(s.get(accuracy, key, "accuracy"), f"accuracy.{key}", 0.0, 1e9, nullable=True)
     s.number(accuracy.get("node_p99_error_m"), "accuracy.node_p99_error_m", 0.0, 1e9, nullable=True)
     s.number(accuracy.get("fit_node_max_error_m"), "accuracy.fit_node_max_error_m", 0.0, 1e9, nullable=True)
+    s.number(accuracy.get("cell_centre_max_m"), "accuracy.cell_centre_max_m", 0.0, 1e9, nullable=True)
     s.string(s.get(accuracy, "check_truth", "accuracy"), "accuracy.check_truth", nullable=True)
 
     # tiles: format 2 (.gst, quantised with spline.value_step_m) or format 1 (.nc, in a

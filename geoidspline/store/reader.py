@@ -450,6 +450,7 @@ class TileStore:
             "check_truth": acc["check_truth"],
             "node_max_error_m": acc["node_max_error_m"],
             "node_rms_error_m": acc["node_rms_error_m"],
+            "cell_centre_max_m": acc.get("cell_centre_max_m"),
             "nodes": acc["nodes"],
             "bytes": size,
             "fit_seconds": m["fit"]["seconds"],

@@ -524,9 +524,13 @@ def _fit_manifest(root, result, provenance, check, previous, version, extra, att
         quantisation = quantisation_meta(step, len(spline.levels))
         stored = quantised_spline(spline, step)
     node_tile = group_by_tile(result.node_directions, params.tile_size)
-    check_errors = None
+    check_errors = cell_centre = None
     if check is not None:
-        check_errors = check.truth - stored.undulation(check.latitude, check.longitude)
+        stored_values = stored.undulation(check.latitude, check.longitude)
+        check_errors = check.truth - stored_values
+        outside = check.interval_distance(stored_values) if hasattr(check, "interval_distance") else None
+        if outside is not None:  # a grid: how far the store leaves its interpolants' interval
+            cell_centre = float(outside.max()) if outside.size else 0.0
         check_tile = group_by_tile(directions(check.latitude, check.longitude), params.tile_size)
     spline_meta = {"order": params.order, "h0": params.h0, "tile_size": params.tile_size, "store_id": store_id}
     if format_version >= 2:
@@ -589,6 +593,9 @@ def _fit_manifest(root, result, provenance, check, previous, version, extra, att
             "max_error_m": check_stats["max_error_m"],
             "rms_error_m": check_stats["rms_error_m"],
             "p99_error_m": check_stats["p99_error_m"],
+            # a grid: the largest distance of the store, at the centres of the grid's cells,
+            # from the interval its bilinear and bicubic interpolants span there
+            "cell_centre_max_m": cell_centre,
             "units": "m",
         },
     )

@@ -1,0 +1,85 @@
+"""The memory a fit will need, planned from the problem's size before any work.
+
+A fit that cannot finish in the memory it is allowed should say so at once, naming the
+figure it would need, rather than be killed by the system an hour later. The plan is a
+lower bound from what is known before the fit: the source's nodes over the region, and
+the first problem solved (level 0 by least squares, or by quasi-interpolation for a
+model). A hierarchical fit measures each later step again before building it
+(:func:`geoidspline.fitting.hierarchical.solve_basis`) and is fitted by overlays, block
+by block, when a step would not fit.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from ..errors import FitError
+from ..sphere.region import Region
+from .parameters import FitParameters
+
+#: Peak bytes per level-0 coefficient of a quasi-interpolated model fit (the lattice
+#: band, the coefficients, the node errors): EGM96 to 2 mm, 5,512,462 coefficients in
+#: 2.49 GB peak, 0.44-0.45 kB each (issue 21's matrix, 2026-12-02).
+INTERPOLATION_BYTES_PER_COEFFICIENT = 450
+
+#: Bytes per data node held through a least-squares fit: its direction (3 floats), value,
+#: error, region mask and the rays of the coarsest levels (a few per node).
+BYTES_PER_NODE = 200
+
+def coefficient_density(order: int) -> float:
+    """B-splines per steradian times h² of a level covering the sphere: measured for
+    orders 4 and 6 (:data:`geoidspline.fitting.choose.MEASURED`), about 1.5 x the order
+    otherwise (the support's radial thickness)."""
+    from .choose import MEASURED
+
+    return MEASURED[order].density if order in MEASURED else 1.5 * order
+
+
+@dataclass(frozen=True)
+class MemoryPlan:
+    """The least memory a fit needs (bytes) and what it is for."""
+
+    bytes: float
+    what: str
+
+
+def region_nodes(source, region: Region) -> float:
+    """How many of a source's nodes lie in ``region`` (a model: its sample lattice)."""
+    from .choose import region_area
+
+    area = region_area(region)
+    lat = getattr(source, "latitude_spacing", None)
+    lon = getattr(source, "longitude_spacing", None)
+    if lat and lon:
+        return area / (math.radians(lat) * math.radians(lon))
+    return 0.0
+
+
+def plan(source, region: Region, params: FitParameters) -> MemoryPlan:
+    """The least memory (bytes) a fit of ``source`` over ``region`` with ``params`` needs."""
+    from .choose import region_area
+    from .hierarchical import BYTES_PER_UNKNOWN, WHOLE_MAX_UNKNOWNS
+
+    level0 = coefficient_density(params.order) * region_area(region) / params.h0 ** 2
+    if params.method == "interpolation":
+        return MemoryPlan(level0 * INTERPOLATION_BYTES_PER_COEFFICIENT,
+                          f"about {level0:,.0f} level-0 coefficients by quasi-interpolation")
+    nodes = region_nodes(source, region)
+    node_bytes = nodes * BYTES_PER_NODE
+    if params.refinement == "hierarchical" and level0 > WHOLE_MAX_UNKNOWNS:
+        return MemoryPlan(level0 * BYTES_PER_UNKNOWN + node_bytes,
+                          f"level 0's about {level0:,.0f} unknowns of the hierarchical basis"
+                          f" and {nodes:,.0f} nodes")
+    return MemoryPlan(node_bytes, f"{nodes:,.0f} nodes")
+
+
+def check_plan(source, region: Region, params: FitParameters, budget: float | None) -> MemoryPlan:
+    """:func:`plan`, refused with a one-line :class:`FitError` naming the figure when it
+    exceeds ``budget`` (bytes; ``None``: not known, nothing refused)."""
+    need = plan(source, region, params)
+    if budget is not None and need.bytes > budget:
+        raise FitError(f"this fit needs at least {need.bytes / 1e9:.3g} GB ({need.what}); "
+                       f"{budget / 1e9:.3g} GB are allowed: give max_memory_gb {math.ceil(need.bytes / 1e8) / 10:g}"
+                       " if the machine has it, or a smaller region, or a coarser tolerance")
+    return need
