@@ -142,6 +142,9 @@ def main(ctx, store_path, as_json, model_path, correction_path, preset, points, 
         echo(f"check points {info['check_points']:,}: max {info['max_error_m']:.4f} m, "
                    f"RMS {info['rms_error_m']:.4f} m, 99% {info['p99_error_m']:.4f} m")
         echo(f"             truth: {info['check_truth']}")
+    if info.get("cell_centre_max_m") is not None:
+        echo(f"cell centres at most {info['cell_centre_max_m']:.4f} m outside the interval of the grid's bilinear "
+             "and bicubic interpolants")
     check = info.get("check_against")
     if check is not None:
         corr = f" + {check['correction']}" if check["correction"] else ""
