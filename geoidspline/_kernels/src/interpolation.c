@@ -1,0 +1,2 @@
+/* Kernels of interpolation (geoidspline/_kernels/interpolation.py calls them through ctypes). */
+#include "gs_common.h"

@@ -1,0 +1,2 @@
+/* Kernels of legendre (geoidspline/_kernels/legendre.py calls them through ctypes). */
+#include "gs_common.h"
