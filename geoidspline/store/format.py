@@ -528,13 +528,16 @@ def integrity_digest(manifest: dict) -> str:
     return hashlib.sha256(text.encode("ascii")).hexdigest()
 
 
+#: The integrity record's statement of its rule: checked word for word, since the digest
+#: cannot cover its own record.
+INTEGRITY_RULE = "sha256 of the manifest without this record as JSON with sorted keys, separators ',' and ':', ASCII"
+
+
 def manifest_text(manifest: dict) -> bytes:
     """The manifest as written: with its integrity digest, NaN refused."""
     manifest = dict(manifest)
     manifest.pop("integrity", None)
-    manifest["integrity"] = {"sha256": integrity_digest(manifest),
-                             "rule": "sha256 of the manifest without this record as JSON with sorted keys, "
-                                     "separators ',' and ':', ASCII"}
+    manifest["integrity"] = {"sha256": integrity_digest(manifest), "rule": INTEGRITY_RULE}
     return json.dumps(manifest, indent=1, allow_nan=False).encode("utf-8")
 
 
@@ -774,6 +777,9 @@ def validate_manifest(path, manifest: dict):
         validate_coverage_record(s, s.get(manifest, "coverage", ""))
         integrity = s.mapping(s.get(manifest, "integrity", ""), "integrity")
         digest = s.string(s.get(integrity, "sha256", "integrity"), "integrity.sha256")
+        if integrity.get("rule") != INTEGRITY_RULE or set(integrity) != {"sha256", "rule"}:
+            raise StoreCorruptError(f"{path}: manifest's integrity record was altered (its rule or keys differ "
+                                    "from what the writer states)")
         if digest != integrity_digest(manifest):
             raise StoreCorruptError(f"{path}: manifest was altered after it was written (its content does not "
                                     f"match integrity.sha256)")
