@@ -682,3 +682,142 @@ def test_nga_readers_reject_malformed_files(tmp_path):
     path = write(tmp_path / "CORRCOEF", corr + "\n2 2 1.0 0.0 0.0\n")
     with pytest.raises(InputFileError, match=r"line 7: expected 4 columns"):
         read_nga_correction(path)
+
+
+# ----------------------------------------------------------------------------- readers: block by block
+
+
+def kaula_model(nmax, seed=5, name="EGM96"):
+    """Coefficients of a Kaula-like decay (physical), EGM96's C̄20."""
+    rng = np.random.default_rng(seed)
+    C = np.zeros((nmax + 1, nmax + 1))
+    S = np.zeros((nmax + 1, nmax + 1))
+    for n in range(2, nmax + 1):
+        C[n, : n + 1] = rng.normal(size=n + 1) * 1e-5 / n**2
+        S[n, 1 : n + 1] = rng.normal(size=n) * 1e-5 / n**2
+    C[2, 0] = -0.484165371736e-3
+    return HarmonicModel(name=name, gm=3.986004415e14, radius=6378136.3, max_degree=nmax, tide_system="tide_free",
+                         C=C, S=S, sigma_C=np.abs(C) * 1e-3, sigma_S=np.abs(S) * 1e-3)
+
+
+def nga_lines(model):
+    return [f"{n:5d}{m:5d}{model.C[n, m]:25.15E}{model.S[n, m]:25.15E}{model.sigma_C[n, m]:20.10E}"
+            f"{model.sigma_S[n, m]:20.10E}" for n in range(2, model.max_degree + 1) for m in range(n + 1)]
+
+
+@pytest.fixture
+def small_blocks(monkeypatch):
+    """Blocks of 1 kB (a few lines each), and a count of the blocks read each way."""
+    from geoidspline.sources.harmonics import models
+
+    monkeypatch.setattr(models, "_BLOCK_BYTES", 1024)
+    counts = {"fast": 0, "line by line": 0}
+
+    def counted(func, key):
+        def wrapped(*args):
+            result = func(*args)
+            counts[key] += result is not None
+            return result
+        return wrapped
+
+    monkeypatch.setattr(models, "_fast_block", counted(models._fast_block, "fast"))
+    monkeypatch.setattr(models, "_slow_block", counted(models._slow_block, "line by line"))
+    return counts
+
+
+def float_model(lines, nmax, first=0):
+    """C, S, σC, σS from the lines by Python's int() and float(), token by token."""
+    arrays = [np.zeros((nmax + 1, nmax + 1)) for _ in range(4)]
+    for line in lines:
+        parts = line.split()[first:]
+        n, m = int(parts[0]), int(parts[1])
+        for array, token in zip(arrays, parts[2:]):
+            array[n, m] = float(token.replace("D", "e"))
+    return dict(zip(("C", "S", "sigma_C", "sigma_S"), arrays))
+
+
+def assert_same_model(a, b):
+    for key in ("C", "S", "sigma_C", "sigma_S"):
+        np.testing.assert_array_equal(getattr(a, key), getattr(b, key), err_msg=key)
+    assert a.max_degree == b.max_degree
+
+
+def test_nga_text_read_alike_whatever_its_layout(tmp_path, small_blocks):
+    """Blocks parsed by numpy at once and blocks read line by line (Fortran D exponents,
+    CRLF, blank lines, tabs, a form feed, a lone CR as line end, gzip) give the same
+    numbers, bit for bit, as Python's float() of every token."""
+    model = kaula_model(40)
+    lines = nga_lines(model)
+    plain = read_nga(write(tmp_path / "egm96_to360.ascii", "\n".join(lines) + "\n"), max_degree=40,
+                     check_tide_system=False)
+    for key, expected in float_model(lines, 40).items():
+        np.testing.assert_array_equal(getattr(plain, key), expected, err_msg=key)
+    odd = [line.replace("E", "D") if i % 3 == 0 else line for i, line in enumerate(lines)]
+    odd[100] = odd[100] + "\r"  # CRLF on one line
+    odd[200] = "\t" + odd[200].replace(" ", "\t", 3)
+    odd[300] = odd[300] + "\n\n   "  # blank lines
+    odd[400] = odd[400] + "\r" + odd.pop(401)  # a lone CR ends a line: that block line by line
+    odd[500] = odd[500] + "\x0c"  # a form feed is whitespace to str.split()
+    text = "\n".join(odd)  # and no final line end
+    for path in (write(tmp_path / "egm96_to360.ascii", text),
+                 tmp_path / "egm96_to360.ascii.gz"):
+        if path.suffix == ".gz":
+            path.write_bytes(gzip.compress(text.encode()))
+        assert_same_model(read_nga(path, max_degree=40, check_tide_system=False), plain)
+    assert small_blocks["fast"] > 10 and small_blocks["line by line"] >= 2
+
+
+def test_bad_lines_named_across_blocks(tmp_path, small_blocks):
+    """Line numbers stay those of the text from block to block (blank lines, CRLF, a lone
+    CR): a bad number, a repeated coefficient and a non-zero S̄ of order 0 far apart."""
+    model = kaula_model(30)
+    lines = nga_lines(model)
+    lines[50] = lines[50] + "\r\n"  # blank line after line 51
+    lines[60] = lines[60] + "\r" + lines.pop(61)  # lines 62 and 63 in one '\n' line
+    # text line numbers: lines[i] is line i + 1 up to 50, one more after the blank line,
+    # one more again after the lone CR
+    def numbered(index):
+        return index + 1 + (index > 50) + (index > 60)
+
+    bad = list(lines)
+    bad[300] = bad[300].replace("E", "Q", 1)
+    message = refused_nga(tmp_path, bad)
+    assert re.search(rf"line {numbered(300)}: C '[-0-9.]+Q[-+0-9]+' is not a number", message), message
+    bad = list(lines)
+    bad[400] = lines[10]
+    assert f"line {numbered(400)}: duplicate coefficient n=4 m=3 (first on line 11)" in refused_nga(tmp_path, bad)
+    bad = list(lines)
+    zonal = next(i for i in range(350, 400) if int(bad[i].split()[1]) == 0)
+    fields = bad[zonal].split()
+    bad[zonal] = " ".join(fields[:3] + ["1.0E-09"] + fields[4:])
+    assert f"line {numbered(zonal)}: S̄ of n={fields[0]} m=0 must be 0, found 1e-09" in refused_nga(tmp_path, bad)
+
+
+def refused_nga(tmp_path, lines):
+    with pytest.raises(InputFileError) as info:
+        read_nga(write(tmp_path / "egm96_to360.ascii", "\n".join(lines) + "\n"), max_degree=30, check_tide_system=False)
+    return str(info.value)
+
+
+def test_icgem_text_read_alike_whatever_its_layout(tmp_path, small_blocks):
+    """ICGEM: upper-case keys, D exponents, lines with and without sigmas mixed."""
+    model = kaula_model(30)
+    data = [f"gfc {n} {m} {model.C[n, m]:.15e} {model.S[n, m]:.15e} {model.sigma_C[n, m]:.10e} {model.sigma_S[n, m]:.10e}"
+            for n in range(2, 31) for m in range(n + 1)]
+    header = GFC_HEADER.replace("max_degree       3", "max_degree       30")
+    plain = read_icgem(write(tmp_path / "m.gfc", gfc_text(data, header)), check_tide_system=False)
+    for key, expected in float_model(data, 30, first=1).items():
+        np.testing.assert_array_equal(getattr(plain, key), expected, err_msg=key)
+    odd = [line.replace("e", "D").replace("gfc", "GFC") if i % 4 == 0 else line for i, line in enumerate(data)]
+    for i in range(7, len(odd), 50):  # a few lines without sigmas: those sigmas read as 0
+        odd[i] = " ".join(odd[i].split()[:5])
+    mixed = read_icgem(write(tmp_path / "m.gfc", gfc_text(odd, header)), check_tide_system=False)
+    np.testing.assert_array_equal(mixed.C, plain.C)
+    np.testing.assert_array_equal(mixed.S, plain.S)
+    missing = np.zeros_like(plain.sigma_C, dtype=bool)
+    for i in range(7, len(odd), 50):
+        n, m = (int(v) for v in odd[i].split()[1:3])
+        missing[n, m] = True
+    assert (mixed.sigma_C[missing] == 0).all()
+    np.testing.assert_array_equal(mixed.sigma_C[~missing], plain.sigma_C[~missing])
+    assert small_blocks["fast"] > 10 and small_blocks["line by line"] >= 1
