@@ -821,3 +821,85 @@ def test_icgem_text_read_alike_whatever_its_layout(tmp_path, small_blocks):
     assert (mixed.sigma_C[missing] == 0).all()
     np.testing.assert_array_equal(mixed.sigma_C[~missing], plain.sigma_C[~missing])
     assert small_blocks["fast"] > 10 and small_blocks["line by line"] >= 1
+
+
+# ----------------------------------------------------------------------------- EGM2008's zeta-to-N correction
+
+
+def zeta_to_n_text(C, S):
+    """NGA's Zeta-to-N_to2160_egm2008 layout: ``n m C S`` from degree 0, every order,
+    Fortran D exponents (the coefficients in metres)."""
+    nmax = C.shape[0] - 1
+    return "".join(f"{n:5d}{m:5d}{C[n, m]:25.15E}{S[n, m]:25.15E}\n".replace("E", "D")
+                   for n in range(nmax + 1) for m in range(n + 1))
+
+
+def egm2008_gfc(tmp_path, nmax):
+    model = kaula_model(nmax, name="EGM2008")
+    data = [f"gfc {n} {m} {model.C[n, m]:.15e} {model.S[n, m]:.15e}" for n in range(2, nmax + 1) for m in range(n + 1)]
+    header = (GFC_HEADER.replace("TESTMODEL", "EGM2008_synthetic").replace("max_degree       3", f"max_degree       {nmax}")
+              .replace("errors           formal", "errors           no"))
+    return write(tmp_path / "egm2008_synthetic.gfc", gfc_text(data, header))
+
+
+def test_egm2008_zeta_to_n_read_in_metres_and_applied_as_hsynth(tmp_path):
+    """EGM2008's correction file: n m C S from degree 0 with D exponents, in metres,
+    summed without (a/r)^n beside nga-hsynth's ζ and N0 (hsynth_WGS84 reads it with the
+    routine of its elevation models, unscaled, and adds the sum to ζ + N0). CORRCOEF's
+    layout is the same in centimetres: the unit follows the file's name."""
+    from geoidspline.sources.resolve import load_synthesis
+
+    nmax = 24
+    C = np.zeros((nmax + 1, nmax + 1))
+    S = np.zeros((nmax + 1, nmax + 1))
+    C[0, 0], C[2, 0], C[3, 1], S[3, 1] = 0.25, -0.5, 0.125, 0.0625
+    zeta = write(tmp_path / "Zeta-to-N_to24_egm2008", zeta_to_n_text(C, S))
+    corr = read_nga_correction(zeta)
+    assert (corr.unit_m, corr.max_degree, corr.C[2, 0], corr.S[3, 1]) == (1.0, 24, -0.5, 0.0625)
+    model_path = egm2008_gfc(tmp_path, nmax)
+    plain = load_synthesis(model_path)
+    corrected = load_synthesis(model_path, zeta)
+    assert plain.preset == corrected.preset == "nga-hsynth"
+    assert any("in m (sha256" in note for note in corrected.provenance.notes)
+    lat = np.array([-89.0, -45.0, 0.0, 30.0, 60.0])
+    lon = np.array([10.0, 200.0, 33.0, 0.0, 300.0])
+    r, psi = ecef_geometry(lat, lon)
+    t = np.sin(psi)
+    lam = np.radians(lon)
+    p20 = math.sqrt(5) * (3 * t**2 - 1) / 2
+    p31 = math.sqrt(7 / 6) * 1.5 * (5 * t**2 - 1) * np.cos(psi)  # fully normalised (4π): sqrt(2 (2n+1) (n-m)!/(n+m)!)
+    expected = 0.25 - 0.5 * p20 + p31 * (0.125 * np.cos(lam) + 0.0625 * np.sin(lam))
+    np.testing.assert_allclose(corrected.undulation(lat, lon) - plain.undulation(lat, lon), expected, atol=1e-9)
+    # the same numbers under CORRCOEF's name are centimetres (and EGM2008 + CORRCOEF is F477's mix)
+    corrcoef = write(tmp_path / "CORRCOEF", zeta_to_n_text(C, S))
+    assert read_nga_correction(corrcoef).unit_m == 0.01
+    # a renamed copy takes the unit of the model it goes with
+    renamed = write(tmp_path / "zeta_to_n.txt", zeta_to_n_text(C, S))
+    with_renamed = load_synthesis(model_path, renamed)
+    assert with_renamed.correction.unit_m == 1.0 and with_renamed.preset == "nga-hsynth"
+    # a correction beyond what any part of N can be, in metres
+    C[5, 5] = 200.0
+    with pytest.raises(InputFileError, match=r"line 21: the coefficient of n=5 m=5 is beyond 150 m"):
+        read_nga_correction(write(tmp_path / "Zeta-to-N_to24_egm2008", zeta_to_n_text(C, S)))
+
+
+@pytest.mark.slow
+def test_egm2008_zeta_to_n_at_full_degree(tmp_path):
+    """NGA's file at its full degree, 2160 (2,336,041 lines, gzip), beside a degree-2190
+    model: read, its unit metres, and accepted for the synthesis to 2190."""
+    nmax = 2160
+    rng = np.random.default_rng(2160)
+    n = np.arange(nmax + 1)[:, None]
+    m = np.arange(nmax + 1)[None, :]
+    C = np.where(m <= n, rng.normal(size=(nmax + 1, nmax + 1)) * 1e-4, 0.0)
+    S = np.where((m <= n) & (m > 0), rng.normal(size=(nmax + 1, nmax + 1)) * 1e-4, 0.0)
+    C[0, 0] = 0.25
+    path = tmp_path / "Zeta-to-N_to2160_egm2008.gz"
+    path.write_bytes(gzip.compress(zeta_to_n_text(C, S).encode(), compresslevel=1))
+    corr = read_nga_correction(path)
+    assert (corr.unit_m, corr.max_degree) == (1.0, 2160)
+    rows = [(0, 0), (2160, 2160), (1500, 777), (3, 1)]
+    assert all(corr.C[r] == float(f"{C[r]:.15E}") and corr.S[r] == float(f"{S[r]:.15E}") for r in rows)
+    model = small_model(2190, {(2, 0): (-0.484165143790815e-3, 0.0)}, name="EGM2008")
+    syn = GeoidSynthesis(model, corr, preset="nga-hsynth")
+    assert syn.correction.max_degree == 2160 and syn.max_degree == 2190

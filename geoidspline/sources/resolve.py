@@ -97,7 +97,8 @@ def _is_grid(path) -> bool:
 
 
 def load_synthesis(model_path, correction_path=None, preset=None, like_store=None, *, max_degree=None):
-    """Read a model (ICGEM .gfc or NGA ASCII) and optional CORRCOEF-style correction
+    """Read a model (ICGEM .gfc or NGA ASCII) and optional NGA ζ-to-N correction (EGM96's
+    CORRCOEF in cm, EGM2008's Zeta-to-N_to2160_egm2008 in m: :func:`correction_unit`)
     and return the :class:`~geoidspline.sources.harmonics.GeoidSynthesis`.
 
     ``preset`` None means: the preset ``like_store`` was fitted with when that store was
@@ -105,7 +106,7 @@ def load_synthesis(model_path, correction_path=None, preset=None, like_store=Non
     ``max_degree`` truncates the model and the correction on purpose; without it a
     correction that stops below the model's degree is refused.
     """
-    from .harmonics.models import read_model, read_nga_correction
+    from .harmonics.models import correction_unit, read_model, read_nga_correction
     from .harmonics.synthesis import GeoidSynthesis
 
     if preset is not None and preset not in PRESETS:
@@ -116,7 +117,9 @@ def load_synthesis(model_path, correction_path=None, preset=None, like_store=Non
         if value is not None:
             _check_is_model(value, label)
     model = read_model(model_path)
-    correction = read_nga_correction(correction_path) if correction_path is not None else None
+    correction = None
+    if correction_path is not None:
+        correction = read_nga_correction(correction_path, unit=correction_unit(correction_path, model.name))
     chosen = preset
     if chosen is None and like_store is not None:
         chosen = store_preset(like_store, model)

@@ -1,5 +1,5 @@
 """Spherical-harmonic model files: ICGEM ``.gfc``, NGA ASCII coefficients and NGA's
-ζ-to-N correction coefficients (CORRCOEF).
+ζ-to-N correction coefficients (EGM96's CORRCOEF, EGM2008's Zeta-to-N_to2160_egm2008).
 
 The readers are strict: anything that does not fit the format raises
 :class:`~geoidspline.errors.InputFileError` whose message names the file and, for a bad
@@ -49,6 +49,7 @@ __all__ = [
     "NGA_CATALOGUE",
     "KNOWN_C20",
     "model_file_kind",
+    "correction_unit",
     "MAX_MODEL_TEXT_BYTES",
 ]
 
@@ -1002,12 +1003,32 @@ def read_nga(
 _UNITS = {"cm": 0.01, "m": 1.0, "mm": 0.001}
 
 
+def correction_unit(path, model_name: str | None = None) -> str:
+    """The unit of NGA's ζ-to-N correction coefficients in file ``path``.
+
+    NGA publishes two, both ``n m C S`` per line from degree 0: EGM96's CORRCOEF in
+    centimetres (F477 divides its sum by 100) and EGM2008's ``Zeta-to-N_to2160_egm2008``
+    in metres (hsynth_WGS84 reads it with the same routine as its elevation models and
+    adds its sum, unscaled, to ζ and N0). The file's name tells which; a renamed copy
+    takes the unit of the model it goes with (EGM2008: metres), else centimetres."""
+    stem = _nga_stem(path)
+    if stem.startswith("zeta-to-n"):
+        return "m"
+    if stem.startswith(("corrcoef", "corcoef")):
+        return "cm"
+    return "m" if (model_name or "").upper().replace("-", "").startswith("EGM2008") else "cm"
+
+
 @_file_faults
-def read_nga_correction(path, *, unit: str = "cm", name: str | None = None, max_degree: int | None = None,
+def read_nga_correction(path, *, unit: str | None = None, name: str | None = None, max_degree: int | None = None,
                         progress=None) -> CorrectionModel:
-    """Read NGA's ζ-to-N correction coefficients (CORRCOEF: ``n m C S`` per line, n from
-    0, in centimetres; ``unit`` = "cm", "mm" or "m"). Every (n, m) with 0 ≤ n ≤ nmax must
-    be present exactly once."""
+    """Read NGA's ζ-to-N correction coefficients: ``n m C S`` per line from degree 0
+    (free format; Fortran ``D`` exponents read as ``E``). ``unit`` = "cm", "mm" or "m";
+    None: by the file's name (:func:`correction_unit`: CORRCOEF centimetres,
+    Zeta-to-N_to2160_egm2008 metres). Every (n, m) with 0 ≤ n ≤ nmax must be present
+    exactly once."""
+    if unit is None:
+        unit = correction_unit(path)
     if unit not in _UNITS:
         raise ParameterError(f"unit must be one of {sorted(_UNITS)}, got {unit!r}")
     text = _Text(path)
@@ -1032,6 +1053,7 @@ def read_nga_correction(path, *, unit: str = "cm", name: str | None = None, max_
         unit_m=_UNITS[unit],
         source_path=str(path),
         sha256=text.sha256,
+        notes=(f"coefficients in {unit}",),
     )
 
 

@@ -277,8 +277,9 @@ class GeoidSynthesis:
         if self.correction is None:
             notes.append("no zeta-to-N correction: values are height anomalies plus N0")
         else:
+            unit = {0.01: "cm", 1.0: "m", 0.001: "mm"}.get(self.correction.unit_m, f"{self.correction.unit_m} m")
             notes.append(
-                f"zeta-to-N correction {self.correction.name} to degree {self.correction.max_degree} "
+                f"zeta-to-N correction {self.correction.name} to degree {self.correction.max_degree}, in {unit} "
                 f"(sha256 {self.correction.sha256})"
             )
         notes.extend(model.notes)
