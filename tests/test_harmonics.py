@@ -903,3 +903,37 @@ def test_egm2008_zeta_to_n_at_full_degree(tmp_path):
     model = small_model(2190, {(2, 0): (-0.484165143790815e-3, 0.0)}, name="EGM2008")
     syn = GeoidSynthesis(model, corr, preset="nga-hsynth")
     assert syn.correction.max_degree == 2160 and syn.max_degree == 2190
+
+
+def test_reading_a_model_is_a_progress_stage(tmp_path):
+    """load_synthesis reports each file's reading as a stage counted in the file's
+    bytes (the bar's total and ETA), advanced to the end."""
+    from geoidspline.sources.resolve import load_synthesis
+
+    class Recorder:
+        def __init__(self):
+            self.stages = []
+
+        def stage(self, name, total, unit="step"):
+            import contextlib
+
+            record = [name, total, unit, 0]
+            self.stages.append(record)
+
+            def advance(n=1):
+                record[3] += n
+
+            return contextlib.nullcontext(advance)
+
+    nmax = 24
+    C = np.zeros((nmax + 1, nmax + 1))
+    C[0, 0] = 0.1
+    model_path = egm2008_gfc(tmp_path, nmax)
+    zeta = tmp_path / "Zeta-to-N_to24_egm2008.gz"
+    zeta.write_bytes(gzip.compress(zeta_to_n_text(C, np.zeros_like(C)).encode()))
+    recorder = Recorder()
+    load_synthesis(model_path, zeta, progress=recorder)
+    assert recorder.stages == [
+        [f"read {model_path.name}", model_path.stat().st_size, "byte", model_path.stat().st_size],
+        [f"read {zeta.name}", zeta.stat().st_size, "byte", zeta.stat().st_size],
+    ]

@@ -324,6 +324,8 @@ class _Text:
             if pending:
                 yield b"".join(pending)
             self.sha256 = hashed.hexdigest()
+            if advance is not None:
+                advance(hashed.advance())
 
 
 # Separators that str.splitlines() or str.split() honour and bytes do not (VT, FF,
@@ -769,6 +771,8 @@ def read_icgem(path, *, max_degree: int | None = None, check_tide_system: bool =
     With ``check_tide_system``, C̄20 is compared with the known EGM96/EGM2008 values
     (:data:`KNOWN_C20`); a contradiction with the header gives a :class:`TideSystemWarning`,
     the model's ``tide_system`` follows the coefficient and the fact is kept in ``notes``.
+    ``progress``: called with each number of bytes of the file read (a progress bar's
+    advance).
     """
     text = _Text(path)
     lines, end, blocks = _icgem_header(text, progress)
@@ -971,7 +975,8 @@ def read_nga(
     as ``EGM2008_to2190_TideFree_first30``, matches it); the keywords override them and
     are required for other names. The degree is the largest n in the file (or
     ``max_degree``, which truncates); every (n, m) with 2 ≤ n ≤ that degree must be
-    present exactly once. C̄20 is checked as in :func:`read_icgem`.
+    present exactly once. C̄20 is checked as in :func:`read_icgem`. ``progress``: as
+    :func:`read_icgem`'s.
     """
     entry = _nga_lookup(path)
     cat_name, cat_gm, cat_radius, cat_tide = entry if entry else (None, None, None, None)
