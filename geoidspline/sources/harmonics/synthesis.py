@@ -394,8 +394,10 @@ class GeoidSynthesis:
         lower edge to the first node at or after each upper edge (clipped at the poles);
         longitudes stay monotonic across the antimeridian (may exceed 180).
 
-        Computed row by row: one set of Legendre sums per latitude, then the longitude
-        sum by a real FFT over the full circle (or a direct product for few columns).
+        Computed row by row: the Legendre sums of every latitude by ducc0's transforms,
+        band by band with the (a/r)^n factor expanded (:mod:`.sht`; ``lattice_engine =
+        "exact"``: the point synthesis's sums, row by row), then the longitude sum by a
+        real FFT over the full circle (or a direct product for few columns).
         """
         if not isinstance(region, Region):
             raise TypeError(f"region must be a Region, got {type(region).__name__}")
@@ -413,6 +415,21 @@ class GeoidSynthesis:
         values = self._lattice(latitude, cols, 2 * k)
         return NodeSample(latitude=latitude, longitude=longitude, undulation=values)
 
+    #: How lattices are synthesised: "sht" (ducc0's transforms, band by band, see
+    #: :mod:`.sht`), "exact" (the per-row Legendre sums of the point synthesis), or
+    #: "auto": whichever the plan of bands says costs less (sht for many rows: global
+    #: lattices, north and south together; exact for a few rows).
+    lattice_engine = "auto"
+    #: Threads ducc0 may use for a lattice.
+    lattice_threads = 1
+
+    def _sht(self):
+        if getattr(self, "_sht_rows", None) is None:
+            from .sht import ShtRows
+
+            self._sht_rows = ShtRows(self._CT, self._ST, self._radial, self.max_degree)
+        return self._sht_rows
+
     def _lattice(self, latitude, cols, L):
         """N at latitudes × longitudes cols·360/L (degrees)."""
         nmax = self.max_degree
@@ -423,27 +440,44 @@ class GeoidSynthesis:
         use_fft = (nmax + 1) * ncol > 2 * L * max(1.0, math.log2(L))
         out = np.empty((latitude.size, ncol))
         if use_fft:
-            chunk = max(1, min(latitude.size, 4_000_000 // L))
             index = np.mod(cols, L)
         else:
-            chunk = max(1, min(latitude.size, 4_000_000 // max(ncol, nmax + 1)))
             lam = np.radians(np.mod(cols * (360.0 / L), 360.0))
             mm = np.arange(nmax + 1)[:, None]
             cos_ml = np.cos(mm * lam[None, :])
             sin_ml = np.sin(mm * lam[None, :])
-        for start in range(0, latitude.size, chunk):
-            sl = slice(start, min(latitude.size, start + chunk))
-            nrow = sl.stop - sl.start
-            A = np.empty((nrow, nmax + 1))
-            B = np.empty((nrow, nmax + 1))
-            legendre.row_sums(
-                nmax, np.ascontiguousarray(t[sl]), np.ascontiguousarray(u[sl]), np.ascontiguousarray(q[sl]),
-                np.ascontiguousarray(scale[sl]), self._radial, self._CT, self._ST, self._AT, self._BT, A, B,
-            )
+
+        def emit(rows, A, B):
             if use_fft:
-                out[sl] = legendre.fold_to_circle(A, B, L)[:, index]
+                out[rows] = legendre.fold_to_circle(A, B, L)[:, index]
             else:
-                out[sl] = A @ cos_ml + B @ sin_ml
+                out[rows] = A @ cos_ml + B @ sin_ml
+
+        bands = None
+        if self.lattice_engine in ("sht", "auto"):
+            from .sht import EXACT_ROW_COST, ShtRows
+
+            sht = self._sht()
+            log_q = np.log(q)
+            bands = sht.plan(log_q, scale[:, 0])
+            if self.lattice_engine == "auto" and ShtRows.cost(bands) >= EXACT_ROW_COST * latitude.size:
+                bands = None
+        if bands is not None:
+            theta = np.arctan2(u, t)  # colatitude of the geocentric latitude
+            for band in bands:
+                emit(band[0], *sht.band_sums(theta, log_q, scale, band, self.lattice_threads))
+        else:
+            rows_per_chunk = max(1, min(latitude.size, 4_000_000 // (L if use_fft else max(ncol, nmax + 1))))
+            for start in range(0, latitude.size, rows_per_chunk):
+                sl = slice(start, min(latitude.size, start + rows_per_chunk))
+                nrow = sl.stop - sl.start
+                A = np.empty((nrow, nmax + 1))
+                B = np.empty((nrow, nmax + 1))
+                legendre.row_sums(
+                    nmax, np.ascontiguousarray(t[sl]), np.ascontiguousarray(u[sl]), np.ascontiguousarray(q[sl]),
+                    np.ascontiguousarray(scale[sl]), self._radial, self._CT, self._ST, self._AT, self._BT, A, B,
+                )
+                emit(np.arange(sl.start, sl.stop), A, B)
         out += self.zero_degree_term_m
         lon = cols * (360.0 / L)
         _check_range(out, latitude[:, None], lon[None, :], self.provenance.source, "N")
