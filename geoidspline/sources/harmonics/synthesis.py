@@ -415,11 +415,14 @@ class GeoidSynthesis:
         values = self._lattice(latitude, cols, 2 * k)
         return NodeSample(latitude=latitude, longitude=longitude, undulation=values)
 
-    #: How lattices are synthesised: "sht" (ducc0's transforms, band by band, see
-    #: :mod:`.sht`), "exact" (the per-row Legendre sums of the point synthesis), or
-    #: "auto": whichever the plan of bands says costs less (sht for many rows: global
-    #: lattices, north and south together; exact for a few rows).
-    lattice_engine = "auto"
+    #: How lattices are synthesised: "exact" (the per-row Legendre sums of the point
+    #: synthesis; the default), "sht" (ducc0's transforms, band by band, see :mod:`.sht`:
+    #: 2.7x faster for a global lattice at degree 2190, within 1e-7 m of exact), or
+    #: "auto": whichever the plan of bands says costs less. Only "exact" gives a row the
+    #: same bits whatever other rows the call holds (ducc0 vectorises over rings), which
+    #: sample_nodes' bands and the distributed fits rely on: "sht" is opt-in until its
+    #: rows are computed in canonical groups.
+    lattice_engine = "exact"
     #: Threads ducc0 may use for a lattice.
     lattice_threads = 1
 
