@@ -416,12 +416,9 @@ class GeoidSynthesis:
         return NodeSample(latitude=latitude, longitude=longitude, undulation=values)
 
     #: How lattices are synthesised: "exact" (the per-row Legendre sums of the point
-    #: synthesis; the default), "sht" (ducc0's transforms, band by band, see :mod:`.sht`:
-    #: 2.7x faster for a global lattice at degree 2190, within 1e-7 m of exact), or
-    #: "auto": whichever the plan of bands says costs less. Only "exact" gives a row the
-    #: same bits whatever other rows the call holds (ducc0 vectorises over rings), which
-    #: sample_nodes' bands and the distributed fits rely on: "sht" is opt-in until its
-    #: rows are computed in canonical groups.
+    #: synthesis; the default) or "sht" (ducc0's transforms in canonical groups of rows,
+    #: band by band, see :mod:`.sht`: 2.7x faster for a global lattice at degree 2190,
+    #: within 1e-7 m of exact; a row has the same bits whatever rows a call asks for).
     lattice_engine = "exact"
     #: Threads ducc0 may use for a lattice.
     lattice_threads = 1
@@ -432,6 +429,46 @@ class GeoidSynthesis:
 
             self._sht_rows = ShtRows(self._CT, self._ST, self._radial, self.max_degree)
         return self._sht_rows
+
+    # Rows by ducc0 are computed in canonical groups: a row's sums are those of its group
+    # (the same rows, the same call, the same bands) whatever rows a call asks for, so a
+    # lattice in bands has the bits of one call. A group: the rows within G of a pole's
+    # distance band, north and south together (one radius: one band of the expansion).
+    _GROUP_DEGREES = 5.0  # a group spans about this much latitude a hemisphere
+    _CACHE_BYTES = 512 << 20  # group sums kept (a global lattice at degree 2190: 154 MB)
+
+    def _group_size(self, k: int) -> int:
+        return max(1, min(128, int(self._GROUP_DEGREES * k / 180.0)))
+
+    def _group_of(self, index, k: int):
+        return np.minimum(index, k - index) // self._group_size(k)
+
+    def _group_sums(self, k: int, g: int):
+        """(lattice row indices, A, B) of group g of the lattice of k + 1 rows, cached."""
+        import collections
+
+        cache = self.__dict__.setdefault("_sht_cache", collections.OrderedDict())
+        key = (k, g)
+        if key in cache:
+            cache.move_to_end(key)
+            return cache[key]
+        size = self._group_size(k)
+        south = np.arange(g * size, min((g + 1) * size, k // 2 + 1))
+        rows = np.unique(np.concatenate([south, k - south]))
+        latitude = rows * 180.0 / k - 90.0
+        t, u, r, gamma = self._geometry(latitude)
+        scale = self._scales(r, gamma, "N")
+        log_q = np.log(self.conventions.scale_a / r)
+        theta = np.arctan2(u, t)  # colatitude of the geocentric latitude
+        sht = self._sht()
+        A = np.empty((rows.size, self.max_degree + 1))
+        B = np.empty((rows.size, self.max_degree + 1))
+        for band in sht.plan(log_q, scale[:, 0]):
+            A[band[0]], B[band[0]] = sht.band_sums(theta, log_q, scale, band, self.lattice_threads)
+        cache[key] = (rows, A, B)
+        while len(cache) > 1 and sum(a.nbytes + b.nbytes for _, a, b in cache.values()) > self._CACHE_BYTES:
+            cache.popitem(last=False)
+        return cache[key]
 
     def _lattice(self, latitude, cols, L):
         """N at latitudes × longitudes cols·360/L (degrees)."""
@@ -456,19 +493,15 @@ class GeoidSynthesis:
             else:
                 out[rows] = A @ cos_ml + B @ sin_ml
 
-        bands = None
-        if self.lattice_engine in ("sht", "auto"):
-            from .sht import EXACT_ROW_COST, ShtRows
-
-            sht = self._sht()
-            log_q = np.log(q)
-            bands = sht.plan(log_q, scale[:, 0])
-            if self.lattice_engine == "auto" and ShtRows.cost(bands) >= EXACT_ROW_COST * latitude.size:
-                bands = None
-        if bands is not None:
-            theta = np.arctan2(u, t)  # colatitude of the geocentric latitude
-            for band in bands:
-                emit(band[0], *sht.band_sums(theta, log_q, scale, band, self.lattice_threads))
+        if self.lattice_engine == "sht":
+            k = L // 2
+            row_index = np.rint((latitude + 90.0) * k / 180.0).astype(np.int64)
+            group = self._group_of(row_index, k)
+            for g in np.unique(group):
+                mine = np.flatnonzero(group == g)
+                rows, A, B = self._group_sums(k, int(g))
+                at = np.searchsorted(rows, row_index[mine])
+                emit(mine, A[at], B[at])
         else:
             rows_per_chunk = max(1, min(latitude.size, 4_000_000 // (L if use_fft else max(ncol, nmax + 1))))
             for start in range(0, latitude.size, rows_per_chunk):
