@@ -1007,3 +1007,15 @@ def test_sht_lattice_of_egm2008_120_equals_the_exact_synthesis():
         syn.lattice_engine = engine
         values[engine] = syn.nodes(GLOBAL, 0.75).undulation
     assert np.abs(values["sht"] - values["exact"]).max() < 1e-7
+
+
+def test_lattice_engine_from_the_environment(monkeypatch):
+    model = white_model(30)
+    assert GeoidSynthesis(model).lattice_engine == "exact"
+    monkeypatch.setenv("GEOIDSPLINE_LATTICE_ENGINE", "sht")
+    assert GeoidSynthesis(model).lattice_engine == "sht"
+    monkeypatch.setenv("GEOIDSPLINE_LATTICE_ENGINE", "fast")
+    from geoidspline.errors import ParameterError
+
+    with pytest.raises(ParameterError, match="GEOIDSPLINE_LATTICE_ENGINE must be 'exact' or 'sht', got 'fast'"):
+        GeoidSynthesis(model)

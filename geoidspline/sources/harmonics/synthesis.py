@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -238,6 +239,10 @@ class GeoidSynthesis:
             raise ParameterError(f"zero_degree_term_m must be finite, got {zero_degree_term_m}")
         _check_correction_degree(correction, nmax, max_degree is not None)
 
+        engine = os.environ.get("GEOIDSPLINE_LATTICE_ENGINE", "").strip() or type(self).lattice_engine
+        if engine not in ("exact", "sht"):
+            raise ParameterError(f"GEOIDSPLINE_LATTICE_ENGINE must be 'exact' or 'sht', got {engine!r}")
+        self.lattice_engine = engine
         self.model = model.truncated(nmax)
         self.max_degree = nmax
         self.ellipsoid = ellipsoid
@@ -419,6 +424,8 @@ class GeoidSynthesis:
     #: synthesis; the default) or "sht" (ducc0's transforms in canonical groups of rows,
     #: band by band, see :mod:`.sht`: 2.7x faster for a global lattice at degree 2190,
     #: within 1e-7 m of exact; a row has the same bits whatever rows a call asks for).
+    #: The environment variable GEOIDSPLINE_LATTICE_ENGINE sets it for new syntheses
+    #: (the command line's fits).
     lattice_engine = "exact"
     #: Threads ducc0 may use for a lattice.
     lattice_threads = 1
