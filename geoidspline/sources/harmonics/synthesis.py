@@ -146,9 +146,14 @@ def _check_correction_degree(correction: CorrectionModel | None, nmax: int, expl
 def _check_range(values, latitude, longitude, source: str, quantity: str) -> None:
     """Refuse a synthesis whose N (or ζ) leaves the geoid's physical range: the model's
     coefficients are not a geoid model's (or the preset or units are wrong)."""
-    magnitude = np.abs(np.where(np.isnan(values), 0.0, values))
-    if magnitude.size == 0 or not magnitude.max() > MAX_ABS_UNDULATION_M:
+    if values.size == 0:
         return
+    # largest and smallest without NaN and without a temporary of the values' size (a
+    # global lattice at degree 2190 is 307 MB); the position only when refused
+    flat = values.reshape(-1)
+    if not max(abs(np.fmax.reduce(flat)), abs(np.fmin.reduce(flat))) > MAX_ABS_UNDULATION_M:
+        return
+    magnitude = np.abs(np.where(np.isnan(values), 0.0, values))
     k = int(np.argmax(magnitude))
     lat = np.broadcast_to(latitude, values.shape).flat[k]
     lon = np.broadcast_to(longitude, values.shape).flat[k]
