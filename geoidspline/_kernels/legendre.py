@@ -23,6 +23,8 @@ exponent range is unlimited. Within each column, once the values are back in the
 ordinary double range (ix = 0) they stay there (they grow until the oscillatory zone,
 then stay O(1)), so the rest of the column runs in plain doubles. Values that are still
 below 2^-480 when a sum is formed contribute nothing measurable and are dropped.
+
+The recursion and sums are C (``src/legendre.c``); the tables and the FFT fold are numpy.
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ __all__ = [
     "point_sums",
     "fold_to_circle",
 ]
+
 
 def recursion_tables(nmax: int):
     """Order-major recursion coefficients AT[m, n] = a_nm, BT[m, n] = b_nm (n ≥ m + 1),
