@@ -29,6 +29,8 @@ import math
 import numpy as np
 from scipy import special
 
+from ...errors import ParameterError
+
 __all__ = ["ShtRows", "RADIAL_TOLERANCE_M", "EXACT_ROW_COST"]
 
 #: Bound on the truncation error of the radial expansion (metres): a hundredth of the
@@ -52,7 +54,11 @@ class ShtRows:
     GeoidSynthesis); ``radial[k]``: set k carries (a/r)^n."""
 
     def __init__(self, CT, ST, radial, nmax: int):
-        import ducc0  # noqa: F401 (fail at construction, not in the middle of a lattice)
+        try:  # fail at construction, not in the middle of a lattice
+            import ducc0  # noqa: F401
+        except ImportError:
+            raise ParameterError("the lattice engine 'sht' needs ducc0: pip install 'geoidspline[sht]' "
+                                 "(or use the default engine, 'exact')") from None
 
         self.nmax = nmax
         size = nmax + 1

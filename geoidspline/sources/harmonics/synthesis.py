@@ -427,8 +427,8 @@ class GeoidSynthesis:
 
     #: How lattices are synthesised: "exact" (the per-row Legendre sums of the point
     #: synthesis; the default) or "sht" (ducc0's transforms in canonical groups of rows,
-    #: band by band, see :mod:`.sht`: 2.7x faster for a global lattice at degree 2190,
-    #: within 1e-7 m of exact; a row has the same bits whatever rows a call asks for).
+    #: band by band, see :mod:`.sht`, the ``sht`` extra: within 1e-7 m of exact; a row has
+    #: the same bits whatever rows a call asks for; timings in benchmarks/README.md).
     #: The environment variable GEOIDSPLINE_LATTICE_ENGINE sets it for new syntheses
     #: (the command line's fits).
     lattice_engine = "exact"
