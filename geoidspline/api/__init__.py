@@ -191,9 +191,9 @@ def run_fit(source, store, *, region=None, overwrite: bool = False, workers: int
     """:func:`fit`, returning the whole account of it (:class:`FitRun`) instead of the store."""
     from ..fitting.executors import Executor
     from ..fitting.parameters import FitParameters
-    from ..sources.reference import for_new_store
-
+    from ..fitting.progress import as_progress
     from ..options import check_number
+    from ..sources.reference import for_new_store
 
     max_memory_gb = check_number("max_memory_gb", max_memory_gb)
     executor = Executor(workers=workers, scheduler=scheduler,
@@ -201,7 +201,8 @@ def run_fit(source, store, *, region=None, overwrite: bool = False, workers: int
     if _is_path(source):
         from ..sources.resolve import open_source
 
-        source = open_source(source, correction, preset, band=band, variable=variable)
+        source = open_source(source, correction, preset, band=band, variable=variable,
+                             progress=as_progress(progress))
     source, notes = for_new_store(source, tide_system=tide_system, accept_datum=accept_datum,
                                   accept_quasi_geoid=accept_quasi_geoid)
     fit_region = _as_region(region, source)
