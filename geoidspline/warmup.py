@@ -39,7 +39,6 @@ KERNEL_MODULES = (
     "geoidspline._kernels.coverage",
     "geoidspline._kernels.fitting",
     "geoidspline._kernels.interpolation",
-    "geoidspline._kernels.query",
     "geoidspline._kernels.legendre",
 )
 
