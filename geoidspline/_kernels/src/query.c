@@ -165,14 +165,81 @@ GS_INLINE void weights(double t, const int order, const int nderiv, double *w)
 
 /* ---- evaluation ------------------------------------------------------------------- */
 
+/* Lanes: order doubles (one per z index r) held in vector registers, 4 to a vector, then
+ * a pair, then one; GCC's vector extensions, so every lane is its own scalar sum (the
+ * same bits in the baseline and x86-64-v3 builds). */
+typedef double gs_v4 __attribute__((vector_size(32)));
+typedef double gs_v2 __attribute__((vector_size(16)));
+typedef struct {
+    gs_v4 v[GS_MAX_ORDER / 4];
+    gs_v2 pair;
+    double one;
+} lanes;
+
+#define LANE_V(order) ((order) / 4)
+#define LANE_PAIR(order) (((order) % 4) >= 2)
+#define LANE_ONE(order) (((order) % 2) == 1)
+
+GS_INLINE void lanes_zero(const int order, lanes *a)
+{
+    for (int k = 0; k < LANE_V(order); ++k)
+        a->v[k] = (gs_v4){0.0, 0.0, 0.0, 0.0};
+    a->pair = (gs_v2){0.0, 0.0};
+    a->one = 0.0;
+}
+
+/* a += w c for c order contiguous doubles */
+GS_INLINE void lanes_axpy(const int order, lanes *a, double w, const double *c)
+{
+    for (int k = 0; k < LANE_V(order); ++k) {
+        gs_v4 x;
+        memcpy(&x, c + 4 * k, sizeof x);
+        a->v[k] += w * x;
+    }
+    if (LANE_PAIR(order)) {
+        gs_v2 x;
+        memcpy(&x, c + 4 * LANE_V(order), sizeof x);
+        a->pair += w * x;
+    }
+    if (LANE_ONE(order))
+        a->one += w * c[order - 1];
+}
+
+/* a += w b */
+GS_INLINE void lanes_add(const int order, lanes *a, double w, const lanes *b)
+{
+    for (int k = 0; k < LANE_V(order); ++k)
+        a->v[k] += w * b->v[k];
+    if (LANE_PAIR(order))
+        a->pair += w * b->pair;
+    if (LANE_ONE(order))
+        a->one += w * b->one;
+}
+
+/* sum_r w[r] a[r], r in order */
+GS_INLINE double lanes_dot(const int order, const lanes *a, const double *w)
+{
+    double s = 0.0;
+    for (int k = 0; k < LANE_V(order); ++k)
+        for (int j = 0; j < 4; ++j)
+            s += w[4 * k + j] * a->v[k][j];
+    if (LANE_PAIR(order)) {
+        s += w[4 * LANE_V(order)] * a->pair[0];
+        s += w[4 * LANE_V(order) + 1] * a->pair[1];
+    }
+    if (LANE_ONE(order))
+        s += w[order - 1] * a->one;
+    return s;
+}
+
 /* Add one brick table's spline (and derivatives) at a point into result.
  *
- * The table's column (p, q) is a run of coefficients along z; the sum is taken per z lane:
- * A[r] = sum_pq wx_p wy_q c_pqr (and the same with derivative weights), then
- * value = sum_r wz_r A[r]. The lane loops have a constant trip count and no dependence
- * between lanes, so they become vector multiplies and adds; a column is order contiguous
- * doubles. A column whose run does not hold all order coefficients (a band's edge) is
- * read through a zero-padded copy. */
+ * The table's column (p, q) is a run of coefficients along z. Sums go per z lane r,
+ * separably: B_p[r] = sum_q wy_q c_pqr, A[r] = sum_p wx_p B_p[r], then value = sum_r
+ * wz_r A[r] (and the same with derivative weights): a column is order contiguous doubles
+ * added into vector lanes, rows p are independent chains (short add latencies). A column
+ * whose run does not hold all order coefficients (a band's edge) is read through a
+ * zero-padded copy. */
 GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, const double *wx, const double *wy,
                          const double *wz, int64_t base, const int32_t *cols, int64_t brick, int64_t lx, int64_t ly,
                          int64_t lz, double inv_h, double *result)
@@ -180,18 +247,27 @@ GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, 
     const int64_t side = (1 << BRICK_BITS) + order - 1;
     const int32_t *col0 = cols + (brick * side + lx) * side + ly;
     const double *values = S->values + base;
-    /* lanes: 00 value; 10 01 first derivatives in x, y; 20 02 11 second */
-    double a00[GS_MAX_ORDER], a10[GS_MAX_ORDER], a01[GS_MAX_ORDER], a20[GS_MAX_ORDER], a02[GS_MAX_ORDER],
-        a11[GS_MAX_ORDER], pad[GS_MAX_ORDER];
-    for (int r = 0; r < order; ++r) {
-        a00[r] = 0.0;
-        if (nderiv >= 1)
-            a10[r] = a01[r] = 0.0;
-        if (nderiv >= 2)
-            a20[r] = a02[r] = a11[r] = 0.0;
+    /* A per derivative (x, y): 00 value; 10 01 first; 20 02 11 second */
+    lanes a00, a10, a01, a20, a02, a11;
+    double pad[GS_MAX_ORDER];
+    lanes_zero(order, &a00);
+    if (nderiv >= 1) {
+        lanes_zero(order, &a10);
+        lanes_zero(order, &a01);
+    }
+    if (nderiv >= 2) {
+        lanes_zero(order, &a20);
+        lanes_zero(order, &a02);
+        lanes_zero(order, &a11);
     }
     for (int p = 0; p < order; ++p) {
         const int32_t *row = col0 + p * side;
+        lanes b0, b1, b2; /* B_p with the y weights of derivative 0, 1, 2 */
+        lanes_zero(order, &b0);
+        if (nderiv >= 1)
+            lanes_zero(order, &b1);
+        if (nderiv >= 2)
+            lanes_zero(order, &b2);
         for (int q = 0; q < order; ++q) {
             int32_t packed = row[q];
             int64_t length = packed & COL_KMASK;
@@ -207,59 +283,37 @@ GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, 
                     pad[r] = (start + r >= 0 && start + r < length) ? values[offset + r] : 0.0;
                 c = pad;
             }
-            double w00 = wx[p] * wy[q];
-            for (int r = 0; r < order; ++r)
-                a00[r] += w00 * c[r];
-            if (nderiv >= 1) {
-                double w10 = wx[order + p] * wy[q], w01 = wx[p] * wy[order + q];
-                for (int r = 0; r < order; ++r) {
-                    a10[r] += w10 * c[r];
-                    a01[r] += w01 * c[r];
-                }
-            }
-            if (nderiv >= 2) {
-                double w20 = wx[2 * order + p] * wy[q], w02 = wx[p] * wy[2 * order + q],
-                       w11 = wx[order + p] * wy[order + q];
-                for (int r = 0; r < order; ++r) {
-                    a20[r] += w20 * c[r];
-                    a02[r] += w02 * c[r];
-                    a11[r] += w11 * c[r];
-                }
-            }
+            lanes_axpy(order, &b0, wy[q], c);
+            if (nderiv >= 1)
+                lanes_axpy(order, &b1, wy[order + q], c);
+            if (nderiv >= 2)
+                lanes_axpy(order, &b2, wy[2 * order + q], c);
+        }
+        lanes_add(order, &a00, wx[p], &b0);
+        if (nderiv >= 1) {
+            lanes_add(order, &a10, wx[order + p], &b0);
+            lanes_add(order, &a01, wx[p], &b1);
+        }
+        if (nderiv >= 2) {
+            lanes_add(order, &a20, wx[2 * order + p], &b0);
+            lanes_add(order, &a02, wx[p], &b2);
+            lanes_add(order, &a11, wx[order + p], &b1);
         }
     }
-    double v = 0.0;
-    for (int r = 0; r < order; ++r)
-        v += wz[r] * a00[r];
-    result[0] += v;
+    result[0] += lanes_dot(order, &a00, wz);
     if (nderiv >= 1) {
-        double gx = 0.0, gy = 0.0, gz = 0.0;
-        for (int r = 0; r < order; ++r) {
-            gx += wz[r] * a10[r];
-            gy += wz[r] * a01[r];
-            gz += wz[order + r] * a00[r];
-        }
-        result[1] += gx * inv_h;
-        result[2] += gy * inv_h;
-        result[3] += gz * inv_h;
+        result[1] += lanes_dot(order, &a10, wz) * inv_h;
+        result[2] += lanes_dot(order, &a01, wz) * inv_h;
+        result[3] += lanes_dot(order, &a00, wz + order) * inv_h;
     }
     if (nderiv >= 2) {
-        double hxx = 0.0, hyy = 0.0, hzz = 0.0, hxy = 0.0, hxz = 0.0, hyz = 0.0;
-        for (int r = 0; r < order; ++r) {
-            hxx += wz[r] * a20[r];
-            hyy += wz[r] * a02[r];
-            hzz += wz[2 * order + r] * a00[r];
-            hxy += wz[r] * a11[r];
-            hxz += wz[order + r] * a10[r];
-            hyz += wz[order + r] * a01[r];
-        }
         double ih2 = inv_h * inv_h;
-        result[4] += hxx * ih2;
-        result[5] += hyy * ih2;
-        result[6] += hzz * ih2;
-        result[7] += hxy * ih2;
-        result[8] += hxz * ih2;
-        result[9] += hyz * ih2;
+        result[4] += lanes_dot(order, &a20, wz) * ih2;
+        result[5] += lanes_dot(order, &a02, wz) * ih2;
+        result[6] += lanes_dot(order, &a00, wz + 2 * order) * ih2;
+        result[7] += lanes_dot(order, &a11, wz) * ih2;
+        result[8] += lanes_dot(order, &a10, wz + order) * ih2;
+        result[9] += lanes_dot(order, &a01, wz + order) * ih2;
     }
 }
 
@@ -424,29 +478,33 @@ GS_EXPORT void gs_query_order(const double *points, int64_t m, int64_t *key, int
 #define LL_LAT_BITS 7 /* the sort grid: 2**7 rows and 2**8 columns of 1.41 degrees */
 #define LL_LON_BITS 8
 #define LL_BUCKETS (1 << (LL_LAT_BITS + LL_LON_BITS)) /* one more for NaN */
+#define LL_FINE_BITS 3 /* inside a bucket, points are sorted on a grid 2**3 times finer (0.18 degrees) */
 
-GS_INLINE int64_t spread2(int64_t v)
+GS_INLINE uint32_t spread2(uint32_t v)
 {
-    v &= 0xFF;
-    v = (v | (v << 4)) & 0x0F0F;
-    v = (v | (v << 2)) & 0x3333;
-    v = (v | (v << 1)) & 0x5555;
+    v &= 0xFFFF;
+    v = (v | (v << 8)) & 0x00FF00FF;
+    v = (v | (v << 4)) & 0x0F0F0F0F;
+    v = (v | (v << 2)) & 0x33333333;
+    v = (v | (v << 1)) & 0x55555555;
     return v;
 }
 
-/* Morton code of the point's cell on the latitude/longitude sort grid (NaN: last). */
-GS_INLINE int32_t latlon_bucket(double la, double lo)
+/* Morton code of the point's cell on the fine latitude/longitude sort grid; its bucket
+ * (the 1.41 degree cell) is code >> (2 LL_FINE_BITS). NaN: bucket LL_BUCKETS. */
+GS_INLINE uint32_t latlon_code(double la, double lo)
 {
+    const int lat_bits = LL_LAT_BITS + LL_FINE_BITS, lon_bits = LL_LON_BITS + LL_FINE_BITS;
     if (la != la || lo != lo)
-        return LL_BUCKETS;
-    double fi = (la + 90.0) * ((1 << LL_LAT_BITS) / 180.0);
-    int64_t i = fi < 0.0 ? 0 : (fi >= (1 << LL_LAT_BITS) ? (1 << LL_LAT_BITS) - 1 : (int64_t)fi);
+        return (uint32_t)LL_BUCKETS << (2 * LL_FINE_BITS);
+    double fi = (la + 90.0) * ((1 << lat_bits) / 180.0);
+    uint32_t i = fi < 0.0 ? 0 : (fi >= (1 << lat_bits) ? (1 << lat_bits) - 1 : (uint32_t)fi);
     double w = lo + 180.0;
     if (w < 0.0 || w >= 360.0)
         w -= 360.0 * floor(w / 360.0);
-    double fj = w * ((1 << LL_LON_BITS) / 360.0);
-    int64_t j = fj < 0.0 ? 0 : (fj >= (1 << LL_LON_BITS) ? (1 << LL_LON_BITS) - 1 : (int64_t)fj);
-    return (int32_t)(spread2(j) | (spread2(i) << 1));
+    double fj = w * ((1 << lon_bits) / 360.0);
+    uint32_t j = fj < 0.0 ? 0 : (fj >= (1 << lon_bits) ? (1 << lon_bits) - 1 : (uint32_t)fj);
+    return spread2(j) | (spread2(i) << 1);
 }
 
 /* sin and cos of one angle at once (fdlibm's k_sin.c/k_cos.c polynomials on [-pi/4, pi/4]
@@ -520,14 +578,21 @@ GS_EXPORT void gs_unit_vectors(const double *latitude, const double *longitude, 
 }
 
 typedef struct {
+    double latitude, longitude;
+    int64_t at;    /* position in the caller's arrays */
+    uint64_t code; /* latlon_code */
+} gs_latlon_at;    /* one record: the scatter writes one cache line a point, not four */
+
+typedef struct {
     const gs_spline *S;
     const double *latitude, *longitude;
     double *out;
     int64_t m, nblocks, size;
-    int32_t *code;
+    uint32_t *code;
     int64_t *counts, *invalid; /* (nblocks, LL_BUCKETS + 1), (nblocks) */
-    double *order_lat, *order_lon, *ordered;
-    int64_t *order_idx;
+    int64_t *bucket_start;     /* LL_BUCKETS + 2 */
+    gs_latlon_at *sorted; /* the points in the order of their cells */
+    double *ordered;       /* their values, in that order */
 } latlon_job;
 
 static void latlon_count(void *ctx, int64_t blk)
@@ -539,9 +604,9 @@ static void latlon_count(void *ctx, int64_t blk)
         double la = J->latitude[s], lo_ = J->longitude[s];
         if (fabs(la) > 90.0 || fabs(lo_) == INFINITY)
             bad += 1;
-        int32_t b = latlon_bucket(la, lo_);
-        J->code[s] = b;
-        counts[b] += 1;
+        uint32_t code = latlon_code(la, lo_);
+        J->code[s] = code;
+        counts[code >> (2 * LL_FINE_BITS)] += 1;
     }
     J->invalid[blk] = bad;
 }
@@ -552,10 +617,52 @@ static void latlon_scatter(void *ctx, int64_t blk)
     int64_t *counts = J->counts + blk * (LL_BUCKETS + 1);
     int64_t lo = blk * J->size, hi = lo + J->size < J->m ? lo + J->size : J->m;
     for (int64_t s = lo; s < hi; ++s) {
-        int64_t p = counts[J->code[s]]++;
-        J->order_lat[p] = J->latitude[s];
-        J->order_lon[p] = J->longitude[s];
-        J->order_idx[p] = s;
+        uint32_t code = J->code[s];
+        gs_latlon_at *to = &J->sorted[counts[code >> (2 * LL_FINE_BITS)]++];
+        to->latitude = J->latitude[s];
+        to->longitude = J->longitude[s];
+        to->at = s;
+        to->code = code;
+    }
+}
+
+#define SORT_TASK_BUCKETS 256
+
+/* Each bucket's points sorted by their fine code (stable: insertion sort, the buckets
+ * holding a few tens of points in a million-point batch; Shell's gaps first for large
+ * ones). Nearby points then follow each other, so they read the same coefficients. */
+static void latlon_refine(void *ctx, int64_t task)
+{
+    latlon_job *J = ctx;
+    int64_t b_lo = task * SORT_TASK_BUCKETS, b_hi = b_lo + SORT_TASK_BUCKETS;
+    if (b_hi > LL_BUCKETS)
+        b_hi = LL_BUCKETS; /* NaN's bucket stays as it is */
+    static const int64_t gaps[] = {1750, 701, 301, 132, 57, 23, 10, 4};
+    for (int64_t b = b_lo; b < b_hi; ++b) {
+        gs_latlon_at *a = J->sorted + J->bucket_start[b];
+        int64_t n = J->bucket_start[b + 1] - J->bucket_start[b];
+        if (n < 2)
+            continue;
+        for (size_t g = 0; g < sizeof gaps / sizeof gaps[0]; ++g) {
+            int64_t gap = gaps[g];
+            if (n <= 64 || gap >= n)
+                continue;
+            for (int64_t i = gap; i < n; ++i) {
+                gs_latlon_at t = a[i];
+                int64_t j = i;
+                for (; j >= gap && (a[j - gap].code > t.code || (a[j - gap].code == t.code && a[j - gap].at > t.at));
+                     j -= gap)
+                    a[j] = a[j - gap];
+                a[j] = t;
+            }
+        }
+        for (int64_t i = 1; i < n; ++i) { /* (code, position): the same order for any blocks */
+            gs_latlon_at t = a[i];
+            int64_t j = i;
+            for (; j >= 1 && (a[j - 1].code > t.code || (a[j - 1].code == t.code && a[j - 1].at > t.at)); --j)
+                a[j] = a[j - 1];
+            a[j] = t;
+        }
     }
 }
 
@@ -566,7 +673,7 @@ GS_INLINE void latlon_range(const latlon_job *J, const int order, int64_t lo, in
     reset_cache(S->nlev, last_key, last_brick);
     for (int64_t p = lo; p < hi; ++p) {
         double x, y, z, result[1] = {0.0};
-        direction(J->order_lat[p], J->order_lon[p], &x, &y, &z);
+        direction(J->sorted[p].latitude, J->sorted[p].longitude, &x, &y, &z);
         if (x == x && z == z) {
             point_sum(S, order, 0, x, y, z, last_key, last_brick, result);
             J->ordered[p] = result[0];
@@ -594,7 +701,7 @@ static void latlon_back(void *ctx, int64_t blk)
     latlon_job *J = ctx;
     int64_t lo = blk * J->size, hi = lo + J->size < J->m ? lo + J->size : J->m;
     for (int64_t p = lo; p < hi; ++p)
-        J->out[J->order_idx[p]] = J->ordered[p];
+        J->out[J->sorted[p].at] = J->ordered[p];
 }
 
 /* Spline values at the directions of latitude/longitude (degrees) into out. Returns the
@@ -615,14 +722,13 @@ GS_EXPORT int64_t gs_undulation_latlon(const gs_spline *S, const double *latitud
 {
     latlon_job J = {S, latitude, longitude, out, m, nblocks, (m + nblocks - 1) / nblocks};
     int64_t result = -1;
-    J.code = malloc(sizeof(int32_t) * (size_t)(m ? m : 1));
+    J.code = malloc(sizeof(uint32_t) * (size_t)(m ? m : 1));
+    J.bucket_start = malloc(sizeof(int64_t) * (LL_BUCKETS + 2));
     J.counts = calloc((size_t)nblocks * (LL_BUCKETS + 1), sizeof(int64_t));
     J.invalid = calloc((size_t)nblocks, sizeof(int64_t));
-    J.order_lat = malloc(sizeof(double) * (size_t)(m ? m : 1));
-    J.order_lon = malloc(sizeof(double) * (size_t)(m ? m : 1));
+    J.sorted = malloc(sizeof(gs_latlon_at) * (size_t)(m ? m : 1));
     J.ordered = malloc(sizeof(double) * (size_t)(m ? m : 1));
-    J.order_idx = malloc(sizeof(int64_t) * (size_t)(m ? m : 1));
-    if (!J.code || !J.counts || !J.invalid || !J.order_lat || !J.order_lon || !J.ordered || !J.order_idx)
+    if (!J.code || !J.bucket_start || !J.counts || !J.invalid || !J.sorted || !J.ordered)
         goto done;
     gs_parallel_for((int)nthreads, nblocks, latlon_count, &J);
     result = 0;
@@ -631,23 +737,26 @@ GS_EXPORT int64_t gs_undulation_latlon(const gs_spline *S, const double *latitud
     if (result)
         goto done;
     int64_t total = 0;
-    for (int64_t b = 0; b <= LL_BUCKETS; ++b)
+    for (int64_t b = 0; b <= LL_BUCKETS; ++b) {
+        J.bucket_start[b] = total;
         for (int64_t blk = 0; blk < nblocks; ++blk) {
             int64_t *c = J.counts + blk * (LL_BUCKETS + 1) + b, n = *c;
             *c = total;
             total += n;
         }
+    }
+    J.bucket_start[LL_BUCKETS + 1] = total;
     gs_parallel_for((int)nthreads, nblocks, latlon_scatter, &J);
+    gs_parallel_for((int)nthreads, (LL_BUCKETS + SORT_TASK_BUCKETS - 1) / SORT_TASK_BUCKETS, latlon_refine, &J);
     gs_parallel_for((int)nthreads, (m + CHUNK - 1) / CHUNK, latlon_evaluate, &J);
     gs_parallel_for((int)nthreads, nblocks, latlon_back, &J);
 done:
     free(J.code);
+    free(J.bucket_start);
     free(J.counts);
     free(J.invalid);
-    free(J.order_lat);
-    free(J.order_lon);
+    free(J.sorted);
     free(J.ordered);
-    free(J.order_idx);
     return result;
 }
 
