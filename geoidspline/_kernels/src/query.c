@@ -628,42 +628,52 @@ static void latlon_scatter(void *ctx, int64_t blk)
 
 #define SORT_TASK_BUCKETS 256
 
-/* Each bucket's points sorted by their fine code (stable: insertion sort, the buckets
- * holding a few tens of points in a million-point batch; Shell's gaps first for large
- * ones). Nearby points then follow each other, so they read the same coefficients. */
+/* Each bucket's points sorted by their fine code, ties by position (the scatter leaves a
+ * bucket in increasing position): insertion sort for the few tens of points a bucket of a
+ * global million-point batch holds, a stable counting sort on the fine bits for larger
+ * ones. Nearby points then follow each other, so they read the same coefficients. */
 static void latlon_refine(void *ctx, int64_t task)
 {
     latlon_job *J = ctx;
     int64_t b_lo = task * SORT_TASK_BUCKETS, b_hi = b_lo + SORT_TASK_BUCKETS;
     if (b_hi > LL_BUCKETS)
         b_hi = LL_BUCKETS; /* NaN's bucket stays as it is */
-    static const int64_t gaps[] = {1750, 701, 301, 132, 57, 23, 10, 4};
+    const uint64_t fine_mask = (1u << (2 * LL_FINE_BITS)) - 1;
+    gs_latlon_at *scratch = NULL;
+    int64_t scratch_size = 0;
     for (int64_t b = b_lo; b < b_hi; ++b) {
         gs_latlon_at *a = J->sorted + J->bucket_start[b];
         int64_t n = J->bucket_start[b + 1] - J->bucket_start[b];
-        if (n < 2)
-            continue;
-        for (size_t g = 0; g < sizeof gaps / sizeof gaps[0]; ++g) {
-            int64_t gap = gaps[g];
-            if (n <= 64 || gap >= n)
-                continue;
-            for (int64_t i = gap; i < n; ++i) {
+        if (n <= 48) {
+            for (int64_t i = 1; i < n; ++i) {
                 gs_latlon_at t = a[i];
                 int64_t j = i;
-                for (; j >= gap && (a[j - gap].code > t.code || (a[j - gap].code == t.code && a[j - gap].at > t.at));
-                     j -= gap)
-                    a[j] = a[j - gap];
+                for (; j >= 1 && a[j - 1].code > t.code; --j) /* strict: stable */
+                    a[j] = a[j - 1];
                 a[j] = t;
             }
+            continue;
         }
-        for (int64_t i = 1; i < n; ++i) { /* (code, position): the same order for any blocks */
-            gs_latlon_at t = a[i];
-            int64_t j = i;
-            for (; j >= 1 && (a[j - 1].code > t.code || (a[j - 1].code == t.code && a[j - 1].at > t.at)); --j)
-                a[j] = a[j - 1];
-            a[j] = t;
+        if (n > scratch_size) {
+            free(scratch);
+            scratch_size = 2 * n;
+            scratch = malloc(sizeof(gs_latlon_at) * (size_t)scratch_size);
+            if (!scratch) { /* no memory: the bucket stays coarse, values are the same */
+                scratch_size = 0;
+                continue;
+            }
         }
+        int64_t counts[(1 << (2 * LL_FINE_BITS)) + 1];
+        memset(counts, 0, sizeof counts);
+        for (int64_t i = 0; i < n; ++i)
+            counts[(a[i].code & fine_mask) + 1] += 1;
+        for (uint64_t k = 1; k <= fine_mask + 1; ++k)
+            counts[k] += counts[k - 1];
+        for (int64_t i = 0; i < n; ++i)
+            scratch[counts[a[i].code & fine_mask]++] = a[i];
+        memcpy(a, scratch, sizeof(gs_latlon_at) * (size_t)n);
     }
+    free(scratch);
 }
 
 GS_INLINE void latlon_range(const latlon_job *J, const int order, int64_t lo, int64_t hi)
