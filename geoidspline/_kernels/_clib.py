@@ -1,5 +1,6 @@
-"""The compiled kernels (C in ``src/``, built by setuptools when the package is installed)
-and the one way Python calls them: ctypes, which releases the GIL for the call.
+"""The compiled kernels (C in ``src/``, built by setuptools into a shared library when the
+package is installed) and the one way Python calls them: ctypes, which releases the GIL
+for the call.
 
 Each kernel module (:mod:`.coverage`, :mod:`.query`, ...) declares its C functions with
 :func:`function` and keeps a thin wrapper of the same name and arguments as before. The
@@ -15,19 +16,25 @@ per call and joined (``src/gs_parallel.c``), so nothing survives into a forked p
 from __future__ import annotations
 
 import ctypes
+import importlib.util
 import os
 
 import numpy as np
 
-try:
-    from . import _libkernels
-except ImportError as error:  # pragma: no cover - a source tree never built
-    raise ImportError(
-        f"geoidspline's compiled kernels (geoidspline/_kernels/_libkernels*.so) are missing beside "
-        f"{os.path.dirname(__file__)}: install the package (`pip install .`, or `pip install -e .` "
-        f"in a checkout), or run from outside the checkout to use the installed one") from error
 
-_LIB = ctypes.CDLL(_libkernels.__file__)
+def _library_path() -> str:
+    # The import system finds the built file (an in-place build of an editable install, or
+    # site-packages), but it is not a Python module: ctypes loads it.
+    spec = importlib.util.find_spec(f"{__package__}._libkernels")
+    if spec is None or not spec.origin:
+        raise ImportError(
+            f"geoidspline's compiled kernels (_libkernels*.so) are missing in {os.path.dirname(__file__)}: "
+            f"install the package (`pip install .`, or `pip install -e .` in a checkout; it needs a C "
+            f"compiler), or run from outside the checkout to use the installed package")
+    return spec.origin
+
+
+_LIB = ctypes.CDLL(_library_path())
 
 F64 = ctypes.c_double
 I64 = ctypes.c_int64
