@@ -206,7 +206,7 @@ def undulation_latlon(spline, latitude, longitude, nblocks, out):
     ``nblocks`` blocks), evaluated in that order (neighbours share bricks and cache
     lines) and the values written back to their places; each value does not depend on
     the order, the blocks or the thread count, and equals :func:`evaluate_bricks` at the
-    directions :func:`unit_vectors` gives. Transient memory: 36 bytes per point.
+    directions :func:`unit_vectors` gives. Transient memory: 20 bytes per point.
     """
     latitude = c_in(latitude, np.float64)
     longitude = c_in(longitude, np.float64)

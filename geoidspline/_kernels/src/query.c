@@ -577,11 +577,11 @@ GS_EXPORT void gs_unit_vectors(const double *latitude, const double *longitude, 
     gs_parallel_for((int)nthreads, (m + CHUNK - 1) / CHUNK, unit_task, &J);
 }
 
-typedef struct {
-    double latitude, longitude;
-    int64_t at;    /* position in the caller's arrays */
-    uint64_t code; /* latlon_code */
-} gs_latlon_at;    /* one record: the scatter writes one cache line a point, not four */
+/* A point in the sort: its latlon_code above AT_BITS, its position in the caller's arrays
+ * below; 8 bytes, so the scatter and the bucket sorts move little. */
+#define AT_BITS 42
+#define KEY_AT(key) ((int64_t)((key) & ((((uint64_t)1) << AT_BITS) - 1)))
+#define KEY_CODE(key) ((key) >> AT_BITS)
 
 typedef struct {
     const gs_spline *S;
@@ -591,7 +591,7 @@ typedef struct {
     uint32_t *code;
     int64_t *counts, *invalid; /* (nblocks, LL_BUCKETS + 1), (nblocks) */
     int64_t *bucket_start;     /* LL_BUCKETS + 2 */
-    gs_latlon_at *sorted; /* the points in the order of their cells */
+    uint64_t *sorted; /* the points in the order of their cells (code, position) */
     double *ordered;       /* their values, in that order */
 } latlon_job;
 
@@ -618,18 +618,14 @@ static void latlon_scatter(void *ctx, int64_t blk)
     int64_t lo = blk * J->size, hi = lo + J->size < J->m ? lo + J->size : J->m;
     for (int64_t s = lo; s < hi; ++s) {
         uint32_t code = J->code[s];
-        gs_latlon_at *to = &J->sorted[counts[code >> (2 * LL_FINE_BITS)]++];
-        to->latitude = J->latitude[s];
-        to->longitude = J->longitude[s];
-        to->at = s;
-        to->code = code;
+        J->sorted[counts[code >> (2 * LL_FINE_BITS)]++] = ((uint64_t)code << AT_BITS) | (uint64_t)s;
     }
 }
 
 #define SORT_TASK_BUCKETS 256
 
-/* Each bucket's points sorted by their fine code, ties by position (the scatter leaves a
- * bucket in increasing position): insertion sort for the few tens of points a bucket of a
+/* Each bucket's points sorted by their fine code, ties by position (keys compare as
+ * (code, position); the scatter leaves a bucket in increasing position): insertion sort for the few tens of points a bucket of a
  * global million-point batch holds, a stable counting sort on the fine bits for larger
  * ones. Nearby points then follow each other, so they read the same coefficients. */
 static void latlon_refine(void *ctx, int64_t task)
@@ -639,16 +635,16 @@ static void latlon_refine(void *ctx, int64_t task)
     if (b_hi > LL_BUCKETS)
         b_hi = LL_BUCKETS; /* NaN's bucket stays as it is */
     const uint64_t fine_mask = (1u << (2 * LL_FINE_BITS)) - 1;
-    gs_latlon_at *scratch = NULL;
+    uint64_t *scratch = NULL;
     int64_t scratch_size = 0;
     for (int64_t b = b_lo; b < b_hi; ++b) {
-        gs_latlon_at *a = J->sorted + J->bucket_start[b];
+        uint64_t *a = J->sorted + J->bucket_start[b];
         int64_t n = J->bucket_start[b + 1] - J->bucket_start[b];
         if (n <= 48) {
             for (int64_t i = 1; i < n; ++i) {
-                gs_latlon_at t = a[i];
+                uint64_t t = a[i];
                 int64_t j = i;
-                for (; j >= 1 && a[j - 1].code > t.code; --j) /* strict: stable */
+                for (; j >= 1 && a[j - 1] > t; --j)
                     a[j] = a[j - 1];
                 a[j] = t;
             }
@@ -657,7 +653,7 @@ static void latlon_refine(void *ctx, int64_t task)
         if (n > scratch_size) {
             free(scratch);
             scratch_size = 2 * n;
-            scratch = malloc(sizeof(gs_latlon_at) * (size_t)scratch_size);
+            scratch = malloc(sizeof(uint64_t) * (size_t)scratch_size);
             if (!scratch) { /* no memory: the bucket stays coarse, values are the same */
                 scratch_size = 0;
                 continue;
@@ -666,12 +662,12 @@ static void latlon_refine(void *ctx, int64_t task)
         int64_t counts[(1 << (2 * LL_FINE_BITS)) + 1];
         memset(counts, 0, sizeof counts);
         for (int64_t i = 0; i < n; ++i)
-            counts[(a[i].code & fine_mask) + 1] += 1;
+            counts[(KEY_CODE(a[i]) & fine_mask) + 1] += 1;
         for (uint64_t k = 1; k <= fine_mask + 1; ++k)
             counts[k] += counts[k - 1];
         for (int64_t i = 0; i < n; ++i)
-            scratch[counts[a[i].code & fine_mask]++] = a[i];
-        memcpy(a, scratch, sizeof(gs_latlon_at) * (size_t)n);
+            scratch[counts[KEY_CODE(a[i]) & fine_mask]++] = a[i];
+        memcpy(a, scratch, sizeof(uint64_t) * (size_t)n);
     }
     free(scratch);
 }
@@ -683,7 +679,12 @@ GS_INLINE void latlon_range(const latlon_job *J, const int order, int64_t lo, in
     reset_cache(S->nlev, last_key, last_brick);
     for (int64_t p = lo; p < hi; ++p) {
         double x, y, z, result[1] = {0.0};
-        direction(J->sorted[p].latitude, J->sorted[p].longitude, &x, &y, &z);
+        if (p + 16 < hi) { /* the coordinates are read out of order: ask for them early */
+            __builtin_prefetch(&J->latitude[KEY_AT(J->sorted[p + 16])]);
+            __builtin_prefetch(&J->longitude[KEY_AT(J->sorted[p + 16])]);
+        }
+        int64_t at = KEY_AT(J->sorted[p]);
+        direction(J->latitude[at], J->longitude[at], &x, &y, &z);
         if (x == x && z == z) {
             point_sum(S, order, 0, x, y, z, last_key, last_brick, result);
             J->ordered[p] = result[0];
@@ -711,7 +712,7 @@ static void latlon_back(void *ctx, int64_t blk)
     latlon_job *J = ctx;
     int64_t lo = blk * J->size, hi = lo + J->size < J->m ? lo + J->size : J->m;
     for (int64_t p = lo; p < hi; ++p)
-        J->out[J->sorted[p].at] = J->ordered[p];
+        J->out[KEY_AT(J->sorted[p])] = J->ordered[p];
 }
 
 /* Spline values at the directions of latitude/longitude (degrees) into out. Returns the
@@ -721,7 +722,8 @@ static void latlon_back(void *ctx, int64_t blk)
  * 1. per block of points (nblocks in parallel): the Morton code of the point's 1.41 degree
  *    cell and a histogram of the codes per block;
  * 2. exclusive prefix sums over (code, block): a stable order by cell;
- * 3. per block: latitude, longitude and position of each point scattered in that order;
+ * 3. per block: each point's (code, position) scattered in that order; then each bucket
+ *    sorted by the fine code (latlon_refine);
  * 4. per chunk of the ordered points: direction and value, neighbours sharing bricks;
  * 5. per block: each value written to the point's own position (writing it from step 4
  *    made numba's loop 1.6 times slower).
@@ -736,7 +738,7 @@ GS_EXPORT int64_t gs_undulation_latlon(const gs_spline *S, const double *latitud
     J.bucket_start = malloc(sizeof(int64_t) * (LL_BUCKETS + 2));
     J.counts = calloc((size_t)nblocks * (LL_BUCKETS + 1), sizeof(int64_t));
     J.invalid = calloc((size_t)nblocks, sizeof(int64_t));
-    J.sorted = malloc(sizeof(gs_latlon_at) * (size_t)(m ? m : 1));
+    J.sorted = malloc(sizeof(uint64_t) * (size_t)(m ? m : 1));
     J.ordered = malloc(sizeof(double) * (size_t)(m ? m : 1));
     if (!J.code || !J.bucket_start || !J.counts || !J.invalid || !J.sorted || !J.ordered)
         goto done;
