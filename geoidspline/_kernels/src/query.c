@@ -92,77 +92,6 @@ GS_INLINE int present(const gs_spline *S, int64_t lev, double x, double y, doubl
     return S->presence[((lev * PRESENCE_SIDE + i) * PRESENCE_SIDE + j) * PRESENCE_SIDE + k] != 0;
 }
 
-/* ---- B-spline weights ------------------------------------------------------------- */
-
-/* The weights w[d * order + j] (d = 0..nderiv, derivatives with respect to x/h) of the
- * order B-splines touching a point at t in [0, 1) of its cell: j weighs B-spline
- * k = a - order + 1 + j. Closed forms for the values of orders 4 and 6, de Boor's
- * uniform-knot recursion otherwise and for derivatives (as gs_bspline_weights). */
-GS_INLINE void weights(double t, const int order, const int nderiv, double *w)
-{
-    if (order == 4) {
-        double s = 1.0 - t, t2 = t * t, t3 = t2 * t;
-        w[0] = s * s * s / 6.0;
-        w[1] = (3.0 * t3 - 6.0 * t2 + 4.0) / 6.0;
-        w[2] = (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) / 6.0;
-        w[3] = t3 / 6.0;
-        if (nderiv >= 1) {
-            w[4] = -0.5 * s * s;
-            w[5] = 1.5 * t2 - 2.0 * t;
-            w[6] = -1.5 * t2 + t + 0.5;
-            w[7] = 0.5 * t2;
-        }
-        if (nderiv >= 2) {
-            w[8] = s;
-            w[9] = 3.0 * t - 2.0;
-            w[10] = 1.0 - 3.0 * t;
-            w[11] = t;
-        }
-        return;
-    }
-    /* work[q][j]: the order-q weights, up to the order needed */
-    int top = order == 6 ? (nderiv >= 1 ? 5 : 0) : order;
-    double work[GS_MAX_ORDER + 1][GS_MAX_ORDER + 1];
-    if (top > 0) {
-        work[1][0] = 1.0;
-        for (int q = 2; q <= top; ++q)
-            for (int j = 0; j < q; ++j) {
-                double left = j >= 1 ? work[q - 1][j - 1] : 0.0;
-                double right = j <= q - 2 ? work[q - 1][j] : 0.0;
-                work[q][j] = ((t + q - 1 - j) * left + (1 + j - t) * right) / (q - 1);
-            }
-    }
-    if (order == 6) {
-        double s = 1.0 - t, t2 = t * t, t3 = t2 * t, t4 = t2 * t2, t5 = t4 * t, c = 1.0 / 120.0;
-        w[0] = s * s * s * s * s * c;
-        w[1] = (26.0 - 50.0 * t + 20.0 * t2 + 20.0 * t3 - 20.0 * t4 + 5.0 * t5) * c;
-        w[2] = (66.0 - 60.0 * t2 + 30.0 * t4 - 10.0 * t5) * c;
-        w[3] = (26.0 + 50.0 * t + 20.0 * t2 - 20.0 * t3 - 20.0 * t4 + 10.0 * t5) * c;
-        w[4] = (1.0 + 5.0 * t + 10.0 * t2 + 10.0 * t3 + 5.0 * t4 - 5.0 * t5) * c;
-        w[5] = t5 * c;
-    } else {
-        for (int j = 0; j < order; ++j)
-            w[j] = work[order][j];
-    }
-    if (nderiv >= 1) {
-        int q = order - 1;
-        for (int j = 0; j < order; ++j) {
-            double left = j >= 1 ? work[q][j - 1] : 0.0;
-            double right = j <= q - 1 ? work[q][j] : 0.0;
-            w[order + j] = left - right;
-        }
-    }
-    if (nderiv >= 2) {
-        int q = order - 2;
-        for (int j = 0; j < order; ++j) {
-            double a = j >= 2 ? work[q][j - 2] : 0.0;
-            double b = (j >= 1 && j - 1 <= q - 1) ? work[q][j - 1] : 0.0;
-            double c = j <= q - 1 ? work[q][j] : 0.0;
-            w[2 * order + j] = a - 2.0 * b + c;
-        }
-    }
-}
-
 /* ---- evaluation ------------------------------------------------------------------- */
 
 /* Lanes: order doubles (one per z index r) held in vector registers, 4 to a vector, then
@@ -348,9 +277,9 @@ GS_INLINE void point_sum(const gs_spline *S, const int order, const int nderiv, 
         }
         if (brick < 0)
             continue;
-        weights(fx - flx, order, nderiv, wx);
-        weights(fy - fly, order, nderiv, wy);
-        weights(fz - flz, order, nderiv, wz);
+        gs_weights(fx - flx, order, nderiv, wx, order);
+        gs_weights(fy - fly, order, nderiv, wy, order);
+        gs_weights(fz - flz, order, nderiv, wz, order);
         int64_t lx = ax & BRICK_MASK, ly = ay & BRICK_MASK, lz = az & BRICK_MASK;
         if (S->band_lo2[lev] <= r2 && r2 <= S->band_hi2[lev]) {
             table_sum(S, order, nderiv, wx, wy, wz, S->fold_base[brick], S->fold_cols, brick, lx, ly, lz, inv_h,
