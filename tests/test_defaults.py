@@ -312,3 +312,33 @@ def test_an_order_without_measured_convergence_needs_h0():
     choice = choose_parameters(model(360), 0.002, given={"order": 8, "h0": 0.02})
     assert (choice.parameters.order, choice.parameters.h0) == (8, 0.02)
     assert choice.reasons["order"] == choice.reasons["h0"] == "given"
+
+
+# -- radial offsets: each refinement's own, and the parameters hold what is used ----------
+
+
+def test_each_refinement_has_its_own_radial_offsets_and_an_explicit_choice_is_kept():
+    from geoidspline.fitting.parameters import RADIAL_OFFSETS, FitParameters
+
+    assert FitParameters().radial_offsets == RADIAL_OFFSETS["overlays"]
+    assert len(RADIAL_OFFSETS["overlays"]) == 7 and max(RADIAL_OFFSETS["overlays"]) == 1.5
+    assert FitParameters(refinement="hierarchical").radial_offsets == (0.0,)
+    # an explicit choice is honoured, also when it equals another refinement's default
+    overlays = RADIAL_OFFSETS["overlays"]
+    assert FitParameters(refinement="hierarchical", radial_offsets=overlays).radial_offsets == overlays
+    assert FitParameters(radial_offsets=[0, 0.5]).radial_offsets == (0.0, 0.5)
+
+
+def test_a_manifest_from_before_0_3_refits_a_hierarchical_store_on_the_sphere():
+    """Before 0.3.0 a hierarchical fit recorded the overlays' offsets but used its own."""
+    from geoidspline.api.regional import _stored_parameters
+    from geoidspline.fitting.parameters import RADIAL_OFFSETS, FitParameters
+
+    def stored(software, refinement):
+        params = FitParameters(refinement=refinement, radial_offsets=RADIAL_OFFSETS["overlays"]).as_dict()
+        return _stored_parameters(SimpleNamespace(manifest={"software": software, "fit": {"parameters": params}},
+                                                  path=None))
+
+    assert stored("geoidspline 0.2.0", "hierarchical").radial_offsets == (0.0,)
+    assert stored("geoidspline 0.3.0", "hierarchical").radial_offsets == RADIAL_OFFSETS["overlays"]
+    assert stored("geoidspline 0.2.0", "overlays").radial_offsets == RADIAL_OFFSETS["overlays"]

@@ -194,6 +194,48 @@ def plm(nmax, lat_deg, u_from_t=True):
     return out
 
 
+@pytest.mark.parametrize("sets", [1, 2])
+def test_legendre_sums_are_those_of_one_latitude_whatever_the_thread_count(sets):
+    """row_sums and point_sums run rows and points on several threads: each row is
+    column_sums of its latitude, bit for bit, with 1 thread or 3 (more than the rows of
+    the last point batch), so fits do not depend on the machine."""
+    from geoidspline._kernels import _clib
+
+    nmax = 120
+    rng = np.random.default_rng(5)
+    AT, BT = legendre.recursion_tables(nmax)
+    n = np.arange(nmax + 1)
+    CT = np.triu(rng.standard_normal((sets, nmax + 1, nmax + 1)) / (n + 1.0) ** 2)
+    ST = np.triu(rng.standard_normal((sets, nmax + 1, nmax + 1)) / (n + 1.0) ** 2)
+    radial = np.array([True, False][:sets])
+    lat = np.radians(np.array([-90.0, -89.99, -45.0, 0.0, 12.5, 60.0, 89.9, 90.0]))
+    t, u = np.sin(lat), np.cos(lat)
+    u[[0, -1]] = 0.0
+    q = 1.0 - 0.01 * rng.random(lat.size)
+    scale = 0.5 + rng.random((lat.size, sets))
+    lam = rng.uniform(0.0, 2.0 * np.pi, lat.size)
+    A1, B1 = np.empty((lat.size, nmax + 1)), np.empty((lat.size, nmax + 1))
+    w = np.empty((sets, nmax + 1))
+    for i in range(lat.size):
+        legendre.column_sums(nmax, t[i], u[i], q[i], scale[i], radial, CT, ST, AT, BT, A1[i], B1[i], w)
+    cos_sin = np.cos(np.outer(lam, n)), np.sin(np.outer(lam, n))
+    previous = _clib.threads()
+    try:
+        for count in (1, 3):
+            _clib.set_threads(count)
+            A, B = np.empty_like(A1), np.empty_like(B1)
+            legendre.row_sums(nmax, t, u, q, scale, radial, CT, ST, AT, BT, A, B)
+            assert np.array_equal(A, A1) and np.array_equal(B, B1)
+            out = np.empty(lat.size)
+            legendre.point_sums(nmax, t, u, q, lam, scale, radial, CT, ST, AT, BT, out)
+            np.testing.assert_allclose(out, (A1 * cos_sin[0] + B1 * cos_sin[1]).sum(axis=1), rtol=1e-12, atol=1e-12)
+            if count == 1:
+                serial = out
+            assert np.array_equal(out, serial)
+    finally:
+        _clib.set_threads(previous)
+
+
 @pytest.mark.parametrize("lat", [-73.2, -5.0, 0.0, 31.7, 88.0])
 def test_legendre_low_degree_closed_forms(lat):
     p = plm(3, lat, u_from_t=False)

@@ -1,4 +1,5 @@
-"""Compiled (numba) kernels, by stage, free of validation.
+"""Compiled kernels, by stage, free of validation: C (``src/``, loaded by :mod:`._clib`), and
+numba for :mod:`.query` until it moves to C too.
 
 - :mod:`.layout`: the packed key layout (plain integers);
 - :mod:`.common`: key packing, binary search, B-spline weights;
@@ -18,6 +19,6 @@ Conventions shared by every kernel:
   :mod:`geoidspline.bspline.keys`).
 
 Callers pass well-formed contiguous arrays; the validated APIs live in the packages
-named after each stage. Importing this package imports nothing: each submodule but
-:mod:`.layout` imports numba, which a one-point query never needs.
+named after each stage. Importing this package imports nothing: the submodules load the
+compiled library, and :mod:`.query` numba, which a one-point query never needs.
 """

@@ -23,14 +23,15 @@ exponent range is unlimited. Within each column, once the values are back in the
 ordinary double range (ix = 0) they stay there (they grow until the oscillatory zone,
 then stay O(1)), so the rest of the column runs in plain doubles. Values that are still
 below 2^-480 when a sum is formed contribute nothing measurable and are dropped.
+
+The recursion and sums are C (``src/legendre.c``); the tables and the FFT fold are numpy.
 """
 
 from __future__ import annotations
 
-import math
-
-import numba
 import numpy as np
+
+from ._clib import F64, I64, PTR, c_in, c_out, function, ptr, threads
 
 __all__ = [
     "recursion_tables",
@@ -40,11 +41,6 @@ __all__ = [
     "point_sums",
     "fold_to_circle",
 ]
-
-BIG = 2.0**960
-BIGI = 2.0**-960
-BIGS = 2.0**480
-BIGSI = 2.0**-480
 
 
 def recursion_tables(nmax: int):
@@ -77,98 +73,32 @@ def recursion_tables(nmax: int):
     return AT, BT
 
 
-@numba.njit(cache=True, inline="always")
-def _xnorm(x, ix):
-    # keep |x| in [2^-480, 2^480) with one step: every multiplier used below changes
-    # the magnitude by far less than 2^480
-    w = abs(x)
-    if w >= BIGS:
-        return x * BIGI, ix + 1
-    if w < BIGSI:
-        return x * BIG, ix - 1
-    return x, ix
+_plm_bar = function("gs_plm_bar", I64, F64, F64, PTR, PTR, I64, PTR, I64)
+_column_sums = function("gs_column_sums", I64, F64, F64, F64, PTR, PTR, I64, PTR, PTR, I64, I64, PTR, PTR, I64, PTR,
+                        PTR, PTR)
+_row_sums = function("gs_row_sums", I64, PTR, PTR, PTR, I64, PTR, I64, PTR, I64, PTR, PTR, I64, I64, PTR, PTR, I64,
+                     PTR, PTR, I64, I64, restype=I64)
+_point_sums = function("gs_point_sums", I64, PTR, PTR, PTR, PTR, I64, PTR, I64, PTR, I64, PTR, PTR, I64, I64, PTR, PTR,
+                       I64, PTR, I64, restype=I64)
 
 
-@numba.njit(cache=True, inline="always")
-def _xlsum2(f, x, ix, g, y, iy):
-    # f·X + g·Y for X-numbers X = (x, ix), Y = (y, iy)
-    d = ix - iy
-    if d == 0:
-        z = f * x + g * y
-        iz = ix
-    elif d == 1:
-        z = f * x + g * (y * BIGI)
-        iz = ix
-    elif d == -1:
-        z = g * y + f * (x * BIGI)
-        iz = iy
-    elif d > 1:
-        z = f * x
-        iz = ix
-    else:
-        z = g * y
-        iz = iy
-    return _xnorm(z, iz)
+def _sets(radial, CT, ST, AT, BT):
+    """The coefficient sets and tables as the C kernels take them (no copy when they are)."""
+    return (c_in(radial, np.bool_), c_in(CT, np.float64), c_in(ST, np.float64), c_in(AT, np.float64),
+            c_in(BT, np.float64))
 
 
-@numba.njit(cache=True, inline="always")
-def _x2f(x, ix):
-    if ix == 0:
-        return x
-    if ix == -1:
-        return x * BIGI
-    if ix < -1:
-        return 0.0
-    return x * BIG  # never reached: |P̄nm| ≤ √(2(2n+1))
-
-
-@numba.njit(cache=True)
 def plm_bar(nmax, t, u, AT, BT, out):
     """Fill ``out[n, m]`` (shape ≥ (nmax+1, nmax+1)) with P̄nm(t), u = √(1 − t²) ≥ 0,
     using the same recursion and tables (:func:`recursion_tables`) as :func:`column_sums`.
-    Entries with m > n are left untouched.
+    Entries with m > n are left untouched. C: ``src/legendre.c``.
     """
-    smx = 1.0  # sectoral P̄mm as X-number
-    smi = 0
-    for m in range(nmax + 1):
-        if m == 1:
-            smx, smi = _xnorm(AT[0, 1] * u, 0)
-        elif m >= 2:
-            smx, smi = _xnorm(smx * AT[m, m] * u, smi)
-        out[m, m] = _x2f(smx, smi)
-        if m == nmax:
-            break
-        p1x, p1i = smx, smi
-        px, pi = _xnorm(AT[m, m + 1] * t * p1x, p1i)
-        out[m + 1, m] = _x2f(px, pi)
-        n = m + 2
-        while n <= nmax and (pi != 0 or p1i != 0):
-            qx, qi = _xlsum2(AT[m, n] * t, px, pi, -BT[m, n], p1x, p1i)
-            p1x, p1i = px, pi
-            px, pi = qx, qi
-            out[n, m] = _x2f(px, pi)
-            n += 1
-        p = px
-        pp = p1x
-        while n <= nmax:
-            r = AT[m, n] * t * p - BT[m, n] * pp
-            pp = p
-            p = r
-            out[n, m] = p
-            n += 1
+    AT, BT = c_in(AT, np.float64), c_in(BT, np.float64)
+    c_out(out, np.float64)
+    _plm_bar(nmax, t, u, ptr(AT), ptr(BT), AT.shape[1], ptr(out), out.shape[1])
     return out
 
 
-@numba.njit(cache=True, inline="always")
-def _accumulate(K, w, CT, ST, m, n, p, sa, sb):
-    for k in range(K):
-        wk = w[k, n] * p
-        sa += wk * CT[k, m, n]
-        sb += wk * ST[k, m, n]
-    return sa, sb
-
-
-@numba.njit(cache=True)
 def column_sums(nmax, t, u, q, scale, radial, CT, ST, AT, BT, A, B, w):
     """Legendre sums of one latitude, for every order m.
 
@@ -178,103 +108,39 @@ def column_sums(nmax, t, u, q, scale, radial, CT, ST, AT, BT, A, B, w):
     ``AT``/``BT`` are :func:`recursion_tables`. ``w`` is scratch of shape (K, nmax+1).
     A and B (length ≥ nmax+1) are overwritten.
     """
-    K = CT.shape[0]
-    for k in range(K):
-        if radial[k]:
-            qn = scale[k]
-            for n in range(nmax + 1):
-                w[k, n] = qn
-                qn *= q
-        else:
-            for n in range(nmax + 1):
-                w[k, n] = scale[k]
-    for m in range(nmax + 1):
-        A[m] = 0.0
-        B[m] = 0.0
-    smx = 1.0
-    smi = 0
-    for m in range(nmax + 1):
-        if m == 1:
-            if u == 0.0:
-                break  # at the pole every P̄nm with m ≥ 1 vanishes
-            smx, smi = _xnorm(AT[0, 1] * u, 0)  # √3 u
-        elif m >= 2:
-            smx, smi = _xnorm(smx * AT[m, m] * u, smi)
-            if smx == 0.0:
-                break
-        sa = 0.0
-        sb = 0.0
-        if smi == 0:
-            sa, sb = _accumulate(K, w, CT, ST, m, m, smx, sa, sb)
-        if m < nmax:
-            p1x, p1i = smx, smi
-            px, pi = _xnorm(AT[m, m + 1] * t * p1x, p1i)
-            if pi == 0:
-                sa, sb = _accumulate(K, w, CT, ST, m, m + 1, px, sa, sb)
-            n = m + 2
-            # X-number phase: values below 2^-480 are carried but not summed
-            while n <= nmax and (pi != 0 or p1i != 0):
-                qx, qi = _xlsum2(AT[m, n] * t, px, pi, -BT[m, n], p1x, p1i)
-                p1x, p1i = px, pi
-                px, pi = qx, qi
-                if pi == 0:
-                    sa, sb = _accumulate(K, w, CT, ST, m, n, px, sa, sb)
-                n += 1
-            # plain double phase (most of the work); two specialised loops for K = 1, 2
-            p = px
-            pp = p1x
-            if K == 1:
-                while n <= nmax:
-                    r = AT[m, n] * t * p - BT[m, n] * pp
-                    pp = p
-                    p = r
-                    wk = w[0, n] * p
-                    sa += wk * CT[0, m, n]
-                    sb += wk * ST[0, m, n]
-                    n += 1
-            else:
-                while n <= nmax:
-                    r = AT[m, n] * t * p - BT[m, n] * pp
-                    pp = p
-                    p = r
-                    w0 = w[0, n] * p
-                    w1 = w[1, n] * p
-                    sa += w0 * CT[0, m, n] + w1 * CT[1, m, n]
-                    sb += w0 * ST[0, m, n] + w1 * ST[1, m, n]
-                    n += 1
-        A[m] = sa
-        B[m] = sb
+    radial, CT, ST, AT, BT = _sets(radial, CT, ST, AT, BT)
+    scale = c_in(scale, np.float64)
+    for array in (A, B, w):
+        c_out(array, np.float64)
+    _column_sums(nmax, t, u, q, ptr(scale), ptr(radial), CT.shape[0], ptr(CT), ptr(ST), CT.shape[1], CT.shape[2],
+                 ptr(AT), ptr(BT), AT.shape[1], ptr(A), ptr(B), ptr(w))
 
 
-@numba.njit(cache=True)
 def row_sums(nmax, t, u, q, scale, radial, CT, ST, AT, BT, A, B):
     """:func:`column_sums` for many latitudes: row i uses t[i], u[i], q[i], scale[i, :]
-    and writes A[i, :], B[i, :]."""
-    K = CT.shape[0]
-    w = np.empty((K, nmax + 1))
-    for i in range(t.shape[0]):
-        column_sums(nmax, t[i], u[i], q[i], scale[i], radial, CT, ST, AT, BT, A[i], B[i], w)
+    and writes A[i, :], B[i, :]. Rows in parallel (:func:`~._clib.threads`); each row's
+    values do not depend on the thread count."""
+    radial, CT, ST, AT, BT = _sets(radial, CT, ST, AT, BT)
+    t, u, q, scale = (c_in(a, np.float64) for a in (t, u, q, scale))
+    c_out(A, np.float64)
+    c_out(B, np.float64)
+    if _row_sums(nmax, ptr(t), ptr(u), ptr(q), t.shape[0], ptr(scale), scale.shape[1], ptr(radial), CT.shape[0],
+                 ptr(CT), ptr(ST), CT.shape[1], CT.shape[2], ptr(AT), ptr(BT), AT.shape[1], ptr(A), ptr(B),
+                 A.shape[1], threads()) != 0:
+        raise MemoryError("no memory for the scratch of the Legendre sums")
 
 
-@numba.njit(cache=True)
 def point_sums(nmax, t, u, q, lam, scale, radial, CT, ST, AT, BT, out):
     """Full synthesis at scattered points: out[i] = Σ_m A_m cos mλ_i + B_m sin mλ_i with
-    A, B the :func:`column_sums` of point i (λ in radians). Points with NaN t get NaN."""
-    K = CT.shape[0]
-    w = np.empty((K, nmax + 1))
-    A = np.empty(nmax + 1)
-    B = np.empty(nmax + 1)
-    for i in range(t.shape[0]):
-        if math.isnan(t[i]) or math.isnan(lam[i]):
-            out[i] = math.nan
-            continue
-        column_sums(nmax, t[i], u[i], q[i], scale[i], radial, CT, ST, AT, BT, A, B, w)
-        total = 0.0
-        lam_i = lam[i]
-        for m in range(nmax, 0, -1):  # small terms first
-            ml = m * lam_i
-            total += A[m] * math.cos(ml) + B[m] * math.sin(ml)
-        out[i] = total + A[0]
+    A, B the :func:`column_sums` of point i (λ in radians). Points with NaN t get NaN.
+    Points in parallel (:func:`~._clib.threads`), independent of the thread count."""
+    radial, CT, ST, AT, BT = _sets(radial, CT, ST, AT, BT)
+    t, u, q, lam, scale = (c_in(a, np.float64) for a in (t, u, q, lam, scale))
+    c_out(out, np.float64)
+    if _point_sums(nmax, ptr(t), ptr(u), ptr(q), ptr(lam), t.shape[0], ptr(scale), scale.shape[1], ptr(radial),
+                   CT.shape[0], ptr(CT), ptr(ST), CT.shape[1], CT.shape[2], ptr(AT), ptr(BT), AT.shape[1], ptr(out),
+                   threads()) != 0:
+        raise MemoryError("no memory for the scratch of the Legendre sums")
 
 
 def fold_to_circle(A: np.ndarray, B: np.ndarray, L: int) -> np.ndarray:

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 from ..errors import CoordinateError, FitError, StoreCorruptError, StoreError
 from ..fitting.executors import Executor
-from ..fitting.parameters import FitParameters
+from ..fitting.parameters import RADIAL_OFFSETS, FitParameters
 from ..fitting.update import fit_update
 from ..geodesy.ellipsoids import KM_PER_DEGREE
 from ..options import check_number
@@ -79,6 +79,13 @@ def _check_compatible(store: TileStore, source, region: Region, blend_width_km: 
                                   f"{store_region.as_tuple()}")
 
 
+def _older(version: str, than: str) -> bool:
+    """Whether a release number (``major.minor.patch``) precedes ``than``."""
+    def key(text):
+        return tuple(int(part) if part.isdigit() else 0 for part in text.split(".")[:3])
+    return key(version) < key(than)
+
+
 def _stored_parameters(store: TileStore) -> FitParameters:
     """The store's own fit parameters (an update refits with them)."""
     known = {f.name for f in dataclasses.fields(FitParameters)}
@@ -86,6 +93,12 @@ def _stored_parameters(store: TileStore) -> FitParameters:
     try:
         if "radial_offsets" in stored:
             stored["radial_offsets"] = tuple(stored["radial_offsets"])
+            software = str(store.manifest.get("software", "")).split()
+            if (stored.get("refinement") == "hierarchical" and len(software) == 2 and _older(software[1], "0.3.0")
+                    and stored["radial_offsets"] == RADIAL_OFFSETS["overlays"]):
+                # before 0.3.0 a hierarchical fit recorded the overlays' offsets but
+                # used its own (on the sphere): refit as it was fitted
+                stored["radial_offsets"] = RADIAL_OFFSETS["hierarchical"]
         return FitParameters(**stored)
     except (TypeError, ValueError, FitError) as exc:
         raise StoreCorruptError(f"{store.path / MANIFEST}: manifest key 'fit.parameters' does not hold the "

@@ -10,7 +10,7 @@ for the call, or an existing cluster given by its scheduler's address).
 dask is optional (``pip install 'geoidspline[dask]'``) and imported only when a
 scheduler is given. Every way gives the same coefficients bit for bit: a block is
 solved by the same code on the same inputs wherever it runs (the normal equations are
-built by a serial numba kernel and factorised by qdldl, neither of which depends on the
+built by a serial C kernel and factorised by qdldl, neither of which depends on the
 thread count or on which process runs it).
 """
 
@@ -37,8 +37,9 @@ SCHEDULER_PREFIXES = ("tcp://", "tls://", "inproc://", "ucx://")
 
 
 #: Environment of the worker processes of a LocalCluster: one solver per process, so
-#: numba's thread pool stays at one thread (dask already pins OpenMP/MKL/OpenBLAS).
-_WORKER_ENV = {"NUMBA_NUM_THREADS": "1"}
+#: the kernels' threads (and numba's pool, while the query kernels use it) stay at one
+#: (dask already pins OpenMP/MKL/OpenBLAS).
+_WORKER_ENV = {"GEOIDSPLINE_THREADS": "1", "NUMBA_NUM_THREADS": "1"}
 
 
 @dataclass(frozen=True)
@@ -120,13 +121,10 @@ def _solve_serial(problems, progress):
 
 
 def _worker_init():
-    # one solver per process: keep numba and BLAS from oversubscribing the cores
-    try:
-        import numba
+    # one solver per process: one kernel thread in each, so processes do not oversubscribe the cores
+    from .._kernels import _clib
 
-        numba.set_num_threads(1)
-    except Exception:  # pragma: no cover - numba always present in practice
-        pass
+    _clib.set_threads(1)
 
 
 def _solve_pool(problems, workers, progress):

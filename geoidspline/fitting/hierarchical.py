@@ -32,7 +32,6 @@ of either method are written, queried, updated and exported the same way.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import time
@@ -74,16 +73,6 @@ MARK_RADIUS = 0.5
 #: so Theorems 5.3 and 5.6 hold for the thin basis too; it gives up polynomial
 #: reproduction off the sphere, where no site and no query lies.
 SHELL = 1.0
-
-#: Site radii ``1 + ρ h`` of the rays, used when ``FitParameters.radial_offsets`` is
-#: left at its default: on the sphere only. The thin basis (:data:`SHELL`) holds two or
-#: three B-splines across the sphere and cannot stay constant along rays as long as the
-#: overlays' (±1.5 h); its fine levels carry the whole undulation, not a small residual,
-#: so that misfit along the rays shows on the sphere (Andes: 67,973 coefficients and
-#: the tolerance not reached with ±1.5 h, 28,021 with ±0.15 h, 21,472 with 0). The
-#: combinations that vanish on the sphere are left to the penalty: no query sees them.
-#: Measured in benchmarks/README.md.
-RADIAL_OFFSETS = (0.0,)
 
 #: Up to this many coefficients the whole basis is one problem solved by one sparse
 #: LDLᵀ factorisation (qdldl); above, by conjugate gradients preconditioned by local
@@ -257,8 +246,6 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
     """
     start = time.perf_counter() if start is None else start
     progress = as_progress(progress)
-    if params.radial_offsets == FitParameters.radial_offsets:
-        params = dataclasses.replace(params, radial_offsets=RADIAL_OFFSETS)
     region_dirs = nodes.directions[nodes.in_region]
     region_values = nodes.values[nodes.in_region]
     finest = _finest_level(params, nodes)

@@ -33,6 +33,22 @@ def finest_level(h0: float) -> int:
     return level
 
 
+#: Site radii ``1 + ρ h`` of the rays (ρ in units of the level's spacing h) of each
+#: refinement, when a fit does not give its own. Overlays fit a small residual with
+#: B-splines reaching well off the sphere, so their sites span ±1.5 h and keep each
+#: level constant along the rays. The hierarchical basis is thin (``SHELL`` of
+#: :mod:`geoidspline.fitting.hierarchical`: two or three B-splines across the sphere) and
+#: cannot stay constant along rays as long; its fine levels carry the whole undulation,
+#: so that misfit along the rays shows on the sphere (Andes: 67,973 coefficients and the
+#: tolerance not reached with ±1.5 h, 28,021 with ±0.15 h, 21,472 with 0): its sites are
+#: on the sphere only, and the combinations that vanish there are left to the penalty (no
+#: query sees them). Measured in benchmarks/README.md.
+RADIAL_OFFSETS = {
+    "overlays": (-1.5, -0.9, -0.3, 0.0, 0.3, 0.9, 1.5),
+    "hierarchical": (0.0,),
+}
+
+
 @dataclass(frozen=True)
 class FitParameters:
     """Parameters of a fit. Lengths are on the unit sphere (1 = Earth radius).
@@ -40,7 +56,8 @@ class FitParameters:
     ``h0`` is the level-0 grid spacing; level ℓ has ``h0 / 2**ℓ``. ``tolerance_m`` is the
     largest |error| accepted at the data nodes; refinement stops there or at
     ``max_level``. ``radial_offsets`` are the site radii ``1 + ρ h`` in units of the
-    level's spacing. ``rays_per_cell`` caps how many data directions a cell width holds
+    level's spacing (``None``: the refinement's own, :data:`RADIAL_OFFSETS`; the
+    parameters then hold the values used). ``rays_per_cell`` caps how many data directions a cell width holds
     at coarse levels (more are thinned out: they would cost time, not accuracy).
     ``regularization`` weighs the second-difference penalty relative to the mean
     diagonal of the normal matrix. An overlay level takes the B-splines whose support
@@ -71,7 +88,7 @@ class FitParameters:
     tile_size: float = 0.4
     margin_cells: int = 10
     block_cells: int = 40
-    radial_offsets: tuple = (-1.5, -0.9, -0.3, 0.0, 0.3, 0.9, 1.5)
+    radial_offsets: tuple | None = None
     rays_per_cell: float = 5.0
     regularization: float = 1e-6
     overlay_ridge: float = 0.3
@@ -96,6 +113,8 @@ class FitParameters:
             raise FitError(f"fit method must be one of {FIT_METHODS}, got {self.method!r}")
         if self.refinement not in REFINEMENTS:
             raise FitError(f"refinement must be one of {REFINEMENTS}, got {self.refinement!r}")
+        offsets = RADIAL_OFFSETS[self.refinement] if self.radial_offsets is None else self.radial_offsets
+        object.__setattr__(self, "radial_offsets", tuple(float(rho) for rho in offsets))
 
     def spacing(self, level: int) -> float:
         return self.h0 / 2.0 ** level

@@ -1,2 +1,109 @@
-/* Kernels of fitting (geoidspline/_kernels/fitting.py calls them through ctypes). */
+/* Kernels of fitting (geoidspline/_kernels/fitting.py calls them through ctypes): the
+ * domain test and the normal equations of least squares. */
+#include <stdlib.h>
+
 #include "gs_common.h"
+
+/* out[s]: cell s (cells[3 s .. 3 s + 2]) of spacing h meets the sphere |x| = radius
+ * (fitting.py says why the 1e-9 slack). */
+GS_EXPORT void gs_cells_meet_sphere(const int64_t *cells, int64_t m, double h, double radius, uint8_t *out)
+{
+    double r2 = radius * radius;
+    for (int64_t s = 0; s < m; ++s) {
+        double near = 0.0, far = 0.0;
+        for (int d = 0; d < 3; ++d) {
+            double lo = (double)cells[3 * s + d] * h;
+            double hi = lo + h;
+            if (lo > 0.0)
+                near += lo * lo;
+            else if (hi < 0.0)
+                near += hi * hi;
+            double a = lo * lo, b = hi * hi;
+            far += b > a ? b : a; /* Python's max(a, b) */
+        }
+        out[s] = near <= r2 * (1.0 + 1e-9) && r2 * (1.0 - 1e-9) <= far;
+    }
+}
+
+/* Accumulates AᵀA into table (n, (2 order - 1)³), zeroed by the caller, indexed by the
+ * relative position of the second B-spline, and Aᵀb into rhs (n, zeroed). Sites in order,
+ * so every entry is summed in the order of the sites. Returns 0, or -1 when out of memory. */
+GS_EXPORT int64_t gs_normal_table(const double *points, const double *values, int64_t m, double h, int64_t order,
+                                  const int64_t *keys, int64_t n, double *table, double *rhs)
+{
+    int64_t span = 2 * order - 1, width = span * span * span, block = order * order * order;
+    int64_t centre = ((order - 1) * span + (order - 1)) * span + (order - 1);
+    double inv_h = 1.0 / h;
+    int64_t *cols = malloc(sizeof(int64_t) * (size_t)block);
+    int64_t *lin = malloc(sizeof(int64_t) * (size_t)block);
+    double *vals = malloc(sizeof(double) * (size_t)block);
+    double wx[GS_MAX_ORDER], wy[GS_MAX_ORDER], wz[GS_MAX_ORDER];
+    if (cols == NULL || lin == NULL || vals == NULL) {
+        free(cols), free(lin), free(vals);
+        return -1;
+    }
+    for (int64_t s = 0; s < m; ++s) {
+        double fx = points[3 * s] * inv_h, fy = points[3 * s + 1] * inv_h, fz = points[3 * s + 2] * inv_h;
+        int64_t ax = (int64_t)floor(fx), ay = (int64_t)floor(fy), az = (int64_t)floor(fz);
+        gs_bspline_weights(fx - (double)ax, (int)order, 0, wx, GS_MAX_ORDER);
+        gs_bspline_weights(fy - (double)ay, (int)order, 0, wy, GS_MAX_ORDER);
+        gs_bspline_weights(fz - (double)az, (int)order, 0, wz, GS_MAX_ORDER);
+        int64_t found = 0, k0 = az - order + 1;
+        for (int64_t p = 0; p < order; ++p) {
+            int64_t i = ax - order + 1 + p;
+            for (int64_t q = 0; q < order; ++q) {
+                int64_t j = ay - order + 1 + q;
+                int64_t base = gs_pack(i, j, k0);
+                int64_t pos = gs_lower_bound(keys, n, base);
+                while (pos < n && keys[pos] < base + order) {
+                    int64_t r = keys[pos] - base;
+                    cols[found] = pos;
+                    vals[found] = wx[p] * wy[q] * wz[r];
+                    lin[found] = (p * span + q) * span + r;
+                    ++found;
+                    ++pos;
+                }
+            }
+        }
+        /* keys[cols[e]] increase with e (lexicographic p, q, r), so the rows c1 <= c2 are
+         * those of e1 <= e2; B-spline e1 sits at lin[e1] - lin[e2] + centre relative to e2 */
+        double value = values[s];
+        for (int64_t e2 = 0; e2 < found; ++e2) {
+            int64_t c2 = cols[e2];
+            double v2 = vals[e2];
+            double *row = table + c2 * width + (centre - lin[e2]);
+            rhs[c2] += v2 * value;
+            for (int64_t e1 = 0; e1 <= e2; ++e1)
+                row[lin[e1]] += vals[e1] * v2;
+        }
+    }
+    free(cols), free(lin), free(vals);
+    return 0;
+}
+
+/* Compresses the table into CSC (indptr n + 1, indices and data of as many entries as
+ * the table has non-zero values): column c holds rows c1 <= c; offsets in lexicographic
+ * order are increasing key deltas, hence increasing row positions. */
+GS_EXPORT void gs_normal_compress(const double *table, const int64_t *keys, int64_t n, int64_t order,
+                                  int64_t *indptr, int64_t *indices, double *data)
+{
+    int64_t span = 2 * order - 1, width = span * span * span, at = 0;
+    indptr[0] = 0;
+    for (int64_t c = 0; c < n; ++c) {
+        const double *row = table + c * width;
+        for (int64_t off = 0; off < width; ++off) {
+            double v = row[off];
+            if (v != 0.0) {
+                int64_t dr = off % span - (order - 1);
+                int64_t dq = (off / span) % span - (order - 1);
+                int64_t dp = off / (span * span) - (order - 1);
+                int64_t target = keys[c] + dp * (((int64_t)1) << (2 * GS_KEY_BITS)) + dq * (((int64_t)1) << GS_KEY_BITS)
+                                 + dr;
+                indices[at] = gs_lower_bound(keys, n, target);
+                data[at] = v;
+                ++at;
+            }
+        }
+        indptr[c + 1] = at;
+    }
+}
