@@ -43,7 +43,8 @@ _FIT_ONLY = ("h0", "max_level", "order", "method", "refinement", "sample_spacing
 @click.option("--scheduler", type=str, default=None, metavar="TEXT",
               help="dask scheduler address, or 'local' for a LocalCluster of --workers processes.")
 @click.option("--correction", type=click.Path(exists=True, dir_okay=False), default=None,
-              help="NGA zeta-to-N correction coefficients (CORRCOEF) for a model SOURCE.")
+              help="NGA zeta-to-N correction coefficients for a model SOURCE: CORRCOEF (EGM96, cm) or "
+                   "Zeta-to-N_to2160_egm2008 (EGM2008, m; the unit follows the file name).")
 @click.option("--preset", type=click.Choice(PRESETS), default=None,
               help="Synthesis conventions for a model SOURCE [default: chosen from the model].")
 @click.option("--sample-spacing", type=Number("sample_spacing_deg"), default=None,

@@ -19,8 +19,9 @@ HELP = """Geoid undulation N (metres) at LAT LON (degrees), or for every row of 
 \b
 Source: --store DIR (a tile store written by geoid-fit), or --model FILE for the exact
 spherical-harmonic synthesis at each point (ICGEM .gfc or NGA ASCII coefficients, with
-an optional --correction FILE such as NGA's CORRCOEF; --preset defaults to nga-f477,
-i.e. NGA's F477 for EGM96, and nga-hsynth for an EGM2008 model without correction).
+an optional --correction FILE, NGA's CORRCOEF or Zeta-to-N_to2160_egm2008; --preset
+defaults to nga-f477, i.e. NGA's F477 for EGM96, and nga-hsynth, NGA's hsynth_WGS84, for
+an EGM2008 model alone or with its Zeta-to-N correction).
 `geoid-query --model egm96_to360.ascii.gz --correction CORRCOEF.gz LAT LON` reproduces
 NGA's F477.
 
@@ -83,7 +84,8 @@ is one ERROR line on stderr, exit 1; a closed pipe (| head) ends quietly.
 @click.option("--model", "model_path", type=click.Path(), default=None,
               help="Spherical-harmonic model file (instead of --store): exact synthesis at each point.")
 @click.option("--correction", "correction_path", type=click.Path(), default=None,
-              help="With --model: zeta-to-N correction coefficients (NGA CORRCOEF, centimetres).")
+              help="With --model: NGA zeta-to-N correction coefficients (CORRCOEF, cm; "
+                   "Zeta-to-N_to2160_egm2008, m).")
 @click.option("--preset", type=click.Choice(PRESETS), default=None,
               help="With --model: synthesis conventions [default: nga-f477; nga-hsynth for EGM2008].")
 @click.option("--input", "input_path", type=click.File("r"), default=None,

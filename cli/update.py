@@ -28,7 +28,8 @@ from ._common import REGION, Number, band_options, command, echo, store_options,
 @click.option("--workers", type=Number("workers"), default=1, show_default=True,
               help="Worker processes solving blocks (same coefficients).")
 @click.option("--correction", type=click.Path(exists=True, dir_okay=False), default=None,
-              help="NGA zeta-to-N correction coefficients (CORRCOEF) for a model SOURCE.")
+              help="NGA zeta-to-N correction coefficients for a model SOURCE: CORRCOEF (EGM96, cm) or "
+                   "Zeta-to-N_to2160_egm2008 (EGM2008, m; the unit follows the file name).")
 @click.option("--preset", type=click.Choice(PRESETS), default=None,
               help="Synthesis conventions for a model SOURCE [default: chosen from the model].")
 @click.option("--wait", "wait_seconds", type=Number("wait_seconds"), default=0.0, show_default=True,

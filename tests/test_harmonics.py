@@ -724,3 +724,340 @@ def test_nga_readers_reject_malformed_files(tmp_path):
     path = write(tmp_path / "CORRCOEF", corr + "\n2 2 1.0 0.0 0.0\n")
     with pytest.raises(InputFileError, match=r"line 7: expected 4 columns"):
         read_nga_correction(path)
+
+
+# ----------------------------------------------------------------------------- readers: block by block
+
+
+def kaula_model(nmax, seed=5, name="EGM96"):
+    """Coefficients of a Kaula-like decay (physical), EGM96's C̄20."""
+    rng = np.random.default_rng(seed)
+    C = np.zeros((nmax + 1, nmax + 1))
+    S = np.zeros((nmax + 1, nmax + 1))
+    for n in range(2, nmax + 1):
+        C[n, : n + 1] = rng.normal(size=n + 1) * 1e-5 / n**2
+        S[n, 1 : n + 1] = rng.normal(size=n) * 1e-5 / n**2
+    C[2, 0] = -0.484165371736e-3
+    return HarmonicModel(name=name, gm=3.986004415e14, radius=6378136.3, max_degree=nmax, tide_system="tide_free",
+                         C=C, S=S, sigma_C=np.abs(C) * 1e-3, sigma_S=np.abs(S) * 1e-3)
+
+
+def nga_lines(model):
+    return [f"{n:5d}{m:5d}{model.C[n, m]:25.15E}{model.S[n, m]:25.15E}{model.sigma_C[n, m]:20.10E}"
+            f"{model.sigma_S[n, m]:20.10E}" for n in range(2, model.max_degree + 1) for m in range(n + 1)]
+
+
+@pytest.fixture
+def small_blocks(monkeypatch):
+    """Blocks of 1 kB (a few lines each), and a count of the blocks read each way."""
+    from geoidspline.sources.harmonics import models
+
+    monkeypatch.setattr(models, "_BLOCK_BYTES", 1024)
+    counts = {"fast": 0, "line by line": 0}
+
+    def counted(func, key):
+        def wrapped(*args):
+            result = func(*args)
+            counts[key] += result is not None
+            return result
+        return wrapped
+
+    monkeypatch.setattr(models, "_fast_block", counted(models._fast_block, "fast"))
+    monkeypatch.setattr(models, "_slow_block", counted(models._slow_block, "line by line"))
+    return counts
+
+
+def float_model(lines, nmax, first=0):
+    """C, S, σC, σS from the lines by Python's int() and float(), token by token."""
+    arrays = [np.zeros((nmax + 1, nmax + 1)) for _ in range(4)]
+    for line in lines:
+        parts = line.split()[first:]
+        n, m = int(parts[0]), int(parts[1])
+        for array, token in zip(arrays, parts[2:]):
+            array[n, m] = float(token.replace("D", "e"))
+    return dict(zip(("C", "S", "sigma_C", "sigma_S"), arrays))
+
+
+def assert_same_model(a, b):
+    for key in ("C", "S", "sigma_C", "sigma_S"):
+        np.testing.assert_array_equal(getattr(a, key), getattr(b, key), err_msg=key)
+    assert a.max_degree == b.max_degree
+
+
+def test_nga_text_read_alike_whatever_its_layout(tmp_path, small_blocks):
+    """Blocks parsed by numpy at once and blocks read line by line (Fortran D exponents,
+    CRLF, blank lines, tabs, a form feed, a lone CR as line end, gzip) give the same
+    numbers, bit for bit, as Python's float() of every token."""
+    model = kaula_model(40)
+    lines = nga_lines(model)
+    plain = read_nga(write(tmp_path / "egm96_to360.ascii", "\n".join(lines) + "\n"), max_degree=40,
+                     check_tide_system=False)
+    for key, expected in float_model(lines, 40).items():
+        np.testing.assert_array_equal(getattr(plain, key), expected, err_msg=key)
+    odd = [line.replace("E", "D") if i % 3 == 0 else line for i, line in enumerate(lines)]
+    odd[100] = odd[100] + "\r"  # CRLF on one line
+    odd[200] = "\t" + odd[200].replace(" ", "\t", 3)
+    odd[300] = odd[300] + "\n\n   "  # blank lines
+    odd[400] = odd[400] + "\r" + odd.pop(401)  # a lone CR ends a line: that block line by line
+    odd[500] = odd[500] + "\x0c"  # a form feed is whitespace to str.split()
+    text = "\n".join(odd)  # and no final line end
+    for path in (write(tmp_path / "egm96_to360.ascii", text),
+                 tmp_path / "egm96_to360.ascii.gz"):
+        if path.suffix == ".gz":
+            path.write_bytes(gzip.compress(text.encode()))
+        assert_same_model(read_nga(path, max_degree=40, check_tide_system=False), plain)
+    assert small_blocks["fast"] > 10 and small_blocks["line by line"] >= 2
+
+
+def test_bad_lines_named_across_blocks(tmp_path, small_blocks):
+    """Line numbers stay those of the text from block to block (blank lines, CRLF, a lone
+    CR): a bad number, a repeated coefficient and a non-zero S̄ of order 0 far apart."""
+    model = kaula_model(30)
+    lines = nga_lines(model)
+    lines[50] = lines[50] + "\r\n"  # blank line after line 51
+    lines[60] = lines[60] + "\r" + lines.pop(61)  # lines 62 and 63 in one '\n' line
+    # text line numbers: lines[i] is line i + 1 up to 50, one more after the blank line,
+    # one more again after the lone CR
+    def numbered(index):
+        return index + 1 + (index > 50) + (index > 60)
+
+    bad = list(lines)
+    bad[300] = bad[300].replace("E", "Q", 1)
+    message = refused_nga(tmp_path, bad)
+    assert re.search(rf"line {numbered(300)}: C '[-0-9.]+Q[-+0-9]+' is not a number", message), message
+    bad = list(lines)
+    bad[400] = lines[10]
+    assert f"line {numbered(400)}: duplicate coefficient n=4 m=3 (first on line 11)" in refused_nga(tmp_path, bad)
+    bad = list(lines)
+    zonal = next(i for i in range(350, 400) if int(bad[i].split()[1]) == 0)
+    fields = bad[zonal].split()
+    bad[zonal] = " ".join(fields[:3] + ["1.0E-09"] + fields[4:])
+    assert f"line {numbered(zonal)}: S̄ of n={fields[0]} m=0 must be 0, found 1e-09" in refused_nga(tmp_path, bad)
+
+
+def refused_nga(tmp_path, lines):
+    with pytest.raises(InputFileError) as info:
+        read_nga(write(tmp_path / "egm96_to360.ascii", "\n".join(lines) + "\n"), max_degree=30, check_tide_system=False)
+    return str(info.value)
+
+
+def test_icgem_text_read_alike_whatever_its_layout(tmp_path, small_blocks):
+    """ICGEM: upper-case keys, D exponents, lines with and without sigmas mixed."""
+    model = kaula_model(30)
+    data = [f"gfc {n} {m} {model.C[n, m]:.15e} {model.S[n, m]:.15e} {model.sigma_C[n, m]:.10e} {model.sigma_S[n, m]:.10e}"
+            for n in range(2, 31) for m in range(n + 1)]
+    header = GFC_HEADER.replace("max_degree       3", "max_degree       30")
+    plain = read_icgem(write(tmp_path / "m.gfc", gfc_text(data, header)), check_tide_system=False)
+    for key, expected in float_model(data, 30, first=1).items():
+        np.testing.assert_array_equal(getattr(plain, key), expected, err_msg=key)
+    odd = [line.replace("e", "D").replace("gfc", "GFC") if i % 4 == 0 else line for i, line in enumerate(data)]
+    for i in range(7, len(odd), 50):  # a few lines without sigmas: those sigmas read as 0
+        odd[i] = " ".join(odd[i].split()[:5])
+    mixed = read_icgem(write(tmp_path / "m.gfc", gfc_text(odd, header)), check_tide_system=False)
+    np.testing.assert_array_equal(mixed.C, plain.C)
+    np.testing.assert_array_equal(mixed.S, plain.S)
+    missing = np.zeros_like(plain.sigma_C, dtype=bool)
+    for i in range(7, len(odd), 50):
+        n, m = (int(v) for v in odd[i].split()[1:3])
+        missing[n, m] = True
+    assert (mixed.sigma_C[missing] == 0).all()
+    np.testing.assert_array_equal(mixed.sigma_C[~missing], plain.sigma_C[~missing])
+    assert small_blocks["fast"] > 10 and small_blocks["line by line"] >= 1
+
+
+# ----------------------------------------------------------------------------- EGM2008's zeta-to-N correction
+
+
+def zeta_to_n_text(C, S):
+    """NGA's Zeta-to-N_to2160_egm2008 layout: ``n m C S`` from degree 0, every order,
+    Fortran D exponents (the coefficients in metres)."""
+    nmax = C.shape[0] - 1
+    return "".join(f"{n:5d}{m:5d}{C[n, m]:25.15E}{S[n, m]:25.15E}\n".replace("E", "D")
+                   for n in range(nmax + 1) for m in range(n + 1))
+
+
+def egm2008_gfc(tmp_path, nmax):
+    model = kaula_model(nmax, name="EGM2008")
+    data = [f"gfc {n} {m} {model.C[n, m]:.15e} {model.S[n, m]:.15e}" for n in range(2, nmax + 1) for m in range(n + 1)]
+    header = (GFC_HEADER.replace("TESTMODEL", "EGM2008_synthetic").replace("max_degree       3", f"max_degree       {nmax}")
+              .replace("errors           formal", "errors           no"))
+    return write(tmp_path / "egm2008_synthetic.gfc", gfc_text(data, header))
+
+
+def test_egm2008_zeta_to_n_read_in_metres_and_applied_as_hsynth(tmp_path):
+    """EGM2008's correction file: n m C S from degree 0 with D exponents, in metres,
+    summed without (a/r)^n beside nga-hsynth's ζ and N0 (hsynth_WGS84 reads it with the
+    routine of its elevation models, unscaled, and adds the sum to ζ + N0). CORRCOEF's
+    layout is the same in centimetres: the unit follows the file's name."""
+    from geoidspline.sources.resolve import load_synthesis
+
+    nmax = 24
+    C = np.zeros((nmax + 1, nmax + 1))
+    S = np.zeros((nmax + 1, nmax + 1))
+    C[0, 0], C[2, 0], C[3, 1], S[3, 1] = 0.25, -0.5, 0.125, 0.0625
+    zeta = write(tmp_path / "Zeta-to-N_to24_egm2008", zeta_to_n_text(C, S))
+    corr = read_nga_correction(zeta)
+    assert (corr.unit_m, corr.max_degree, corr.C[2, 0], corr.S[3, 1]) == (1.0, 24, -0.5, 0.0625)
+    model_path = egm2008_gfc(tmp_path, nmax)
+    plain = load_synthesis(model_path)
+    corrected = load_synthesis(model_path, zeta)
+    assert plain.preset == corrected.preset == "nga-hsynth"
+    assert any("in m (sha256" in note for note in corrected.provenance.notes)
+    lat = np.array([-89.0, -45.0, 0.0, 30.0, 60.0])
+    lon = np.array([10.0, 200.0, 33.0, 0.0, 300.0])
+    r, psi = ecef_geometry(lat, lon)
+    t = np.sin(psi)
+    lam = np.radians(lon)
+    p20 = math.sqrt(5) * (3 * t**2 - 1) / 2
+    p31 = math.sqrt(7 / 6) * 1.5 * (5 * t**2 - 1) * np.cos(psi)  # fully normalised (4π): sqrt(2 (2n+1) (n-m)!/(n+m)!)
+    expected = 0.25 - 0.5 * p20 + p31 * (0.125 * np.cos(lam) + 0.0625 * np.sin(lam))
+    np.testing.assert_allclose(corrected.undulation(lat, lon) - plain.undulation(lat, lon), expected, atol=1e-9)
+    # the same numbers under CORRCOEF's name are centimetres (and EGM2008 + CORRCOEF is F477's mix)
+    corrcoef = write(tmp_path / "CORRCOEF", zeta_to_n_text(C, S))
+    assert read_nga_correction(corrcoef).unit_m == 0.01
+    # a renamed copy takes the unit of the model it goes with
+    renamed = write(tmp_path / "zeta_to_n.txt", zeta_to_n_text(C, S))
+    with_renamed = load_synthesis(model_path, renamed)
+    assert with_renamed.correction.unit_m == 1.0 and with_renamed.preset == "nga-hsynth"
+    # a correction beyond what any part of N can be, in metres
+    C[5, 5] = 200.0
+    with pytest.raises(InputFileError, match=r"line 21: the coefficient of n=5 m=5 is beyond 150 m"):
+        read_nga_correction(write(tmp_path / "Zeta-to-N_to24_egm2008", zeta_to_n_text(C, S)))
+
+
+@pytest.mark.slow
+def test_egm2008_zeta_to_n_at_full_degree(tmp_path):
+    """NGA's file at its full degree, 2160 (2,336,041 lines, gzip), beside a degree-2190
+    model: read, its unit metres, and accepted for the synthesis to 2190."""
+    nmax = 2160
+    rng = np.random.default_rng(2160)
+    n = np.arange(nmax + 1)[:, None]
+    m = np.arange(nmax + 1)[None, :]
+    C = np.where(m <= n, rng.normal(size=(nmax + 1, nmax + 1)) * 1e-4, 0.0)
+    S = np.where((m <= n) & (m > 0), rng.normal(size=(nmax + 1, nmax + 1)) * 1e-4, 0.0)
+    C[0, 0] = 0.25
+    path = tmp_path / "Zeta-to-N_to2160_egm2008.gz"
+    path.write_bytes(gzip.compress(zeta_to_n_text(C, S).encode(), compresslevel=1))
+    corr = read_nga_correction(path)
+    assert (corr.unit_m, corr.max_degree) == (1.0, 2160)
+    rows = [(0, 0), (2160, 2160), (1500, 777), (3, 1)]
+    assert all(corr.C[r] == float(f"{C[r]:.15E}") and corr.S[r] == float(f"{S[r]:.15E}") for r in rows)
+    model = small_model(2190, {(2, 0): (-0.484165143790815e-3, 0.0)}, name="EGM2008")
+    syn = GeoidSynthesis(model, corr, preset="nga-hsynth")
+    assert syn.correction.max_degree == 2160 and syn.max_degree == 2190
+
+
+def test_reading_a_model_is_a_progress_stage(tmp_path):
+    """load_synthesis reports each file's reading as a stage counted in the file's
+    bytes (the bar's total and ETA), advanced to the end."""
+    from geoidspline.sources.resolve import load_synthesis
+
+    class Recorder:
+        def __init__(self):
+            self.stages = []
+
+        def stage(self, name, total, unit="step"):
+            import contextlib
+
+            record = [name, total, unit, 0]
+            self.stages.append(record)
+
+            def advance(n=1):
+                record[3] += n
+
+            return contextlib.nullcontext(advance)
+
+    nmax = 24
+    C = np.zeros((nmax + 1, nmax + 1))
+    C[0, 0] = 0.1
+    model_path = egm2008_gfc(tmp_path, nmax)
+    zeta = tmp_path / "Zeta-to-N_to24_egm2008.gz"
+    zeta.write_bytes(gzip.compress(zeta_to_n_text(C, np.zeros_like(C)).encode()))
+    recorder = Recorder()
+    load_synthesis(model_path, zeta, progress=recorder)
+    assert recorder.stages == [
+        [f"read {model_path.name}", model_path.stat().st_size, "byte", model_path.stat().st_size],
+        [f"read {zeta.name}", zeta.stat().st_size, "byte", zeta.stat().st_size],
+    ]
+
+
+# ----------------------------------------------------------------------------- lattices by ducc0's transforms
+
+
+def white_model(nmax, seed=11, name="EGM2008"):
+    """Degree amplitudes that do not fall off (the hardest case for the radial
+    expansion: (a/r)^n matters most at high n), damped so that N stays geoid-like."""
+    rng = np.random.default_rng(seed)
+    n = np.arange(nmax + 1)[:, None]
+    m = np.arange(nmax + 1)[None, :]
+    sigma = np.where(n >= 2, 2e-8 * np.exp(-n / 80.0) + 3e-9, 0.0)
+    C = np.where(m <= n, rng.normal(size=(nmax + 1, nmax + 1)), 0.0) * sigma
+    S = np.where((m <= n) & (m > 0), rng.normal(size=(nmax + 1, nmax + 1)), 0.0) * sigma
+    C[2, 0] = -0.484165143790815e-3
+    return HarmonicModel(name=name, gm=3.986004415e14, radius=6378136.3, max_degree=nmax, tide_system="tide_free",
+                         C=C, S=S)
+
+
+@pytest.mark.parametrize("region, spacing", [(GLOBAL, 1.0), (Region(40, 0, 45, 5), 0.1), (Region(-90, 10, -70, 40), 0.25),
+                                             (Region(-3, 170, 4, -170), 0.2)])
+def test_sht_lattice_equals_the_exact_synthesis(region, spacing):
+    """ducc0's transforms with the (a/r)^n factor expanded band by band give the exact
+    synthesis's lattice (per-row Legendre sums) to far below 0.01 mm: a degree-400
+    model whose high degrees do not fall off, with a ζ-to-N correction (a set without
+    the radial factor), globally (both hemispheres in one band), on a tile, at a pole,
+    across the antimeridian."""
+    model = white_model(400)
+    rng = np.random.default_rng(3)
+    Cc = np.tril(rng.normal(size=(401, 401))) * 1e-3
+    Sc = np.tril(rng.normal(size=(401, 401))) * 1e-3
+    Sc[:, 0] = 0.0
+    corr = CorrectionModel("zeta", 400, Cc, Sc, unit_m=1.0)
+    syn = GeoidSynthesis(model, corr, preset="nga-hsynth")
+    syn.lattice_engine = "exact"
+    exact = syn.nodes(region, spacing)
+    syn.lattice_engine = "sht"
+    fast = syn.nodes(region, spacing)
+    np.testing.assert_array_equal(fast.latitude, exact.latitude)
+    np.testing.assert_array_equal(fast.longitude, exact.longitude)
+    assert np.abs(exact.undulation).max() > 10.0
+    assert np.abs(fast.undulation - exact.undulation).max() < 1e-7
+    bands = syn._sht().plan(np.log(syn.conventions.scale_a / syn._geometry(exact.latitude)[2]),
+                            np.ones(exact.latitude.size))
+    assert sorted(np.concatenate([b[0] for b in bands])) == list(range(exact.latitude.size))
+    if region is not GLOBAL:
+        return
+    # north and south rows of one radius share a band
+    row_band = {int(r): i for i, b in enumerate(bands) for r in b[0]}
+    assert all(row_band[i] == row_band[exact.latitude.size - 1 - i] for i in range(exact.latitude.size))
+    # a row's bits do not depend on the other rows of the call (canonical groups; the
+    # FFT of the full circle is row by row, as sample_nodes' bands need)
+    syn._sht_cache.clear()
+    for south, north in ((region.south, (region.south + region.north) / 2), ((region.south + region.north) / 2,
+                                                                              region.north)):
+        part = syn.nodes(Region(south, region.west, north, region.east), spacing)
+        rows = np.searchsorted(fast.latitude, part.latitude)
+        np.testing.assert_array_equal(part.undulation, fast.undulation[rows])
+
+
+@needs_egm2008
+def test_sht_lattice_of_egm2008_120_equals_the_exact_synthesis():
+    """The real EGM2008 to degree 120: the two lattice engines agree within the radial
+    expansion's error bound (1e-7 m)."""
+    syn = GeoidSynthesis(read_icgem(GFC2008), preset="nga-hsynth")
+    values = {}
+    for engine in ("exact", "sht"):
+        syn.lattice_engine = engine
+        values[engine] = syn.nodes(GLOBAL, 0.75).undulation
+    assert np.abs(values["sht"] - values["exact"]).max() < 1e-7
+
+
+def test_lattice_engine_from_the_environment(monkeypatch):
+    model = white_model(30)
+    assert GeoidSynthesis(model).lattice_engine == "exact"
+    monkeypatch.setenv("GEOIDSPLINE_LATTICE_ENGINE", "sht")
+    assert GeoidSynthesis(model).lattice_engine == "sht"
+    monkeypatch.setenv("GEOIDSPLINE_LATTICE_ENGINE", "fast")
+    from geoidspline.errors import ParameterError
+
+    with pytest.raises(ParameterError, match="GEOIDSPLINE_LATTICE_ENGINE must be 'exact' or 'sht', got 'fast'"):
+        GeoidSynthesis(model)

@@ -168,12 +168,15 @@ def run_fit(source, store, *, region=None, overwrite: bool = False, workers: int
     from ..fitting.parameters import FitParameters
     from ..sources.reference import for_new_store
 
+    from ..fitting.progress import as_progress
+
     executor = Executor(workers=workers, scheduler=scheduler)
     fit_region = _as_region(region)
     if _is_path(source):
         from ..sources.resolve import open_source
 
-        source = open_source(source, correction, preset, band=band, variable=variable)
+        source = open_source(source, correction, preset, band=band, variable=variable,
+                             progress=as_progress(progress))
     source, notes = for_new_store(source, tide_system=tide_system, accept_datum=accept_datum,
                                   accept_quasi_geoid=accept_quasi_geoid)
     choice, extra = None, None

@@ -60,14 +60,15 @@ def is_model_file(path) -> bool:
 
 
 def open_source(name_or_path, correction=None, preset=None, *, allow_unknown_copy: bool = False, max_degree=None,
-                band: int | None = None, variable: str | None = None):
+                band: int | None = None, variable: str | None = None, progress=None):
     """The source behind a command-line SOURCE: a model (with its optional ζ-to-N
     correction file and NGA preset) or a grid file / catalogue name (``band``/``variable``:
-    the GeoTIFF band or netCDF variable of a file with several)."""
+    the GeoTIFF band or netCDF variable of a file with several). ``progress``: told of
+    the reading of model files (see :func:`load_synthesis`)."""
     if correction is not None or max_degree is not None or is_model_file(name_or_path):
         if band is not None or variable is not None:
             raise InputFileError(name_or_path, "--band and --variable apply to grid files, not to models")
-        return load_synthesis(name_or_path, correction, preset, max_degree=max_degree)
+        return load_synthesis(name_or_path, correction, preset, max_degree=max_degree, progress=progress)
     if preset is not None:
         raise InputFileError(name_or_path, "a preset applies to spherical-harmonic models only")
     return resolve_source(name_or_path, allow_unknown_copy=allow_unknown_copy, band=band, variable=variable)
@@ -96,16 +97,29 @@ def _is_grid(path) -> bool:
     return grid_format_of(head, Path(path).stat().st_size) is not None
 
 
-def load_synthesis(model_path, correction_path=None, preset=None, like_store=None, *, max_degree=None):
-    """Read a model (ICGEM .gfc or NGA ASCII) and optional CORRCOEF-style correction
+def _read_reporting(reader, path, progress, **kwargs):
+    """``reader(path)`` reported to ``progress`` (an object with ``stage(name, total,
+    unit)``, as geoidspline.fitting.progress's) as the stage "read NAME" in bytes of
+    the file; without progress, just read."""
+    if progress is None:
+        return reader(path, **kwargs)
+    with progress.stage(f"read {Path(path).name}", Path(path).stat().st_size, "byte") as advance:
+        return reader(path, progress=advance, **kwargs)
+
+
+def load_synthesis(model_path, correction_path=None, preset=None, like_store=None, *, max_degree=None,
+                   progress=None):
+    """Read a model (ICGEM .gfc or NGA ASCII) and optional NGA ζ-to-N correction (EGM96's
+    CORRCOEF in cm, EGM2008's Zeta-to-N_to2160_egm2008 in m: :func:`correction_unit`)
     and return the :class:`~geoidspline.sources.harmonics.GeoidSynthesis`.
 
     ``preset`` None means: the preset ``like_store`` was fitted with when that store was
     fitted from this same model file (:func:`store_preset`), else :func:`default_preset`.
     ``max_degree`` truncates the model and the correction on purpose; without it a
-    correction that stops below the model's degree is refused.
+    correction that stops below the model's degree is refused. ``progress``: each file's
+    reading is a stage "read NAME" counted in bytes of the file (with its ETA).
     """
-    from .harmonics.models import read_model, read_nga_correction
+    from .harmonics.models import correction_unit, read_model, read_nga_correction
     from .harmonics.synthesis import GeoidSynthesis
 
     if preset is not None and preset not in PRESETS:
@@ -115,8 +129,11 @@ def load_synthesis(model_path, correction_path=None, preset=None, like_store=Non
             raise InputFileError(value, f"{label} file not found" if not Path(value).exists() else "not a regular file")
         if value is not None:
             _check_is_model(value, label)
-    model = read_model(model_path)
-    correction = read_nga_correction(correction_path) if correction_path is not None else None
+    model = _read_reporting(read_model, model_path, progress)
+    correction = None
+    if correction_path is not None:
+        correction = _read_reporting(read_nga_correction, correction_path, progress,
+                                     unit=correction_unit(correction_path, model.name))
     chosen = preset
     if chosen is None and like_store is not None:
         chosen = store_preset(like_store, model)

@@ -17,7 +17,7 @@ import importlib
 _EXPORTS = {
     "HarmonicModel": "models", "CorrectionModel": "models", "TideSystemWarning": "models",
     "read_icgem": "models", "read_nga": "models", "read_nga_correction": "models", "read_model": "models",
-    "NGA_CATALOGUE": "models", "KNOWN_C20": "models",
+    "NGA_CATALOGUE": "models", "KNOWN_C20": "models", "correction_unit": "models",
     "GeoidSynthesis": "synthesis", "Conventions": "synthesis",
     "PRESETS": "presets", "DEFAULT_PRESET": "presets", "default_preset": "presets", "store_preset": "presets",
 }

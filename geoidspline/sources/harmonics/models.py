@@ -1,5 +1,5 @@
 """Spherical-harmonic model files: ICGEM ``.gfc``, NGA ASCII coefficients and NGA's
-ζ-to-N correction coefficients (CORRCOEF).
+ζ-to-N correction coefficients (EGM96's CORRCOEF, EGM2008's Zeta-to-N_to2160_egm2008).
 
 The readers are strict: anything that does not fit the format raises
 :class:`~geoidspline.errors.InputFileError` whose message names the file and, for a bad
@@ -23,7 +23,7 @@ from __future__ import annotations
 import functools
 import gzip
 import hashlib
-import io
+import itertools
 import math
 import re
 import warnings
@@ -49,6 +49,7 @@ __all__ = [
     "NGA_CATALOGUE",
     "KNOWN_C20",
     "model_file_kind",
+    "correction_unit",
     "MAX_MODEL_TEXT_BYTES",
 ]
 
@@ -212,11 +213,16 @@ def _check_tide_system(path, name, c20, declared, source_label, enabled):
 
 
 # --------------------------------------------------------------------------------------
-# File access and line parsing
+# File access: the decompressed text in blocks of whole lines, parsed block by block
 
 
-#: Largest decompressed text read (bytes): the reader holds the text in memory.
+#: Largest decompressed text a model file may have (bytes): more is a compression bomb
+#: or not a model (EGM2008 to degree 2190 has 243 MB).
 MAX_MODEL_TEXT_BYTES = 4 << 30
+
+#: The text is parsed in blocks of about this many bytes, each cut at a line end: memory
+#: follows the coefficients (40 bytes a line), never the text (100 bytes a line).
+_BLOCK_BYTES = 8 << 20
 
 _GZIP_MAGIC = b"\x1f\x8b"
 
@@ -232,46 +238,272 @@ def _file_faults(reader):
     return wrapped
 
 
-def _read_text(path) -> tuple[str, str]:
-    """(decompressed text, sha256 of the file's bytes as stored).
+class _Hashed:
+    """A binary file whose bytes feed a sha256 as they are read."""
 
-    A gzip file (by its magic bytes) is decompressed in blocks: a NUL byte or more than
-    :data:`MAX_MODEL_TEXT_BYTES` stops it at once (a binary file or a compression bomb).
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise InputFileError(path, "file not found" if not path.exists() else "not a regular file")
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise InputFileError(path, f"cannot read file: {exc.strerror or exc}") from None
-    digest = hashlib.sha256(raw).hexdigest()
-    if raw[:2] == _GZIP_MAGIC:
-        raw = _gunzip(path, raw)
-    elif b"\x00" in raw:
-        raise InputFileError(path, "not a text file (contains NUL bytes)")
-    # ASCII in practice; latin-1 decodes any byte (a stray one in a header comment),
-    # and data lines are checked number by number anyway.
-    return raw.decode("latin-1"), digest
+    def __init__(self, fh):
+        self._fh = fh
+        self._digest = hashlib.sha256()
+        self._read = self._told = 0
+
+    def read(self, size=-1):
+        data = self._fh.read(size)
+        self._digest.update(data)
+        self._read += len(data)
+        return data
+
+    def advance(self) -> int:
+        """Bytes read since the last call."""
+        done, self._told = self._read - self._told, self._read
+        return done
+
+    def hexdigest(self) -> str:
+        """The digest of the whole file (what was not read yet is read now)."""
+        while self.read(1 << 20):
+            pass
+        return self._digest.hexdigest()
 
 
-def _gunzip(path, raw: bytes, limit: int = MAX_MODEL_TEXT_BYTES) -> bytes:
-    """The decompressed bytes of a gzip file's content ``raw`` (all members), text only."""
-    blocks, total = [], 0
-    try:
-        with gzip.GzipFile(fileobj=io.BytesIO(raw)) as fh:
-            while block := fh.read(1 << 20):
+class _Text:
+    """The text of a model file, plain or gzip (by its magic bytes, whatever its name),
+    read in blocks that end at a line end. After :meth:`blocks` is exhausted, ``nbytes``
+    is the decompressed size and ``sha256`` the digest of the file's bytes as stored.
+
+    A NUL byte or more than :data:`MAX_MODEL_TEXT_BYTES` stops it at once (a binary
+    file or a compression bomb)."""
+
+    def __init__(self, path, block_bytes: int | None = None, limit: int = MAX_MODEL_TEXT_BYTES):
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise InputFileError(self.path, "file not found" if not self.path.exists() else "not a regular file")
+        self.block_bytes = _BLOCK_BYTES if block_bytes is None else block_bytes
+        self.limit = limit
+        self.nbytes = 0
+        self.sha256 = None
+
+    def blocks(self, advance=None):
+        """The text's blocks; ``advance(n)`` is told of each ``n`` bytes of the file read."""
+        path = self.path
+        try:
+            fh = open(path, "rb")
+        except OSError as exc:
+            raise InputFileError(path, f"cannot read file: {exc.strerror or exc}") from None
+        with fh:
+            gz = fh.read(2) == _GZIP_MAGIC
+            fh.seek(0)
+            hashed = _Hashed(fh)
+            stream = gzip.GzipFile(fileobj=hashed, mode="rb") if gz else hashed
+            pending = []
+            size = min(1 << 16, self.block_bytes)  # growing: a header-only file stays small
+            while True:
+                try:
+                    block = stream.read(size)
+                    size = min(2 * size, self.block_bytes)
+                except (OSError, EOFError, zlib.error) as exc:  # BadGzipFile is an OSError
+                    if gz:
+                        raise InputFileError(path, f"corrupt or truncated gzip data: {exc}") from None
+                    raise InputFileError(path, f"cannot read file: {exc.strerror or exc}") from None
+                if not block:
+                    break
                 if b"\x00" in block:
-                    raise InputFileError(path, "not a text file: its gzip content contains NUL bytes")
-                total += len(block)
-                if total > limit:
-                    raise InputFileError(path, f"decompresses to more than {limit:,} bytes of text, "
-                                         "more than this reader holds in memory")
-                blocks.append(block)
-    except (OSError, EOFError, zlib.error) as exc:  # BadGzipFile is an OSError
-        raise InputFileError(path, f"corrupt or truncated gzip data: {exc}") from None
-    return b"".join(blocks)
+                    raise InputFileError(path, "not a text file: its gzip content contains NUL bytes" if gz
+                                         else "not a text file (contains NUL bytes)")
+                self.nbytes += len(block)
+                if self.nbytes > self.limit:
+                    raise InputFileError(path, f"has more than {self.limit:,} bytes of text, more than any model "
+                                         "file (a compression bomb, or not a model)")
+                cut = block.rfind(b"\n") + 1
+                if cut == 0:  # no line end yet: a long line continues
+                    pending.append(block)
+                    continue
+                pending.append(block[:cut])
+                if advance is not None:
+                    advance(hashed.advance())
+                yield b"".join(pending)
+                pending = [block[cut:]] if cut < len(block) else []
+            if pending:
+                yield b"".join(pending)
+            self.sha256 = hashed.hexdigest()
+            if advance is not None:
+                advance(hashed.advance())
 
+
+# Separators that str.splitlines() or str.split() honour and bytes do not (VT, FF,
+# FS..US, NEL, NBSP, a CR not followed by LF): a block holding one is parsed line by line
+# in Python, so that line numbers and tokens stay those of the text.
+_ODD = np.zeros(256, dtype=bool)
+_ODD[[0x0B, 0x0C, 0x1C, 0x1D, 0x1E, 0x1F, 0x85, 0xA0]] = True
+_SPACE = np.zeros(256, dtype=bool)
+_SPACE[[9, 10, 13, 32]] = True
+_DIGIT = np.zeros(256, dtype=bool)
+_DIGIT[48:58] = True
+_FORTRAN_EXPONENT = bytes.maketrans(b"Dd", b"Ee")
+
+
+def _has_odd_separators(buf: np.ndarray) -> bool:
+    if _ODD[buf].any():
+        return True
+    cr = np.flatnonzero(buf[:-1] == 13)
+    return bool((buf[cr + 1] != 10).any() or (buf.size and buf[-1] == 13))
+
+
+def _line_count(block: bytes, odd: bool) -> int:
+    """Lines in a block that ends at a line end, counted as str.splitlines() counts them."""
+    if odd:
+        return len(block.decode("latin-1").splitlines())
+    return block.count(b"\n")
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """How the data lines of one format read.
+
+    ``widths``: the token counts a line may have; ``key``: the first token (ICGEM's
+    ``gfc``) or None; ``values``: how many numbers a row keeps after n and m (missing
+    ones are 0); ``max_n``: the largest degree a line may have; ``keep_n``: rows above
+    it are checked and dropped (truncation on reading); ``line_rule(lineno, parts)``:
+    the row of one line, by the strict per-line rules (raising the file's message for a
+    bad line), or None for a line that is skipped.
+    """
+
+    widths: tuple
+    key: bytes | None
+    values: int
+    max_n: int
+    keep_n: int
+    line_rule: object
+
+
+class _Rows:
+    """Rows (line, n, m, values) gathered block by block into compact arrays."""
+
+    def __init__(self, layout: _Layout):
+        self.layout = layout
+        self.parts = []
+        self.parsed = 0  # rows read, kept or not (the line count checked against a degree)
+        self.last_n = None
+
+    def add(self, line, n, m, values):
+        if n.size:
+            self.parsed += n.size
+            self.last_n = int(n[-1])
+            keep = n <= self.layout.keep_n
+            if not keep.all():
+                line, n, m, values = line[keep], n[keep], m[keep], values[keep]
+            self.parts.append((line, n, m, values))
+
+    def arrays(self):
+        """(line, n, m, values[rows, k]) of the kept rows, in file order."""
+        if not self.parts:
+            empty = np.zeros(0, dtype=np.int64)
+            return empty, empty, empty, np.zeros((0, self.layout.values))
+        columns = [np.concatenate(col) for col in zip(*self.parts)]
+        self.parts = []
+        return tuple(columns)
+
+
+def _fast_block(layout: _Layout, block: bytes, first_line: int, buf: np.ndarray):
+    """The rows of a regular block, parsed by numpy at once; None when anything in it is
+    irregular (the block is then read line by line, which names the first bad line).
+
+    Regular: every non-blank line has the same number of whitespace-separated tokens,
+    one of ``layout.widths``; the key column (if any) is the key; n and m are digit
+    strings; every number is finite and numpy's text parser (correctly rounded, as
+    Python's float()) reads exactly one number per token (it refuses what float()
+    refuses but for the non-finite spellings, which end in the per-line reader)."""
+    if layout.key is not None:
+        block = block.lower()  # keys are case-insensitive; the exponent letter either way
+    if b"d" in block or b"D" in block:
+        block = block.translate(_FORTRAN_EXPONENT)
+    if layout.key is not None or buf is None:
+        buf = np.frombuffer(block, dtype=np.uint8)  # (letters changed, spaces did not)
+    space = _SPACE[buf]
+    starts = ~space
+    starts[1:] &= space[:-1]
+    starts = np.flatnonzero(starts)
+    ends = space[1:] & ~space[:-1]
+    ends = np.flatnonzero(ends) + 1
+    if buf.size and not space[-1]:
+        ends = np.append(ends, buf.size)
+    if ends.size != starts.size:
+        return None
+    token_line = np.searchsorted(np.flatnonzero(buf == 10), starts)
+    for width in layout.widths:
+        if starts.size % width:
+            continue
+        grid = token_line.reshape(-1, width)
+        if (grid[:, 0] == grid[:, -1]).all() and (grid[1:, 0] > grid[:-1, -1]).all():
+            break
+    else:
+        return None
+    first = 0
+    if layout.key is not None:
+        first = 1
+        key = starts[0::width]
+        if not ((ends[0::width] - key == len(layout.key)).all()
+                and all((buf[key + i] == c).all() for i, c in enumerate(layout.key))):
+            return None
+        block = block.replace(layout.key, b" " * len(layout.key))
+    # n and m: digits only (int() takes a sign too, and underscores: the per-line reader)
+    for column in (first, first + 1):
+        begin, stop = starts[column::width], ends[column::width]
+        for offset in range(int((stop - begin).max(initial=0))):
+            at = begin + offset
+            inside = at < stop
+            if not _DIGIT[buf[at[inside]]].all():
+                return None
+    try:
+        with warnings.catch_warnings():  # numpy < 2.3 warns where later ones raise
+            warnings.simplefilter("error", DeprecationWarning)
+            numbers = np.fromstring(block, sep=" ")
+    except (ValueError, DeprecationWarning):
+        return None
+    if numbers.size != starts.size - (starts.size // width) * first:
+        return None
+    table = numbers.reshape(-1, width - first)
+    n, m = table[:, 0], table[:, 1]
+    if table.size and not (((m <= n) & (n <= layout.max_n)).all() and np.isfinite(table).all()):
+        return None
+    values = np.zeros((table.shape[0], layout.values))
+    k = min(layout.values, width - first - 2)
+    values[:, :k] = table[:, 2:2 + k]
+    return first_line + 1 + grid[:, 0], n.astype(np.int64), m.astype(np.int64), values
+
+
+def _slow_block(layout: _Layout, block: bytes, first_line: int):
+    """The rows of a block by the per-line rules (the first bad line raises)."""
+    rows = []
+    for idx, line in enumerate(block.decode("latin-1").splitlines()):
+        parts = line.split()
+        if parts:
+            row = layout.line_rule(first_line + idx + 1, parts)
+            if row is not None:
+                rows.append(row)
+    k = layout.values
+    if not rows:
+        empty = np.zeros(0, dtype=np.int64)
+        return empty, empty, empty, np.zeros((0, k))
+    line = np.array([r[0] for r in rows], dtype=np.int64)
+    n = np.array([r[1] for r in rows], dtype=np.int64)
+    m = np.array([r[2] for r in rows], dtype=np.int64)
+    values = np.array([r[3:3 + k] for r in rows], dtype=np.float64).reshape(len(rows), k)
+    return line, n, m, values
+
+
+def _read_rows(layout: _Layout, blocks, first_line: int = 0) -> _Rows:
+    """Every data row of ``blocks`` (text after ``first_line`` lines), checked."""
+    rows = _Rows(layout)
+    for block in blocks:
+        buf = np.frombuffer(block, dtype=np.uint8)
+        odd = _has_odd_separators(buf)
+        part = None if odd else _fast_block(layout, block, first_line, buf)
+        rows.add(*(part if part is not None else _slow_block(layout, block, first_line)))
+        first_line += _line_count(block, odd)
+    return rows
+
+
+# --------------------------------------------------------------------------------------
+# Recognising a model file and checking what it declares
 
 _NUMBER = r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eEdD][+-]?\d+)?"
 _NGA_LINE = {6: re.compile(rf"^\s*\d+\s+\d+(?:\s+{_NUMBER}){{4}}\s*$"),
@@ -395,20 +627,32 @@ class _Collector:
         self.sS = np.zeros((size, size)) if with_sigma else None
         self.line_of = np.zeros((size, size), dtype=np.int64)
 
-    def add(self, lineno, n, m, c, s, sc=None, ss=None):
-        if self.line_of[n, m]:
-            raise InputFileError(
-                self.path,
-                f"line {lineno}: duplicate coefficient n={n} m={m} (first on line {self.line_of[n, m]})",
-            )
-        if m == 0 and s != 0.0:
-            raise InputFileError(self.path, f"line {lineno}: S̄ of n={n} m=0 must be 0, found {s!r}")
-        self.line_of[n, m] = lineno
-        self.C[n, m] = c
-        self.S[n, m] = s
-        if self.sC is not None and sc is not None:
-            self.sC[n, m] = sc
-            self.sS[n, m] = ss
+    def add_rows(self, line, n, m, values):
+        """Place rows (file line, n, m, values C, S[, σC, σS]) read in file order. The first
+        fault in file order is refused: a repeated (n, m) or a non-zero S̄ of order 0."""
+        size = self.nmax + 1
+        flat = n * size + m
+        faults = []
+        if np.bincount(flat, minlength=size * size).max(initial=0) > 1:
+            order = np.argsort(flat, kind="stable")
+            ordered = flat[order]
+            repeats = order[1:][ordered[1:] == ordered[:-1]]
+            k = repeats[np.argmin(line[repeats])]
+            first = line[order[np.searchsorted(ordered, flat[k])]]
+            faults.append((int(line[k]), 0, f"line {line[k]}: duplicate coefficient n={n[k]} m={m[k]} "
+                           f"(first on line {first})"))
+        sine = np.flatnonzero((m == 0) & (values[:, 1] != 0.0))
+        if sine.size:
+            k = sine[np.argmin(line[sine])]
+            faults.append((int(line[k]), 1, f"line {line[k]}: S̄ of n={n[k]} m=0 must be 0, found {float(values[k, 1])!r}"))
+        if faults:
+            raise InputFileError(self.path, min(faults)[2])
+        self.line_of.reshape(-1)[flat] = line
+        self.C.reshape(-1)[flat] = values[:, 0]
+        self.S.reshape(-1)[flat] = values[:, 1]
+        if self.sC is not None:
+            self.sC.reshape(-1)[flat] = values[:, 2]
+            self.sS.reshape(-1)[flat] = values[:, 3]
 
     def model(self, name, gm, radius, tide_system, notes, digest) -> "HarmonicModel":
         """The collected coefficients as a :class:`HarmonicModel` of this file."""
@@ -451,8 +695,65 @@ _ICGEM_TIDE = {
 }
 
 
+#: An ICGEM header longer than this many lines is no header (the file is not ICGEM).
+_MAX_HEADER_LINES = 100_000
+
+
+def _icgem_header(text: _Text, progress=None):
+    """(header lines, index of the ``end_of_head`` line, the blocks of the data after it).
+
+    The data blocks are the rest of the block the header ends in, then the file's next
+    blocks."""
+    blocks = text.blocks(progress)
+    lines = []
+    for block in blocks:
+        chunk = block.decode("latin-1").splitlines(keepends=True)
+        for idx, line in enumerate(chunk):
+            lines.append(line)
+            token = line.split(None, 1)[0].lower() if line.strip() else ""
+            if token == "end_of_head":
+                rest = "".join(chunk[idx + 1:]).encode("latin-1")
+                return lines, len(lines) - 1, itertools.chain([rest], blocks)
+            if len(lines) > _MAX_HEADER_LINES:
+                raise InputFileError(text.path, f"no 'end_of_head' line in its first {_MAX_HEADER_LINES:,} lines: "
+                                     "not an ICGEM file, or its header is truncated")
+    raise InputFileError(text.path, "no 'end_of_head' line: not an ICGEM file, or its header is truncated")
+
+
+def _icgem_line(path, file_nmax, lineno, parts):
+    """(line, n, m, C, S, σC, σS) of one ICGEM data line, by the format's rules."""
+    key = parts[0].lower()
+    if key in _ICGEM_TIME_KEYS:
+        raise InputFileError(
+            path,
+            f"line {lineno}: time-variable coefficient line {parts[0]!r} is not supported "
+            "(only static 'gfc' models are read)",
+        )
+    if key != "gfc":
+        raise InputFileError(path, f"line {lineno}: unknown data key {parts[0]!r} (expected 'gfc')")
+    if len(parts) not in (5, 7):
+        raise InputFileError(
+            path,
+            f"line {lineno}: expected 'gfc n m C S [sigmaC sigmaS]' (5 or 7 columns), found {len(parts)}",
+        )
+    n = _parse_int(path, lineno, parts[1], "degree n")
+    m = _parse_int(path, lineno, parts[2], "order m")
+    if not 0 <= m <= n:
+        raise InputFileError(path, f"line {lineno}: need 0 <= m <= n, got n={n} m={m}")
+    if n > file_nmax:
+        raise InputFileError(path, f"line {lineno}: degree {n} exceeds the header's max_degree {file_nmax}")
+    c = _parse_float(path, lineno, parts[3], "C")
+    s = _parse_float(path, lineno, parts[4], "S")
+    sc = ss = 0.0
+    if len(parts) == 7:
+        sc = _parse_float(path, lineno, parts[5], "sigma C")
+        ss = _parse_float(path, lineno, parts[6], "sigma S")
+    return lineno, n, m, c, s, sc, ss
+
+
 @_file_faults
-def read_icgem(path, *, max_degree: int | None = None, check_tide_system: bool = True) -> HarmonicModel:
+def read_icgem(path, *, max_degree: int | None = None, check_tide_system: bool = True,
+               progress=None) -> HarmonicModel:
     """Read an ICGEM ``.gfc`` file (static field only).
 
     Header keys used: ``modelname``, ``earth_gravity_constant`` (m³/s²), ``radius`` (m),
@@ -470,20 +771,17 @@ def read_icgem(path, *, max_degree: int | None = None, check_tide_system: bool =
     With ``check_tide_system``, C̄20 is compared with the known EGM96/EGM2008 values
     (:data:`KNOWN_C20`); a contradiction with the header gives a :class:`TideSystemWarning`,
     the model's ``tide_system`` follows the coefficient and the fact is kept in ``notes``.
+    ``progress``: called with each number of bytes of the file read (a progress bar's
+    advance).
     """
-    text, digest = _read_text(path)
-    lines = text.splitlines()
+    text = _Text(path)
+    lines, end, blocks = _icgem_header(text, progress)
     begin = None
-    end = None
-    for idx, line in enumerate(lines):
+    for idx, line in enumerate(lines[:end]):
         token = line.split(None, 1)[0].lower() if line.strip() else ""
-        if token == "begin_of_head" and begin is None:
+        if token == "begin_of_head":
             begin = idx
-        elif token == "end_of_head":
-            end = idx
             break
-    if end is None:
-        raise InputFileError(path, "no 'end_of_head' line: not an ICGEM file, or its header is truncated")
     header = {}
     header_line = {}
     start = 0 if begin is None else begin + 1
@@ -542,54 +840,19 @@ def read_icgem(path, *, max_degree: int | None = None, check_tide_system: bool =
     nmax = file_nmax if max_degree is None else int(max_degree)
     if not 2 <= nmax <= file_nmax:
         raise InputFileError(path, f"requested max_degree {max_degree} outside 2..{file_nmax} (the file's max_degree)")
-    data_lines = [idx for idx in range(end + 1, len(lines)) if lines[idx].strip()]
-    last = lines[data_lines[-1]].split() if data_lines else []
+    layout = _Layout((5, 7), b"gfc", 4, file_nmax, nmax, functools.partial(_icgem_line, path, file_nmax))
+    rows = _read_rows(layout, blocks, end + 1)
     _check_line_count(
-        path, file_nmax, 2, len(data_lines), len(text), f"line {header_line['max_degree']}: max_degree",
-        last=last[1] if len(last) > 1 and last[1].isdigit() else None,
+        path, file_nmax, 2, rows.parsed, text.nbytes, f"line {header_line['max_degree']}: max_degree", last=rows.last_n,
     )
     coll = _Collector(path, nmax, with_sigma)
-    for idx in range(end + 1, len(lines)):
-        line = lines[idx]
-        parts = line.split()
-        if not parts:
-            continue
-        lineno = idx + 1
-        key = parts[0].lower()
-        if key in _ICGEM_TIME_KEYS:
-            raise InputFileError(
-                path,
-                f"line {lineno}: time-variable coefficient line {parts[0]!r} is not supported "
-                "(only static 'gfc' models are read)",
-            )
-        if key != "gfc":
-            raise InputFileError(path, f"line {lineno}: unknown data key {parts[0]!r} (expected 'gfc')")
-        if len(parts) not in (5, 7):
-            raise InputFileError(
-                path,
-                f"line {lineno}: expected 'gfc n m C S [sigmaC sigmaS]' (5 or 7 columns), found {len(parts)}",
-            )
-        n = _parse_int(path, lineno, parts[1], "degree n")
-        m = _parse_int(path, lineno, parts[2], "order m")
-        if not 0 <= m <= n:
-            raise InputFileError(path, f"line {lineno}: need 0 <= m <= n, got n={n} m={m}")
-        if n > file_nmax:
-            raise InputFileError(path, f"line {lineno}: degree {n} exceeds the header's max_degree {file_nmax}")
-        c = _parse_float(path, lineno, parts[3], "C")
-        s = _parse_float(path, lineno, parts[4], "S")
-        sc = ss = None
-        if len(parts) == 7:
-            sc = _parse_float(path, lineno, parts[5], "sigma C")
-            ss = _parse_float(path, lineno, parts[6], "sigma S")
-        if n > nmax:
-            continue
-        coll.add(lineno, n, m, c, s, sc, ss)
+    coll.add_rows(*rows.arrays())
     coll.check_complete(2, "truncated file or incomplete model")
     _check_coefficients(path, coll.C, coll.S, coll.line_of)
     tide, notes = _check_tide_system(path, name, coll.C[2, 0], declared, "the header's tide_system", check_tide_system)
     if declared is None and tide is None:
         notes = notes + ("tide_system not stated in the header",)
-    return coll.model(name, gm, radius, tide, notes, digest)
+    return coll.model(name, gm, radius, tide, notes, text.sha256)
 
 
 # --------------------------------------------------------------------------------------
@@ -654,41 +917,43 @@ def _check_named_degree(path, nmax: int, max_degree, what: str) -> None:
     )
 
 
-def _parse_columns(path, text, ncols, max_degree, what):
-    """Yield (lineno, n, m, values...) from whitespace-separated NGA lines."""
-    for idx, line in enumerate(text.splitlines()):
-        parts = line.split()
-        if not parts:
-            continue
-        lineno = idx + 1
-        if len(parts) != ncols:
-            raise InputFileError(path, f"line {lineno}: expected {ncols} columns ({what}), found {len(parts)}")
-        n = _parse_int(path, lineno, parts[0], "degree n")
-        m = _parse_int(path, lineno, parts[1], "order m")
-        if not 0 <= m <= n:
-            raise InputFileError(path, f"line {lineno}: need 0 <= m <= n, got n={n} m={m}")
-        if max_degree is not None and n > max_degree:
-            continue
-        values = [_parse_float(path, lineno, tok, label) for tok, label in zip(parts[2:], ("C", "S", "sigma C", "sigma S"))]
-        yield lineno, n, m, values
+def _nga_line(path, ncols, what, keep_n, lineno, parts):
+    """(line, n, m, values...) of one NGA line of ``ncols`` columns, by the format's rules;
+    None for a line above ``keep_n`` (dropped)."""
+    if len(parts) != ncols:
+        raise InputFileError(path, f"line {lineno}: expected {ncols} columns ({what}), found {len(parts)}")
+    n = _parse_int(path, lineno, parts[0], "degree n")
+    m = _parse_int(path, lineno, parts[1], "order m")
+    if not 0 <= m <= n:
+        raise InputFileError(path, f"line {lineno}: need 0 <= m <= n, got n={n} m={m}")
+    if n > keep_n:
+        return None
+    _check_degree(path, n, f"line {lineno}: degree")
+    values = [_parse_float(path, lineno, tok, label) for tok, label in zip(parts[2:], ("C", "S", "sigma C", "sigma S"))]
+    return (lineno, n, m, *values)
 
 
-def _rows_and_degree(path, text, ncols, what, max_degree, kind, first_degree):
+def _nga_rows(path, text, ncols, what, max_degree, kind, first_degree, progress=None):
     """The coefficient rows of an NGA-style text and the degree they reach, checked once
     for both readers: a degree within bounds, at least ``max_degree`` when asked, the
     degree the file's name declares, and a line count that fits the degree."""
-    rows = list(_parse_columns(path, text, ncols, max_degree, what))
-    if not rows:
+    keep_n = math.inf if max_degree is None else int(max_degree)
+    layout = _Layout((ncols,), None, ncols - 2, MAX_MODEL_DEGREE, keep_n,
+                     functools.partial(_nga_line, path, ncols, what, keep_n))
+    rows = _read_rows(layout, text.blocks(progress))
+    line, n, m, values = rows.arrays()
+    if not n.size:
         raise InputFileError(path, "no coefficient lines")
-    last_line, nmax = max(((r[0], r[1]) for r in rows), key=lambda r: r[1])
+    top = int(np.argmax(n))
+    nmax, last_line = int(n[top]), int(line[top])
     _check_degree(path, nmax, f"line {last_line}: degree")
     if max_degree is not None and nmax < max_degree:
         raise InputFileError(path, f"requested max_degree {max_degree} but the file stops at degree {nmax}")
     if nmax < first_degree:
         raise InputFileError(path, f"the file stops at degree {nmax}; need at least degree {first_degree}")
     _check_named_degree(path, nmax, max_degree, kind)
-    _check_line_count(path, nmax, first_degree, len(rows), len(text), f"line {last_line}: degree")
-    return rows, nmax
+    _check_line_count(path, nmax, first_degree, rows.parsed, text.nbytes, f"line {last_line}: degree")
+    return (line, n, m, values), nmax
 
 
 @_file_faults
@@ -701,6 +966,7 @@ def read_nga(
     tide_system: str | None = None,
     max_degree: int | None = None,
     check_tide_system: bool = True,
+    progress=None,
 ) -> HarmonicModel:
     """Read NGA's headerless ASCII coefficients: ``n m C S sigmaC sigmaS`` per line.
 
@@ -709,7 +975,8 @@ def read_nga(
     as ``EGM2008_to2190_TideFree_first30``, matches it); the keywords override them and
     are required for other names. The degree is the largest n in the file (or
     ``max_degree``, which truncates); every (n, m) with 2 ≤ n ≤ that degree must be
-    present exactly once. C̄20 is checked as in :func:`read_icgem`.
+    present exactly once. C̄20 is checked as in :func:`read_icgem`. ``progress``: as
+    :func:`read_icgem`'s.
     """
     entry = _nga_lookup(path)
     cat_name, cat_gm, cat_radius, cat_tide = entry if entry else (None, None, None, None)
@@ -727,32 +994,53 @@ def read_nga(
         )
     if tide_system is not None and tide_system not in TIDE_SYSTEMS:
         raise ParameterError(f"tide_system must be one of {TIDE_SYSTEMS} or None, got {tide_system!r}")
-    text, digest = _read_text(path)
-    rows, nmax = _rows_and_degree(path, text, 6, "n m C S sigmaC sigmaS", max_degree, "model", 2)
+    text = _Text(path)
+    rows, nmax = _nga_rows(path, text, 6, "n m C S sigmaC sigmaS", max_degree, "model", 2, progress)
     coll = _Collector(path, nmax, True)
-    for lineno, n, m, (c, s, sc, ss) in rows:
-        coll.add(lineno, n, m, c, s, sc, ss)
+    coll.add_rows(*rows)
+    del rows
     coll.check_complete(2, "truncated file or incomplete model")
     _check_coefficients(path, coll.C, coll.S, coll.line_of)
     tide, notes = _check_tide_system(path, name, coll.C[2, 0], tide_system, source_label, check_tide_system)
-    return coll.model(name, gm, radius, tide, notes, digest)
+    return coll.model(name, gm, radius, tide, notes, text.sha256)
 
 
 _UNITS = {"cm": 0.01, "m": 1.0, "mm": 0.001}
 
 
+def correction_unit(path, model_name: str | None = None) -> str:
+    """The unit of NGA's ζ-to-N correction coefficients in file ``path``.
+
+    NGA publishes two, both ``n m C S`` per line from degree 0: EGM96's CORRCOEF in
+    centimetres (F477 divides its sum by 100) and EGM2008's ``Zeta-to-N_to2160_egm2008``
+    in metres (hsynth_WGS84 reads it with the same routine as its elevation models and
+    adds its sum, unscaled, to ζ and N0). The file's name tells which; a renamed copy
+    takes the unit of the model it goes with (EGM2008: metres), else centimetres."""
+    stem = _nga_stem(path)
+    if stem.startswith("zeta-to-n"):
+        return "m"
+    if stem.startswith(("corrcoef", "corcoef")):
+        return "cm"
+    return "m" if (model_name or "").upper().replace("-", "").startswith("EGM2008") else "cm"
+
+
 @_file_faults
-def read_nga_correction(path, *, unit: str = "cm", name: str | None = None, max_degree: int | None = None) -> CorrectionModel:
-    """Read NGA's ζ-to-N correction coefficients (CORRCOEF: ``n m C S`` per line, n from
-    0, in centimetres; ``unit`` = "cm", "mm" or "m"). Every (n, m) with 0 ≤ n ≤ nmax must
-    be present exactly once."""
+def read_nga_correction(path, *, unit: str | None = None, name: str | None = None, max_degree: int | None = None,
+                        progress=None) -> CorrectionModel:
+    """Read NGA's ζ-to-N correction coefficients: ``n m C S`` per line from degree 0
+    (free format; Fortran ``D`` exponents read as ``E``). ``unit`` = "cm", "mm" or "m";
+    None: by the file's name (:func:`correction_unit`: CORRCOEF centimetres,
+    Zeta-to-N_to2160_egm2008 metres). Every (n, m) with 0 ≤ n ≤ nmax must be present
+    exactly once."""
+    if unit is None:
+        unit = correction_unit(path)
     if unit not in _UNITS:
         raise ParameterError(f"unit must be one of {sorted(_UNITS)}, got {unit!r}")
-    text, digest = _read_text(path)
-    rows, nmax = _rows_and_degree(path, text, 4, "n m C S", max_degree, "correction", 0)
+    text = _Text(path)
+    rows, nmax = _nga_rows(path, text, 4, "n m C S", max_degree, "correction", 0, progress)
     coll = _Collector(path, nmax, False)
-    for lineno, n, m, (c, s) in rows:
-        coll.add(lineno, n, m, c, s)
+    coll.add_rows(*rows)
+    del rows
     coll.check_complete(0, "truncated file or incomplete correction model")
     limit = MAX_ABS_UNDULATION_M / _UNITS[unit]
     worst = np.unravel_index(int(np.argmax(np.maximum(np.abs(coll.C), np.abs(coll.S)))), coll.C.shape)
@@ -769,11 +1057,12 @@ def read_nga_correction(path, *, unit: str = "cm", name: str | None = None, max_
         S=coll.S,
         unit_m=_UNITS[unit],
         source_path=str(path),
-        sha256=digest,
+        sha256=text.sha256,
+        notes=(f"coefficients in {unit}",),
     )
 
 
-_GFC_HINT = re.compile(r"^\s*end_of_head\b", re.MULTILINE | re.IGNORECASE)
+_GFC_HINT = re.compile(rb"^\s*end_of_head\b", re.MULTILINE | re.IGNORECASE)
 
 
 @_file_faults
@@ -785,7 +1074,7 @@ def read_model(path, **kwargs) -> HarmonicModel:
         return read_icgem(path, **kwargs)
     if kind == "nga":
         return read_nga(path, **kwargs)
-    text, _ = _read_text(path)  # the reader's own rule for anything else
-    if _GFC_HINT.search(text):
+    # the reader's own rule for anything else: an end_of_head line anywhere
+    if any(_GFC_HINT.search(block) for block in _Text(path).blocks()):
         return read_icgem(path, **kwargs)
     return read_nga(path, **kwargs)

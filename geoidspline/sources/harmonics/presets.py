@@ -21,13 +21,14 @@ def default_preset(model, correction=None) -> str:
     """The preset used when none is given.
 
     NGA's EGM2008 (model name starting with "EGM2008") gets ``nga-hsynth`` (NGA's
-    hsynth_WGS84, N0 = −0.41 m); everything else, in particular EGM96 and any model
-    given with a ζ-to-N correction, gets geoidspline.sources.harmonics' default, ``nga-f477``
-    (NGA's F477, N0 = −0.53 m). A non-NGA model is better run with an explicit
-    ``preset="generic"``.
+    hsynth_WGS84, N0 = −0.41 m), alone or with EGM2008's own ζ-to-N correction (in
+    metres, Zeta-to-N_to2160_egm2008); everything else, in particular EGM96 and any model
+    given with a correction in centimetres (EGM96's CORRCOEF), gets
+    geoidspline.sources.harmonics' default, ``nga-f477`` (NGA's F477, N0 = −0.53 m). A
+    non-NGA model is better run with an explicit ``preset="generic"``.
     """
     name = (getattr(model, "name", "") or "").upper()
-    if correction is None and name.startswith("EGM2008"):
+    if name.startswith("EGM2008") and (correction is None or getattr(correction, "unit_m", None) == 1.0):
         return "nga-hsynth"
     return DEFAULT_PRESET
 

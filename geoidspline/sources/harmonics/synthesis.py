@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -145,9 +146,14 @@ def _check_correction_degree(correction: CorrectionModel | None, nmax: int, expl
 def _check_range(values, latitude, longitude, source: str, quantity: str) -> None:
     """Refuse a synthesis whose N (or ζ) leaves the geoid's physical range: the model's
     coefficients are not a geoid model's (or the preset or units are wrong)."""
-    magnitude = np.abs(np.where(np.isnan(values), 0.0, values))
-    if magnitude.size == 0 or not magnitude.max() > MAX_ABS_UNDULATION_M:
+    if values.size == 0:
         return
+    # largest and smallest without NaN and without a temporary of the values' size (a
+    # global lattice at degree 2190 is 307 MB); the position only when refused
+    flat = values.reshape(-1)
+    if not max(abs(np.fmax.reduce(flat)), abs(np.fmin.reduce(flat))) > MAX_ABS_UNDULATION_M:
+        return
+    magnitude = np.abs(np.where(np.isnan(values), 0.0, values))
     k = int(np.argmax(magnitude))
     lat = np.broadcast_to(latitude, values.shape).flat[k]
     lon = np.broadcast_to(longitude, values.shape).flat[k]
@@ -238,6 +244,10 @@ class GeoidSynthesis:
             raise ParameterError(f"zero_degree_term_m must be finite, got {zero_degree_term_m}")
         _check_correction_degree(correction, nmax, max_degree is not None)
 
+        engine = os.environ.get("GEOIDSPLINE_LATTICE_ENGINE", "").strip() or type(self).lattice_engine
+        if engine not in ("exact", "sht"):
+            raise ParameterError(f"GEOIDSPLINE_LATTICE_ENGINE must be 'exact' or 'sht', got {engine!r}")
+        self.lattice_engine = engine
         self.model = model.truncated(nmax)
         self.max_degree = nmax
         self.ellipsoid = ellipsoid
@@ -277,8 +287,9 @@ class GeoidSynthesis:
         if self.correction is None:
             notes.append("no zeta-to-N correction: values are height anomalies plus N0")
         else:
+            unit = {0.01: "cm", 1.0: "m", 0.001: "mm"}.get(self.correction.unit_m, f"{self.correction.unit_m} m")
             notes.append(
-                f"zeta-to-N correction {self.correction.name} to degree {self.correction.max_degree} "
+                f"zeta-to-N correction {self.correction.name} to degree {self.correction.max_degree}, in {unit} "
                 f"(sha256 {self.correction.sha256})"
             )
         notes.extend(model.notes)
@@ -393,8 +404,10 @@ class GeoidSynthesis:
         lower edge to the first node at or after each upper edge (clipped at the poles);
         longitudes stay monotonic across the antimeridian (may exceed 180).
 
-        Computed row by row: one set of Legendre sums per latitude, then the longitude
-        sum by a real FFT over the full circle (or a direct product for few columns).
+        Computed row by row: the Legendre sums of every latitude by ducc0's transforms,
+        band by band with the (a/r)^n factor expanded (:mod:`.sht`; ``lattice_engine =
+        "exact"``: the point synthesis's sums, row by row), then the longitude sum by a
+        real FFT over the full circle (or a direct product for few columns).
         """
         if not isinstance(region, Region):
             raise TypeError(f"region must be a Region, got {type(region).__name__}")
@@ -412,6 +425,63 @@ class GeoidSynthesis:
         values = self._lattice(latitude, cols, 2 * k)
         return NodeSample(latitude=latitude, longitude=longitude, undulation=values)
 
+    #: How lattices are synthesised: "exact" (the per-row Legendre sums of the point
+    #: synthesis; the default) or "sht" (ducc0's transforms in canonical groups of rows,
+    #: band by band, see :mod:`.sht`, the ``sht`` extra: within 1e-7 m of exact; a row has
+    #: the same bits whatever rows a call asks for; timings in benchmarks/README.md).
+    #: The environment variable GEOIDSPLINE_LATTICE_ENGINE sets it for new syntheses
+    #: (the command line's fits).
+    lattice_engine = "exact"
+    #: Threads ducc0 may use for a lattice.
+    lattice_threads = 1
+
+    def _sht(self):
+        if getattr(self, "_sht_rows", None) is None:
+            from .sht import ShtRows
+
+            self._sht_rows = ShtRows(self._CT, self._ST, self._radial, self.max_degree)
+        return self._sht_rows
+
+    # Rows by ducc0 are computed in canonical groups: a row's sums are those of its group
+    # (the same rows, the same call, the same bands) whatever rows a call asks for, so a
+    # lattice in bands has the bits of one call. A group: the rows within G of a pole's
+    # distance band, north and south together (one radius: one band of the expansion).
+    _GROUP_DEGREES = 5.0  # a group spans about this much latitude a hemisphere
+    _CACHE_BYTES = 512 << 20  # group sums kept (a global lattice at degree 2190: 154 MB)
+
+    def _group_size(self, k: int) -> int:
+        return max(1, min(128, int(self._GROUP_DEGREES * k / 180.0)))
+
+    def _group_of(self, index, k: int):
+        return np.minimum(index, k - index) // self._group_size(k)
+
+    def _group_sums(self, k: int, g: int):
+        """(lattice row indices, A, B) of group g of the lattice of k + 1 rows, cached."""
+        import collections
+
+        cache = self.__dict__.setdefault("_sht_cache", collections.OrderedDict())
+        key = (k, g)
+        if key in cache:
+            cache.move_to_end(key)
+            return cache[key]
+        size = self._group_size(k)
+        south = np.arange(g * size, min((g + 1) * size, k // 2 + 1))
+        rows = np.unique(np.concatenate([south, k - south]))
+        latitude = rows * 180.0 / k - 90.0
+        t, u, r, gamma = self._geometry(latitude)
+        scale = self._scales(r, gamma, "N")
+        log_q = np.log(self.conventions.scale_a / r)
+        theta = np.arctan2(u, t)  # colatitude of the geocentric latitude
+        sht = self._sht()
+        A = np.empty((rows.size, self.max_degree + 1))
+        B = np.empty((rows.size, self.max_degree + 1))
+        for band in sht.plan(log_q, scale[:, 0]):
+            A[band[0]], B[band[0]] = sht.band_sums(theta, log_q, scale, band, self.lattice_threads)
+        cache[key] = (rows, A, B)
+        while len(cache) > 1 and sum(a.nbytes + b.nbytes for _, a, b in cache.values()) > self._CACHE_BYTES:
+            cache.popitem(last=False)
+        return cache[key]
+
     def _lattice(self, latitude, cols, L):
         """N at latitudes × longitudes cols·360/L (degrees)."""
         nmax = self.max_degree
@@ -422,27 +492,40 @@ class GeoidSynthesis:
         use_fft = (nmax + 1) * ncol > 2 * L * max(1.0, math.log2(L))
         out = np.empty((latitude.size, ncol))
         if use_fft:
-            chunk = max(1, min(latitude.size, 4_000_000 // L))
             index = np.mod(cols, L)
         else:
-            chunk = max(1, min(latitude.size, 4_000_000 // max(ncol, nmax + 1)))
             lam = np.radians(np.mod(cols * (360.0 / L), 360.0))
             mm = np.arange(nmax + 1)[:, None]
             cos_ml = np.cos(mm * lam[None, :])
             sin_ml = np.sin(mm * lam[None, :])
-        for start in range(0, latitude.size, chunk):
-            sl = slice(start, min(latitude.size, start + chunk))
-            nrow = sl.stop - sl.start
-            A = np.empty((nrow, nmax + 1))
-            B = np.empty((nrow, nmax + 1))
-            legendre.row_sums(
-                nmax, np.ascontiguousarray(t[sl]), np.ascontiguousarray(u[sl]), np.ascontiguousarray(q[sl]),
-                np.ascontiguousarray(scale[sl]), self._radial, self._CT, self._ST, self._AT, self._BT, A, B,
-            )
+
+        def emit(rows, A, B):
             if use_fft:
-                out[sl] = legendre.fold_to_circle(A, B, L)[:, index]
+                out[rows] = legendre.fold_to_circle(A, B, L)[:, index]
             else:
-                out[sl] = A @ cos_ml + B @ sin_ml
+                out[rows] = A @ cos_ml + B @ sin_ml
+
+        if self.lattice_engine == "sht":
+            k = L // 2
+            row_index = np.rint((latitude + 90.0) * k / 180.0).astype(np.int64)
+            group = self._group_of(row_index, k)
+            for g in np.unique(group):
+                mine = np.flatnonzero(group == g)
+                rows, A, B = self._group_sums(k, int(g))
+                at = np.searchsorted(rows, row_index[mine])
+                emit(mine, A[at], B[at])
+        else:
+            rows_per_chunk = max(1, min(latitude.size, 4_000_000 // (L if use_fft else max(ncol, nmax + 1))))
+            for start in range(0, latitude.size, rows_per_chunk):
+                sl = slice(start, min(latitude.size, start + rows_per_chunk))
+                nrow = sl.stop - sl.start
+                A = np.empty((nrow, nmax + 1))
+                B = np.empty((nrow, nmax + 1))
+                legendre.row_sums(
+                    nmax, np.ascontiguousarray(t[sl]), np.ascontiguousarray(u[sl]), np.ascontiguousarray(q[sl]),
+                    np.ascontiguousarray(scale[sl]), self._radial, self._CT, self._ST, self._AT, self._BT, A, B,
+                )
+                emit(np.arange(sl.start, sl.stop), A, B)
         out += self.zero_degree_term_m
         lon = cols * (360.0 / L)
         _check_range(out, latitude[:, None], lon[None, :], self.provenance.source, "N")
