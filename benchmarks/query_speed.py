@@ -210,7 +210,7 @@ def run(store: Path, points: int, repeat: int, cold: bool = True, cold_runs: int
         "points": points,
         "repeat": repeat,
         "seed": SEED,
-        "numba_threads_all": all_threads,
+        "threads_all": all_threads,
         "pyproj_pipeline": PIPELINE,
         "pyproj_check": proj_check,
         "first_call_s": first,
@@ -240,7 +240,7 @@ def print_table(r: dict) -> None:
     print()
     print("| variant | ns/point (median) | min..max | pyproj / this |")
     print("|---|---:|---:|---:|")
-    labels = {"ours-1": "geoidspline, 1 thread", "ours-all": f"geoidspline, {r['numba_threads_all']} threads",
+    labels = {"ours-1": "geoidspline, 1 thread", "ours-all": f"geoidspline, {r['threads_all']} threads",
               "pyproj": "pyproj vgridshift egm96_15.gtx"}
     for name in ("ours-1", "ours-all", "pyproj"):
         v = r["ns_per_point"][name]
