@@ -11,9 +11,26 @@
 # mounted directory is not writable for uid 1000, add --user "$(id -u):$(id -g)".
 #
 # requirements.lock is what this image installs (`pip freeze --exclude geoidspline` in the
-# built image: the closure of geoidspline[plot]); the build fails if `pip install` would
-# bring anything else. The base image is pinned to the patch release it was frozen on.
+# built image: the closure of geoidspline[plot]); the build fails if the package's install
+# would bring anything else. The base image is pinned to the patch release it was frozen on.
 # .dockerignore keeps the build context to the files copied below.
+#
+# Two stages: the first builds the package's wheel, compiling its C kernels with Debian's
+# gcc; the second installs the lock and that wheel and carries no compiler.
+FROM python:3.11.7-slim-bookworm AS build
+
+RUN apt-get update \
+ && apt-get install -y --no-install-recommends gcc libc6-dev \
+ && rm -rf /var/lib/apt/lists/*
+WORKDIR /opt/geoidspline
+COPY pyproject.toml README.md ./
+COPY geoidspline ./geoidspline
+COPY cli ./cli
+COPY grids ./grids
+# the README's `pip install .`, as a wheel (cli/ and grids/ install as geoidspline.cli and
+# geoidspline.grids)
+RUN pip wheel --no-cache-dir --no-deps --wheel-dir /wheels .
+
 FROM python:3.11.7-slim-bookworm
 
 # egm96_15.gtx (and PROJ's other grids) in /usr/share/proj, where the catalogue looks
@@ -22,37 +39,23 @@ RUN apt-get update \
  && rm -rf /var/lib/apt/lists/*
 
 RUN useradd --create-home --uid 1000 --shell /usr/sbin/nologin geoid \
- && mkdir -p /data /var/cache/numba \
+ && mkdir -p /data \
  && chown geoid:geoid /data
 
 ENV PIP_NO_CACHE_DIR=1 \
-    PIP_DISABLE_PIP_VERSION_CHECK=1 \
-    NUMBA_CACHE_DIR=/var/cache/numba
+    PIP_DISABLE_PIP_VERSION_CHECK=1
 
 WORKDIR /opt/geoidspline
 COPY requirements.lock ./
 RUN pip install -r requirements.lock
-COPY pyproject.toml README.md ./
-COPY geoidspline ./geoidspline
-COPY cli ./cli
-COPY grids ./grids
-# README.md's set-up command plus the plot extra, so geoid-plot works in the image
-# (non-editable; cli/ and grids/ install as geoidspline.cli and geoidspline.grids). Then
-# the installed set must be the lock exactly, and consistent.
-RUN pip install '.[plot]' \
+# The wheel with the plot extra, so geoid-plot works in the image; --no-index: everything
+# it needs must already be installed from the lock. Then the installed set must be the
+# lock exactly, and consistent. Nothing is compiled at run time.
+COPY --from=build /wheels /wheels
+RUN pip install --no-index --find-links /wheels 'geoidspline[plot]' \
  && pip freeze --exclude geoidspline | diff -u requirements.lock - \
- && pip check
-
-# Compile every numba kernel into the image's cache (NUMBA_CACHE_DIR), the README's set-up
-# step: a container's first fit or query loads them instead of compiling for a minute or
-# more. The second run checks, in a fresh process, that every kernel now loads from the
-# cache. A host whose CPU model differs from the build machine's recompiles once (numba
-# keys its cache on the CPU); the cache stays writable for any uid. (The console script,
-# not `python -m` here: that would import the sources in this directory instead of the
-# installed package, and numba keys its cache on the source file's path.)
-RUN geoid-warmup -q \
- && geoid-warmup --check -q \
- && chmod -R a+rwX /var/cache/numba
+ && pip check \
+ && rm -rf /wheels
 
 USER geoid
 WORKDIR /data

@@ -1,25 +1,20 @@
-"""Cold start: the README's first fit, a first 1,000,000-point batch and a one-point
-query, from an empty numba compile cache.
+"""Cold start: the install, the README's first fit, a first 1,000,000-point batch and a
+one-point query, each as its own process.
 
-    python benchmarks/cold_start.py                    # this venv, a fresh empty cache
-    python benchmarks/cold_start.py --fresh-venv       # also a fresh venv with `pip install .`
-    python benchmarks/cold_start.py --no-warmup-runs 0 --repeat 5
+    python benchmarks/cold_start.py                    # this venv
+    python benchmarks/cold_start.py --fresh-venv       # a fresh venv with `pip install .` first
+    python benchmarks/cold_start.py --repeat 5
 
-Every command runs as its own process. The compile cache starts empty: a new
-``NUMBA_CACHE_DIR`` (or, with ``--fresh-venv``, a new venv whose non-editable install
-keeps the cache in its own ``site-packages``, as the README's set-up does). Then:
+The kernels are C, compiled by pip when the package is installed (``--fresh-venv``
+times that install, the compilation included); nothing is compiled at run time. Then:
 
-1. install: ``geoid-warmup`` (the README's set-up step) fills the cache;
-2. (a) ``geoid-fit egm96-15 --region -60 -90 15 -30 --tolerance 0.5`` (the README's
+1. (a) ``geoid-fit egm96-15 --region -60 -90 15 -30 --tolerance 0.5`` (the README's
    first command; needs PROJ's egm96_15.gtx): the first run after the install is
-   "cold", the ``--repeat`` runs after it "warm";
-3. (b) a fresh Python process opens that store and evaluates 1,000,000 random points
-   of its region (open + index + kernel load or compile + evaluation: "first batch"),
+   "cold", the ``--repeat`` runs after it "warm" (issue 23: cold <= 1.5 x warm);
+2. (b) a fresh Python process opens that store and evaluates 1,000,000 random points
+   of its region (open + index + kernel library load + evaluation: "first batch"),
    then the same points again ("second batch", warm); ``--repeat`` processes;
-4. (c) ``geoid-query --store STORE LAT LON``, ``--repeat`` fresh processes (numpy only);
-5. without the install step: ``--no-warmup-runs`` times (default 1), the fit from a new
-   empty cache and the first batch from another, which then compile their kernels on
-   first use (what a user who skips the warm-up, or a test run, pays).
+3. (c) ``geoid-query --store STORE LAT LON``, ``--repeat`` fresh processes (numpy only).
 
 Prints medians and appends one JSON row to ``benchmarks/results/cold_start.jsonl``
 (date, commit, machine, load averages before and after). The machine's load changes
@@ -88,35 +83,16 @@ def _median(values):
 
 
 class Install:
-    """Where the commands come from, and the environment that gives them an empty cache."""
+    """Where the commands come from."""
 
-    def __init__(self, bin_dir: Path, scratch: Path, in_tree_cache: bool):
+    def __init__(self, bin_dir: Path, scratch: Path):
         self.bin_dir = bin_dir
         self.scratch = scratch
-        self.in_tree_cache = in_tree_cache
         self.env = dict(os.environ)
-        self.env.pop("NUMBA_CACHE_DIR", None)
-        self.caches = 0
 
     @property
     def python(self):
         return str(self.bin_dir / "python")
-
-    def empty_cache(self):
-        """A new, empty compile cache for the commands that follow."""
-        self.caches += 1
-        if self.in_tree_cache:
-            # the venv's own site-packages: remove what numba wrote beside the sources
-            site = subprocess.run([self.python, "-c", "import geoidspline, os; print(os.path.dirname("
-                                   "geoidspline.__file__))"], capture_output=True, text=True, check=True,
-                                  cwd=self.scratch)
-            for cache in Path(site.stdout.strip()).rglob("__pycache__"):
-                for f in list(cache.glob("*.nbi")) + list(cache.glob("*.nbc")):
-                    f.unlink()
-        else:
-            cache = self.scratch / f"numba_cache_{self.caches}"
-            cache.mkdir()
-            self.env["NUMBA_CACHE_DIR"] = str(cache)
 
     def fit(self, out: Path):
         cmd = [str(self.bin_dir / "geoid-fit"), *FIT_ARGS, "--store", str(out), "--overwrite", "--json", "-q"]
@@ -138,12 +114,9 @@ class Install:
                             "geoid-query", self.scratch)
         return round(wall, 3), stdout.strip()
 
-    def warmup(self):
-        wall, stdout = _run([str(self.bin_dir / "geoid-warmup"), "-q"], self.env, "geoid-warmup", self.scratch)
-        return round(wall, 3), stdout.strip()
 
 
-def _fresh_venv(scratch: Path) -> Path:
+def _fresh_venv(scratch: Path) -> tuple[Path, float]:
     venv = scratch / "venv"
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
     # a copy of the sources, so nothing is written into the repository (build/, egg-info)
@@ -152,8 +125,9 @@ def _fresh_venv(scratch: Path) -> Path:
                                                               "out", "results"))
     started = time.perf_counter()
     subprocess.run([str(venv / "bin" / "pip"), "install", "-q", str(src)], check=True)
-    print(f"fresh venv: pip install . took {time.perf_counter() - started:.1f} s", file=sys.stderr)
-    return venv / "bin"
+    seconds = time.perf_counter() - started
+    print(f"fresh venv: pip install . (the C kernels compiled) took {seconds:.1f} s", file=sys.stderr)
+    return venv / "bin", seconds
 
 
 def main(argv=None):
@@ -162,27 +136,21 @@ def main(argv=None):
                         help="install the repository into a new venv (pip install ., as the README) and use it")
     parser.add_argument("--repeat", type=int, default=3, help="warm fits, batch processes and queries (default 3)")
     parser.add_argument("--points", type=int, default=1_000_000, help="points of a batch (default 1,000,000)")
-    parser.add_argument("--no-warmup-runs", type=int, default=1,
-                        help="runs without the install's warm-up step, each from a new empty cache (default 1)")
     parser.add_argument("--results", type=Path, default=HERE / "results" / "cold_start.jsonl")
     args = parser.parse_args(argv)
 
     load_before = os.getloadavg()
     scratch = Path(tempfile.mkdtemp(prefix="cold_start."))
     try:
-        if args.fresh_venv:
-            install = Install(_fresh_venv(scratch), scratch, in_tree_cache=True)
-        else:
-            install = Install(Path(sys.executable).parent, scratch, in_tree_cache=False)
-        store = scratch / "andes"
         row = {"date": datetime.now(timezone.utc).isoformat(timespec="seconds"), "commit": git_commit(REPO),
                "machine": machine_info(), "fresh_venv": args.fresh_venv, "points": args.points,
                "repeat": args.repeat, "load_before": [round(x, 2) for x in load_before]}
-
-        # the install: an empty cache, then the README's warm-up step
-        install.empty_cache()
-        row["warmup_s"], row["warmup_summary"] = install.warmup()
-        print(f"install warm-up: {row['warmup_s']:.1f} s ({row['warmup_summary']})")
+        if args.fresh_venv:
+            bin_dir, row["install_s"] = _fresh_venv(scratch)
+            install = Install(bin_dir, scratch)
+        else:
+            install = Install(Path(sys.executable).parent, scratch)
+        store = scratch / "andes"
 
         fits = [install.fit(store) for _ in range(1 + args.repeat)]
         row["fit_cold"] = fits[0]
@@ -205,16 +173,6 @@ def main(argv=None):
         row["query_value"] = queries[0][1]
         print(f"(c) one-point geoid-query: median {_median(row['query_s']):.3f} s ({queries[0][1]} m)")
 
-        row["no_warmup"] = []
-        for _ in range(args.no_warmup_runs):
-            install.empty_cache()
-            nw_fit = install.fit(scratch / "andes_nowarm")
-            install.empty_cache()  # the fit compiled the query kernels too
-            nw_batch = install.batch(store, args.points, 0)
-            row["no_warmup"].append({"fit": nw_fit, "batch": nw_batch})
-            print(f"without the warm-up: fit {nw_fit['wall_s']:.1f} s (warm {warm:.1f} s: ratio "
-                  f"{nw_fit['wall_s'] / warm:.2f}); then a fresh process's first batch "
-                  f"{nw_batch['process_to_first_s']:.2f} s")
         row["load_after"] = [round(x, 2) for x in os.getloadavg()]
         print(f"load average before {row['load_before']}, after {row['load_after']}")
     finally:

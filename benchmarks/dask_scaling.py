@@ -176,7 +176,7 @@ def run_mode(mode, source, region, base_params, workers):
 
         started = time.perf_counter()
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                               env={"NUMBA_NUM_THREADS": "1"},  # as geoidspline.fitting.executors starts them
+                               env={"GEOIDSPLINE_THREADS": "1"},  # as geoidspline.fitting.executors starts them
                                dashboard_address=":0", scheduler_kwargs={"dashboard": False})
         cluster_start = time.perf_counter() - started
         executor = Executor(workers=workers, scheduler=cluster.scheduler_address)
@@ -226,7 +226,7 @@ import pickle, resource, sys, psutil
 from geoidspline.fitting.least_squares import solve_local_problem
 with open(sys.argv[1], "rb") as fh:
     small, big = pickle.load(fh)
-solve_local_problem(small)  # numba cache load / JIT and qdldl import, outside the measurement
+solve_local_problem(small)  # kernel library load and qdldl import, outside the measurement
 before = psutil.Process().memory_info().rss
 seconds = solve_local_problem(big)[2]
 peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024

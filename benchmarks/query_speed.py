@@ -5,16 +5,16 @@
 
 What it measures, all in one process and on the same points:
 
-* ``ours-1``: ``geoidspline.open_store(STORE).undulation(lat, lon)`` with numba limited
-  to one thread (``numba.set_num_threads(1)``);
-* ``ours-all``: the same call with numba's default thread count (all cores);
+* ``ours-1``: ``geoidspline.open_store(STORE).undulation(lat, lon)`` on one thread
+  (``geoidspline._kernels._clib.set_threads(1)``);
+* ``ours-all``: the same call on all threads (``_clib.threads()`` at start: all cores);
 * ``pyproj``: ``Transformer.from_pipeline('+proj=vgridshift +grids=egm96_15.gtx
   +multiplier=1').transform(lon, lat, zeros)`` (bilinear interpolation of PROJ's 15'
   EGM96 grid; PROJ evaluates it in one thread).
 
 The points are N random points uniform on the sphere (fixed seed 20130101): latitude
-asin(U(-1, 1)), longitude U(-180, 180). Each variant is called once untimed first (JIT /
-numba cache load, PROJ grid opening), then the three variants are timed in turn R times
+asin(U(-1, 1)), longitude U(-180, 180). Each variant is called once untimed first (kernel
+library load, PROJ grid opening), then the three variants are timed in turn R times
 (interleaved, so a burst of load from other processes hits all of them alike). The
 figure reported is the median over the R runs of (wall time / N), in ns per point; the
 ratio is pyproj / ours (> 1: ours is faster).
@@ -25,7 +25,7 @@ Before the warm-up it times opening the store (the manifest only), reading every
 It also measures the first-query latency of a cold process: the wall time of
 ``geoid-query --store STORE LAT LON`` as a subprocess (interpreter start, imports,
 opening the manifest, reading and checking the few tiles around the point, one numpy
-evaluation: numba is not imported), median of 5 runs after one untimed priming run
+evaluation: the compiled kernels are not loaded), median of 5 runs after one untimed priming run
 (reported separately). LAT LON is the centre of the store's region. ``--cold-only``
 measures just that. The load averages before and after are recorded (the machine is
 shared).
@@ -146,12 +146,12 @@ def region_centre(manifest: dict):
 
 
 def run(store: Path, points: int, repeat: int, cold: bool = True, cold_runs: int = COLD_RUNS) -> dict:
-    import numba
+    from geoidspline._kernels import _clib
 
     import geoidspline
 
     load_before = os.getloadavg()
-    all_threads = numba.config.NUMBA_NUM_THREADS
+    all_threads = _clib.threads()
     lat, lon = random_points(points)
     zeros = np.zeros(points)
 
@@ -168,17 +168,17 @@ def run(store: Path, points: int, repeat: int, cold: bool = True, cold_runs: int
         return proj_undulation(transformer, lat, lon, zeros)
 
     variants = {
-        "ours-1": (lambda: numba.set_num_threads(1), ours),
-        "ours-all": (lambda: numba.set_num_threads(all_threads), ours),
+        "ours-1": (lambda: _clib.set_threads(1), ours),
+        "ours-all": (lambda: _clib.set_threads(all_threads), ours),
         "pyproj": (lambda: None, proj),
     }
-    # warm-up: first calls (JIT or numba cache load, thread pool start, PROJ grid open) untimed
+    # warm-up: first calls (kernel library load, PROJ grid open) untimed
     first = {}
     results = {}
     for name, (setup, func) in variants.items():
         setup()
         first[name], results[name] = timed(func)
-    numba.set_num_threads(all_threads)
+    _clib.set_threads(all_threads)
     if not np.array_equal(results["ours-1"], results["ours-all"], equal_nan=True):
         raise SystemExit("ours-1 and ours-all disagree: the threaded kernel is not deterministic")
 
@@ -188,7 +188,7 @@ def run(store: Path, points: int, repeat: int, cold: bool = True, cold_runs: int
             setup()
             elapsed, _ = timed(func)
             samples[name].append(elapsed / points * 1e9)
-    numba.set_num_threads(all_threads)
+    _clib.set_threads(all_threads)
 
     medians = {name: statistics.median(v) for name, v in samples.items()}
     region = st.manifest["region"]
@@ -210,8 +210,7 @@ def run(store: Path, points: int, repeat: int, cold: bool = True, cold_runs: int
         "points": points,
         "repeat": repeat,
         "seed": SEED,
-        "numba_threads_all": all_threads,
-        "numba_threading_layer": numba.threading_layer(),
+        "threads_all": all_threads,
         "pyproj_pipeline": PIPELINE,
         "pyproj_check": proj_check,
         "first_call_s": first,
@@ -241,7 +240,7 @@ def print_table(r: dict) -> None:
     print()
     print("| variant | ns/point (median) | min..max | pyproj / this |")
     print("|---|---:|---:|---:|")
-    labels = {"ours-1": "geoidspline, 1 thread", "ours-all": f"geoidspline, {r['numba_threads_all']} threads",
+    labels = {"ours-1": "geoidspline, 1 thread", "ours-all": f"geoidspline, {r['threads_all']} threads",
               "pyproj": "pyproj vgridshift egm96_15.gtx"}
     for name in ("ours-1", "ours-all", "pyproj"):
         v = r["ns_per_point"][name]

@@ -4,14 +4,15 @@
 #   bash benchmarks/replay_docker.sh [DOCKERFILE]
 #
 # Reads the Dockerfile (default: the repository's), follows its WORKDIR and COPY
-# instructions into a scratch "image root" and replays every `RUN pip install ...` line
-# there with a fresh venv's pip (python3 -m venv $TMP/venv), so the COPY set and the
-# pinned requirements.lock are checked too (with the image's `pip freeze | diff` against
-# the lock and `pip check`), and each `geoid-warmup` step
-# (the numba kernels compiled into a scratch NUMBA_CACHE_DIR). Then runs the image's commands
-# (geoid-fit --help, geoid-query --help, geoid-info --help) from that venv.
+# instructions into a scratch "image root" (one root for both stages: the build stage's
+# paths, /opt/geoidspline and /wheels, are where the final stage's `COPY --from` puts
+# them) and replays every `RUN pip wheel ...` and `RUN pip install ...` line there with a
+# fresh venv's pip (python3 -m venv $TMP/venv), so the COPY set and the pinned
+# requirements.lock are checked too (with the image's `pip freeze | diff` against the lock
+# and `pip check`). The apt-get lines are not replayed: the host needs gcc. Then runs the
+# image's commands (geoid-fit --help, geoid-query --help, geoid-info --help) from that venv.
 # Needs network access to the package index (or a local mirror in pip's configuration);
-# takes five to ten minutes (most of it compiling the kernels). Exit status 0 when everything worked.
+# takes a few minutes. Exit status 0 when everything worked.
 set -euo pipefail
 
 here="$(cd "$(dirname "$0")" && pwd)"
@@ -52,6 +53,8 @@ for line in lines:
     if instr == "WORKDIR":
         workdir = posixpath.normpath(posixpath.join(workdir, rest.strip()))
     elif instr == "COPY":
+        if rest.strip().startswith("--from="):
+            continue  # from the build stage, already at its place in the one root
         args = [a for a in shlex.split(rest) if not a.startswith("--")]
         *srcs, dest = args
         dest_abs = posixpath.join(workdir, dest)
@@ -62,23 +65,21 @@ for line in lines:
             print(f"copy\t{src}\t{posixpath.normpath(target)}")
     elif instr == "RUN":
         words = shlex.split(rest)
-        # each command of a `a && b` chain: pip install, the lock check (pip freeze ... |
-        # diff, pip check) and the kernel warm-up (geoid-warmup ...)
+        # each command of a `a && b` chain: pip wheel, pip install, the lock check (pip
+        # freeze ... | diff, pip check); rm -rf of a path in the root
         part = []
         for w in words + ["&&"]:
             if w != "&&":
                 part.append(w)
                 continue
-            if part[:2] == ["pip", "install"]:
+            if part[:2] in (["pip", "install"], ["pip", "wheel"]):
                 found += 1
-                print("run\t" + workdir + "\t" + "\t".join(part[2:]))
+                print("run\t" + workdir + "\t" + "\t".join(part[1:]))
             elif part[:2] == ["pip", "freeze"] and "|" in part:
                 bar = part.index("|")
                 print("freeze\t" + workdir + "\t" + "\t".join(part[2:bar]) + "\t|\t" + "\t".join(part[bar + 1:]))
             elif part == ["pip", "check"]:
                 print("check\t" + workdir + "\t")
-            elif part[:1] == ["geoid-warmup"]:
-                print("warm\t" + workdir + "\t" + "\t".join(part[1:]))
             part = []
 if not found:
     sys.exit(f"{sys.argv[1]}: no 'RUN pip install' line")
@@ -106,8 +107,12 @@ while IFS=$'\t' read -r kind a b rest; do
         IFS=$'\t' read -r -a more <<<"$rest"
         args+=("${more[@]}")
       fi
-      echo "+ (cd $a) pip install ${args[*]}" >&2
-      (cd "$root$a" && PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1 "$venv_bin/pip" install -q "${args[@]}")
+      # paths of the image (the wheel directory) live under the scratch root
+      for i in "${!args[@]}"; do
+        case "${args[$i]}" in /*) args[$i]="$root${args[$i]}" ;; esac
+      done
+      echo "+ (cd $a) pip ${args[*]}" >&2
+      (cd "$root$a" && PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1 "$venv_bin/pip" -q "${args[@]}")
       ;;
     freeze)
       # `pip freeze ARGS | CMD...`: the installed set against the lock (CMD reads stdin)
@@ -119,18 +124,6 @@ while IFS=$'\t' read -r kind a b rest; do
     check)
       echo "+ pip check" >&2
       "$venv_bin/pip" check
-      ;;
-    warm)
-      # the image's NUMBA_CACHE_DIR, here a scratch directory, empty at first
-      args=()
-      [ -n "$b" ] && args+=("$b")
-      if [ -n "${rest:-}" ]; then
-        IFS=$'\t' read -r -a more <<<"$rest"
-        args+=("${more[@]}")
-      fi
-      echo "+ (cd $a) geoid-warmup ${args[*]}" >&2
-      mkdir -p "$root$a" "$TMP/numba_cache"
-      (cd "$root$a" && NUMBA_CACHE_DIR="$TMP/numba_cache" "$venv_bin/geoid-warmup" "${args[@]}")
       ;;
   esac
 done <"$steps"

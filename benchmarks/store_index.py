@@ -6,11 +6,11 @@ Each run is a fresh subprocess (so the peak RSS, ``ru_maxrss``, is its own): ope
 store, read every tile and build the compiled index (``store.spline.index``), evaluate
 one batch so the kernels are loaded; ``--process command`` first pins glibc's mmap
 threshold as the geoid-* commands do, ``--process library`` leaves it as a program using
-the library does. The first run of a store warms the file cache and
-numba's on-disk cache; the median of the others is the warm figure. Prints one JSON
+the library does. The first run of a store warms the file cache; the median of the
+others is the warm figure. Prints one JSON
 line per store: bytes on disk, coefficients, bytes per coefficient, format, open and
 index seconds (median of warm runs; reading every tile and building the index apart,
-the latter including loading the kernels from numba's cache), peak RSS in MB (max over
+the latter including loading the compiled kernels' library), peak RSS in MB (max over
 runs; also after reading alone).
 """
 

@@ -34,7 +34,7 @@ def open_store(path, *, lazy: bool = True, verify: bool = True, key=None):
     ``lazy`` (default) reads a tile when a query first needs it; ``lazy=False`` reads and
     checks every tile now. ``verify`` checks each tile's sha256 as it is read (sizes are
     always checked). ``key``: the Ed25519 public key (PEM file) that must have signed
-    the store (docs/signing.md). Imports neither numba nor scipy: a one-point query stays fast.
+    the store (docs/signing.md). Imports neither the compiled kernels nor scipy: a one-point query stays fast.
     """
     from .store.reader import TileStore
 

@@ -12,7 +12,7 @@ The layers, bottom to top (docs/ARCHITECTURE.md draws them):
    ``grids`` (data);
 2. ``sphere`` (geometry); 3. ``bspline`` (basis, levels, brick index); 4. ``hierarchy``;
 5. side by side, importing none of each other: ``sources``, ``fitting``, ``store``, ``query``;
-6. the front door: ``api`` (and the root package, ``warmup``), composing the four;
+6. the front door: ``api`` (and the root package), composing the four;
 7. ``cli``: parsing and printing, importing only the front door and the error types.
 """
 
@@ -40,7 +40,7 @@ LAYERS = [  # (rank, prefixes)
     (3, ("geoidspline.bspline",)),
     (4, ("geoidspline.hierarchy",)),
     (5, SIDE_BY_SIDE),
-    (6, ("geoidspline.api", "geoidspline.warmup")),
+    (6, ("geoidspline.api",)),
     (7, ("geoidspline.cli", "geoidspline.__main__")),
 ]
 # what the command line may import besides itself
@@ -207,11 +207,12 @@ def test_the_layer_rule(source, target, ok):
     assert allowed(source, target) is ok
 
 
-def test_reading_a_store_imports_neither_numba_nor_scipy():
+def test_reading_a_store_imports_neither_the_compiled_kernels_nor_scipy():
     """What a one-point query needs (opening a store, the numpy evaluator, the front door
-    and geoid-query's module) stays light: numba alone costs about a second in a cold process."""
+    and geoid-query's module) stays light: scipy alone costs a few hundred ms in a cold
+    process, and the kernels' library (ctypes) is only for large batches and fits."""
     code = ("import sys, geoidspline, geoidspline.store.reader, geoidspline.query.derived, geoidspline.api, "
             "geoidspline.query.batch, geoidspline.cli.query; "
-            "print(sorted(m for m in ('numba', 'scipy', 'pyproj', 'xarray', 'dask') if m in sys.modules))")
+            "print(sorted(m for m in ('geoidspline._kernels._clib', 'scipy', 'pyproj', 'xarray', 'dask') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"

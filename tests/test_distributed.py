@@ -53,7 +53,7 @@ def assert_same_coefficients(a, b):
     for la, lb in zip(a.spline.levels, b.spline.levels):
         assert la.h == lb.h
         assert np.array_equal(la.indices, lb.indices)
-        # bitwise: a block is the same computation wherever it runs (a serial numba
+        # bitwise: a block is the same computation wherever it runs (a serial compiled
         # kernel builds the normal equations, qdldl factorises them: no threads, no BLAS)
         assert np.array_equal(la.coefficients, lb.coefficients)
     assert [r.blocks_solved for r in a.levels] == [r.blocks_solved for r in b.levels]

@@ -123,13 +123,17 @@ def test_readme_setup_command_fits_and_queries_with_negative_coordinates():
     assert [float(v) for v in query[-2:]] == [-33.45, -70.66]
 
 
-def test_readme_setup_compiles_the_kernels_between_install_and_first_fit():
-    names = [Path(argv[0]).name for argv in chain(readme_commands()[0])]
-    install = max(i for i, argv in enumerate(chain(readme_commands()[0]))
+def test_readme_setup_installs_a_c_compiler_before_the_package_and_nothing_after():
+    """pip builds the C kernels (a compiler, no Python headers), and then nothing is left to
+    compile: the fit follows the install directly."""
+    setup = chain(readme_commands()[0])
+    names = [Path(argv[0]).name for argv in setup]
+    apt = next(i for i, argv in enumerate(setup) if argv[:2] == ["apt-get", "install"])
+    assert "gcc" in setup[apt]
+    install = max(i for i, argv in enumerate(setup)
                   if (args := pip_install_args(argv)) is not None and package_install(args) is not None)
-    # the console script imports the installed package (python -m from the repository root
-    # would warm up the source tree, whose cache the installed commands never read)
-    assert install < names.index("geoid-warmup") < names.index("geoid-fit"), names
+    assert apt < install and names[install + 1] == "geoid-fit", names
+    assert not any(name.startswith("geoid-warmup") for name in names)
 
 
 def test_ci_run_runs_the_readme_test_command():
@@ -145,14 +149,33 @@ def test_ci_run_runs_the_readme_test_command():
 # -- Dockerfile ---------------------------------------------------------------------------
 
 
-def test_dockerfile_installs_the_package_as_the_readme_does_with_the_plot_extra():
+def dockerfile_stages() -> list[list[tuple[str, str]]]:
+    """The Dockerfile's instructions, one list per stage (each starting with its FROM)."""
+    stages = []
+    for instr, rest in dockerfile_instructions():
+        if instr == "FROM":
+            stages.append([])
+        stages[-1].append((instr, rest))
+    return stages
+
+
+def runs_of(stage) -> list[list[str]]:
+    return [argv for instr, rest in stage if instr == "RUN" for argv in chain(rest)]
+
+
+def test_dockerfile_builds_the_readme_package_as_a_wheel_and_installs_it_with_the_plot_extra():
     readme_installs = [package_install(args) for argv in chain(readme_commands()[0])
                        if (args := pip_install_args(argv)) is not None]
-    readme_installs = [a for a in readme_installs if a is not None]
-    docker_installs = [a for a in (package_install(args) for args in docker_pip_installs()) if a is not None]
-    assert len(readme_installs) == 1, readme_installs
-    # geoid-plot must work in the image: the README's install plus the plot extra
-    assert docker_installs == [[".[plot]" if a == "." else a for a in readme_installs[0]]], docker_installs
+    assert [a for a in readme_installs if a is not None] == [["."]], readme_installs
+    build, final = dockerfile_stages()
+    wheel = [argv for argv in runs_of(build) if argv[:2] == ["pip", "wheel"]]
+    assert len(wheel) == 1 and wheel[0][-1] == "." and "--no-deps" in wheel[0], wheel
+    wheel_dir = wheel[0][wheel[0].index("--wheel-dir") + 1]
+    assert any(instr == "COPY" and rest.split() == [f"--from={build[0][1].split()[-1]}", wheel_dir, wheel_dir]
+               for instr, rest in final)
+    installs = [pip_install_args(argv) for argv in runs_of(final) if pip_install_args(argv) is not None]
+    # geoid-plot must work in the image; --no-index: the lock must already hold every dependency
+    assert installs[-1] == ["--no-index", "--find-links", wheel_dir, "geoidspline[plot]"], installs
 
 
 def test_dockerfile_checks_that_the_image_holds_exactly_the_lock():
@@ -167,44 +190,41 @@ def test_dockerignore_admits_only_what_the_image_copies():
                 if ln.strip() and not ln.lstrip().startswith("#")]
     assert patterns[0] == "*"  # everything out (.venv, .git, caches, stores), then the sources back in
     admitted = {p[1:] for p in patterns if p.startswith("!")}
-    copies = [shlex.split(rest)[:-1] for instr, rest in dockerfile_instructions() if instr == "COPY"]
+    copies = [shlex.split(rest)[:-1] for instr, rest in dockerfile_instructions()
+              if instr == "COPY" and not rest.startswith("--from=")]
     assert admitted == {src.rstrip("/") for srcs in copies for src in srcs}
     assert {"**/__pycache__", "**/*.pyc"} <= set(patterns)
 
 
 def test_dockerfile_installs_the_lock_before_the_package():
-    installs = docker_pip_installs()
+    build, final = dockerfile_stages()
+    installs = [pip_install_args(argv) for argv in runs_of(final) if pip_install_args(argv) is not None]
     assert installs[0] == ["-r", "requirements.lock"], installs
-    assert package_install(installs[-1]) is not None
-    copies = [rest for instr, rest in dockerfile_instructions() if instr == "COPY"]
-    assert any("requirements.lock" in c.split() for c in copies)
-    # everything `pip install .` needs is copied into the image
-    copied = {w for c in copies for w in shlex.split(c)[:-1]}
+    assert any("requirements.lock" in rest.split() for instr, rest in final if instr == "COPY")
+    # everything `pip wheel .` needs is copied into the build stage
+    copied = {w for instr, rest in build if instr == "COPY" for w in shlex.split(rest)[:-1]}
     assert {"pyproject.toml", "README.md", "geoidspline", "cli", "grids"} <= copied, copied
 
 
-def test_dockerfile_compiles_and_checks_the_kernels_after_installing_the_package():
-    instructions = dockerfile_instructions()
-    runs = [(i, chain(rest)) for i, (instr, rest) in enumerate(instructions) if instr == "RUN"]
-    package = max(i for i, argvs in runs for argv in argvs
-                  if (args := pip_install_args(argv)) is not None and package_install(args) is not None)
-    warmups = [(i, argv) for i, argvs in runs for argv in argvs if argv[0] == "geoid-warmup"]
-    assert [argv for _, argv in warmups] == [["geoid-warmup", "-q"], ["geoid-warmup", "--check", "-q"]], warmups
-    assert all(i > package for i, _ in warmups)
-    env = " ".join(rest for instr, rest in instructions[:warmups[0][0]] if instr == "ENV")
-    assert "NUMBA_CACHE_DIR=" in env  # the cache the container's user reads
+def test_dockerfile_compiles_in_the_build_stage_only():
+    """gcc builds the kernels in the first stage; the image itself holds no compiler and
+    compiles nothing at run time (no numba, no warm-up step)."""
+    build, final = dockerfile_stages()
+    apt_build = [argv for argv in runs_of(build) if argv[:2] == ["apt-get", "install"]]
+    assert len(apt_build) == 1 and "gcc" in apt_build[0]
+    assert not any("gcc" in argv for argv in runs_of(final) if argv[:2] == ["apt-get", "install"])
+    text = DOCKERFILE.read_text(encoding="utf-8")
+    assert "geoid-warmup" not in text and "NUMBA" not in text
 
 
 def test_dockerfile_base_image_is_pinned():
-    base = [rest for instr, rest in dockerfile_instructions() if instr == "FROM"]
-    assert len(base) == 1
-    image = base[0].split()[0]
-    assert re.fullmatch(r"python:3\.11\.\d+-slim-[a-z]+(@sha256:[0-9a-f]{64})?", image), image
+    bases = [stage[0][1].split()[0] for stage in dockerfile_stages()]
+    assert len(bases) == 2 and bases[0] == bases[1], bases
+    assert re.fullmatch(r"python:3\.11\.\d+-slim-[a-z]+(@sha256:[0-9a-f]{64})?", bases[0]), bases
 
 
 def test_dockerfile_installs_proj_data_only():
-    runs = [rest for instr, rest in dockerfile_instructions() if instr == "RUN"]
-    apt = [argv for rest in runs for argv in chain(rest) if argv[:2] == ["apt-get", "install"]]
+    apt = [argv for argv in runs_of(dockerfile_stages()[-1]) if argv[:2] == ["apt-get", "install"]]
     assert len(apt) == 1
     assert "--no-install-recommends" in apt[0]
     assert [a for a in apt[0][2:] if not a.startswith("-")] == ["proj-data"]

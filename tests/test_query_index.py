@@ -304,8 +304,7 @@ def test_latlon_batches_in_one_call_equal_directions_then_points(order):
     """AmbientSpline.undulation on a large batch (fused sort, directions and kernel) gives
     bitwise the values of evaluate_points at directions(), for any thread count and
     block split, and the reference sum to 1e-9 m; NaN gives NaN."""
-    import numba
-
+    from geoidspline._kernels import _clib
     from geoidspline.hierarchy.ambient import FOLDED_FROM_POINTS
 
     levels = random_overlays(31, order=order, nlevels=4 if order == 4 else 3)
@@ -318,13 +317,13 @@ def test_latlon_batches_in_one_call_equal_directions_then_points(order):
     lon[::103] = np.nan
     lat[5], lat[6] = 90.0, -90.0
     want = spline.evaluate_points(directions(lat, lon))
-    threads = numba.get_num_threads()
+    threads = _clib.threads()
     try:
-        for n in sorted({1, threads}):
-            numba.set_num_threads(n)
+        for n in sorted({1, 2, threads}):
+            _clib.set_threads(n)
             np.testing.assert_array_equal(spline.undulation(lat, lon), want)
     finally:
-        numba.set_num_threads(threads)
+        _clib.set_threads(threads)
     assert np.isnan(want[::101]).all() and np.isnan(want[::103]).all()
     ok = np.flatnonzero(np.isfinite(lat) & np.isfinite(lon))[:3000]
     ref = reference_evaluate(levels, directions(lat[ok], lon[ok]))[:, 0]
@@ -374,3 +373,43 @@ def test_compiled_directions_agree_with_numpy_trigonometry():
     np.testing.assert_array_equal(np.abs(got[:6]).max(axis=1), 1.0)
     wrapped = directions(lat, lon + 360.0 * rng.integers(-3, 4, n))
     assert np.abs(wrapped - got).max() <= 1e-13  # the wrap rounds the longitude, not the formula
+
+
+def test_dense_latlon_batches_equal_directions_then_points():
+    """A dense regional batch (thousands of points per 1.41° sort bucket: the buckets are
+    re-sorted by counting on their fine cells) gives bitwise the values of evaluate_points
+    at directions(), on one thread and two."""
+    from geoidspline._kernels import _clib
+
+    spline = AmbientSpline(random_overlays(51, nlevels=3))
+    rng = np.random.default_rng(52)
+    lat = rng.uniform(10.0, 12.5, 50_000)
+    lon = rng.uniform(-181.0, -178.0, 50_000)  # across the antimeridian
+    lat[::97] = np.nan
+    want = spline.evaluate_points(directions(lat, lon))
+    threads = _clib.threads()
+    try:
+        for n in (1, 2):
+            _clib.set_threads(n)
+            np.testing.assert_array_equal(spline.undulation(lat, lon), want)
+    finally:
+        _clib.set_threads(threads)
+    assert np.isnan(want[::97]).all() and np.isfinite(want[1::97]).all()
+
+
+def test_a_pickled_index_evaluates_the_same():
+    """The kernels' record holds this process's addresses: a pickled index rebuilds it."""
+    import pickle
+
+    spline = AmbientSpline(random_overlays(61, nlevels=2))
+    rng = np.random.default_rng(62)
+    points = unit_vectors(rng, 30_000)
+    want = spline.evaluate_points(points, nderiv=2)
+    copy = pickle.loads(pickle.dumps(spline.index))
+    out = np.zeros((points.shape[0], 10))
+    copy.add_to(points, out, nderiv=2)
+    np.testing.assert_array_equal(out, want)
+    with pytest.raises(TypeError, match="values"):
+        _kernels.Spline.of(4, copy.inv_hs, copy.band_lo2, copy.band_hi2, copy.presence, copy.slots,
+                           copy.slot_start, copy.slot_mask, copy.fold_base, copy.fold_cols, copy.own_base,
+                           copy.own_cols, copy.values.astype(np.float32))

@@ -1,5 +1,5 @@
-"""Compiled kernels, by stage, free of validation: C (``src/``, loaded by :mod:`._clib`), and
-numba for :mod:`.query` until it moves to C too.
+"""Compiled kernels, by stage, free of validation: C (``src/``, built at install, loaded
+by :mod:`._clib`); nothing is compiled at run time.
 
 - :mod:`.layout`: the packed key layout (plain integers);
 - :mod:`.common`: key packing, binary search, B-spline weights;
@@ -20,5 +20,5 @@ Conventions shared by every kernel:
 
 Callers pass well-formed contiguous arrays; the validated APIs live in the packages
 named after each stage. Importing this package imports nothing: the submodules load the
-compiled library, and :mod:`.query` numba, which a one-point query never needs.
+compiled library, which a one-point query never needs.
 """

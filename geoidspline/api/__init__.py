@@ -3,7 +3,7 @@
 The packages below compose here (docs/ARCHITECTURE.md): :mod:`geoidspline.fitting`
 fits, :mod:`geoidspline.store` persists, :mod:`geoidspline.sources` reads,
 :mod:`geoidspline.query` evaluates; the command line (``geoidspline.cli``) only parses,
-calls this module and prints. Importing it is light (neither numba nor scipy): every
+calls this module and prints. Importing it is light (neither the compiled kernels nor scipy): every
 operation imports what it needs when called, and the names the command line needs for
 its options (:data:`PRESETS`, :data:`FIT_METHODS`, ...) are re-exported on first access.
 

@@ -1,4 +1,4 @@
-"""Pure-numpy evaluation of sparse ambient B-spline levels (no numba).
+"""Pure-numpy evaluation of sparse ambient B-spline levels (no compiled kernels).
 
 The small-batch path of :class:`geoidspline.hierarchy.AmbientSpline` and the reference
 the compiled kernels (:mod:`geoidspline._kernels.query`) are tested against. It computes the

@@ -1,7 +1,6 @@
 """The query index: every level's coefficients regrouped by bricks, with folded levels.
 
-See :class:`BrickIndex`. Compiled kernels are in :mod:`geoidspline._kernels.query`;
-importing this module imports numba, so only large batches do.
+See :class:`BrickIndex`. Compiled kernels are in :mod:`geoidspline._kernels.query` (C).
 """
 
 from __future__ import annotations
@@ -11,7 +10,7 @@ import math
 import numpy as np
 
 from .._kernels import query as _qk
-from .._kernels._jit import numba_threads
+from .._kernels._clib import threads
 from .basis import refinement_weights
 from .keys import KEY_BITS, KEY_OFFSET, pack_keys, unpack_keys
 from .level import LevelSpline
@@ -310,6 +309,21 @@ class BrickIndex:
         self.values = cat(values, np.float64, 0)
         n = _qk.PRESENCE_SIDE
         self.presence = np.stack(presence) if presence else np.zeros((0, n, n, n), np.uint8)
+        self._spline = None
+
+    @property
+    def spline(self) -> _qk.Spline:
+        """The tables as the kernels take them (one record, built on first use)."""
+        if self._spline is None:
+            self._spline = _qk.Spline.of(self.order, self.inv_hs, self.band_lo2, self.band_hi2, self.presence,
+                                         self.slots, self.slot_start, self.slot_mask, self.fold_base,
+                                         self.fold_cols, self.own_base, self.own_cols, self.values)
+        return self._spline
+
+    def __getstate__(self):
+        state = self.__dict__.copy()
+        state["_spline"] = None  # addresses of this process's arrays
+        return state
 
     # -- folding ------------------------------------------------------------------
 
@@ -429,16 +443,10 @@ class BrickIndex:
             out[np.isnan(latitude) | np.isnan(longitude)] = np.nan
             return out, 0
         # blocks of at least 2**15 points, up to 4 per thread (a histogram of 32,769
-        # counts each); numba's default static schedule (handing out chunks one at a
-        # time, set_parallel_chunksize(1), was 1.2-1.9 times slower)
-        nblocks = max(1, min(4 * numba_threads(), m >> 15))
-        invalid = _qk.undulation_latlon(latitude, longitude, nblocks, self.order, self.inv_hs,
-                                             self.band_lo2, self.band_hi2, self.presence, self.slots,
-                                             self.slot_start, self.slot_mask, self.fold_base, self.fold_cols,
-                                             self.own_base, self.own_cols, self.values, out)
+        # counts each)
+        nblocks = max(1, min(4 * threads(), m >> 15))
+        invalid = _qk.undulation_latlon(self.spline, latitude, longitude, nblocks, out)
         return out, int(invalid)
 
     def _evaluate(self, points, out, nderiv):
-        _qk.evaluate_bricks(points, self.inv_hs, self.band_lo2, self.band_hi2, self.order, nderiv,
-                                 self.presence, self.slots, self.slot_start, self.slot_mask, self.fold_base,
-                                 self.fold_cols, self.own_base, self.own_cols, self.values, out)
+        _qk.evaluate_bricks(self.spline, points, nderiv, out)

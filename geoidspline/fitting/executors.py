@@ -37,9 +37,8 @@ SCHEDULER_PREFIXES = ("tcp://", "tls://", "inproc://", "ucx://")
 
 
 #: Environment of the worker processes of a LocalCluster: one solver per process, so
-#: the kernels' threads (and numba's pool, while the query kernels use it) stay at one
-#: (dask already pins OpenMP/MKL/OpenBLAS).
-_WORKER_ENV = {"GEOIDSPLINE_THREADS": "1", "NUMBA_NUM_THREADS": "1"}
+#: the kernels' threads stay at one (dask already pins OpenMP/MKL/OpenBLAS).
+_WORKER_ENV = {"GEOIDSPLINE_THREADS": "1"}
 
 
 @dataclass(frozen=True)

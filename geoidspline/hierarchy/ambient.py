@@ -25,8 +25,8 @@ class AmbientSpline:
     was evaluated before):
 
     - fewer than :data:`FOLDED_FROM_POINTS` points: pure numpy, level by level
-      (:func:`geoidspline.bspline.evaluate.evaluate_levels`); nothing to build, numba is not
-      imported, so a one-point query in a fresh process stays fast;
+      (:func:`geoidspline.bspline.evaluate.evaluate_levels`); nothing to build, the compiled
+      kernels are not loaded, so a one-point query in a fresh process stays fast;
     - from :data:`FOLDED_FROM_POINTS` points on: the compiled folded index
       (:class:`BrickIndex`, one level per point near the sphere), built on first use.
 
@@ -49,7 +49,7 @@ class AmbientSpline:
     def index(self):
         """The folded query index (built on first use)."""
         if self._folded is None:
-            from ..bspline.index import BrickIndex  # imports numba: large batches only
+            from ..bspline.index import BrickIndex  # loads the compiled kernels: large batches only
 
             self._folded = BrickIndex(self.levels, self.order)
         return self._folded

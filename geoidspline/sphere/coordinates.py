@@ -13,8 +13,8 @@ import numpy as np
 from ..errors import CoordinateError
 from .region import MAX_ABS_POINT_LONGITUDE_DEG
 
-#: Batches from this size on use compiled code (worth numba's import and compile-cache
-#: load); smaller ones are evaluated with numpy, so a one-point query stays fast.
+#: Batches from this size on use compiled code (worth loading the kernel library and a
+#: thread fan-out); smaller ones are evaluated with numpy, so a one-point query stays fast.
 COMPILED_FROM_POINTS = 2048
 
 

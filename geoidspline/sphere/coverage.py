@@ -87,7 +87,7 @@ class NodataLattice:
         Points beyond the lattice (and NaN) give False. Batches of
         :data:`~geoidspline.sphere.coordinates.COMPILED_FROM_POINTS` points or more take
         one compiled pass (:mod:`geoidspline._kernels.coverage`), smaller ones numpy
-        (no numba import for a few points); both apply the same rule.
+        (no compiled kernels for a few points); both apply the same rule.
         """
         lat, lon = np.broadcast_arrays(np.asarray(latitude, dtype=float), np.asarray(longitude, dtype=float))
         shape = lat.shape

@@ -45,9 +45,9 @@ GS_EXPORT int64_t gs_normal_table(const double *points, const double *values, in
     for (int64_t s = 0; s < m; ++s) {
         double fx = points[3 * s] * inv_h, fy = points[3 * s + 1] * inv_h, fz = points[3 * s + 2] * inv_h;
         int64_t ax = (int64_t)floor(fx), ay = (int64_t)floor(fy), az = (int64_t)floor(fz);
-        gs_bspline_weights(fx - (double)ax, (int)order, 0, wx, GS_MAX_ORDER);
-        gs_bspline_weights(fy - (double)ay, (int)order, 0, wy, GS_MAX_ORDER);
-        gs_bspline_weights(fz - (double)az, (int)order, 0, wz, GS_MAX_ORDER);
+        gs_weights(fx - (double)ax, (int)order, 0, wx, GS_MAX_ORDER);
+        gs_weights(fy - (double)ay, (int)order, 0, wy, GS_MAX_ORDER);
+        gs_weights(fz - (double)az, (int)order, 0, wz, GS_MAX_ORDER);
         int64_t found = 0, k0 = az - order + 1;
         for (int64_t p = 0; p < order; ++p) {
             int64_t i = ax - order + 1 + p;

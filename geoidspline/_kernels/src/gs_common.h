@@ -54,11 +54,78 @@ GS_INLINE double gs_pymod(double a, double b)
     return mod;
 }
 
-/* Cardinal B-spline values (and derivatives d = 1..nderiv, with respect to x/h) of the
- * order B-splines touching a point at t in [0, 1) of its cell: out[d * ld + j] weights
- * B-spline k = a - order + 1 + j. order <= GS_MAX_ORDER. (common.c) */
+/* The weights w[d * ld + j] (d = 0..nderiv <= 2, derivatives with respect to x/h) of the
+ * order B-splines touching a point at t in [0, 1) of its cell: j weighs B-spline
+ * k = a - order + 1 + j. Closed forms for the values of orders 4 and 6, the uniform-knot
+ * de Boor recursion otherwise and for derivatives: work[q][j] = ((t+q-1-j) work[q-1][j-1]
+ * + (1+j-t) work[q-1][j]) / (q-1), B_q' = B_{q-1}(x) - B_{q-1}(x-1). Inline, so a caller
+ * with a constant order gets its own specialisation. order <= GS_MAX_ORDER. */
 #define GS_MAX_ORDER 16
-void gs_bspline_weights(double t, int order, int nderiv, double *out, int64_t ld);
+GS_INLINE void gs_weights(double t, const int order, const int nderiv, double *w, const int64_t ld)
+{
+    if (order == 4) {
+        double s = 1.0 - t, t2 = t * t, t3 = t2 * t;
+        w[0] = s * s * s / 6.0;
+        w[1] = (3.0 * t3 - 6.0 * t2 + 4.0) / 6.0;
+        w[2] = (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) / 6.0;
+        w[3] = t3 / 6.0;
+        if (nderiv >= 1) {
+            w[ld + 0] = -0.5 * s * s;
+            w[ld + 1] = 1.5 * t2 - 2.0 * t;
+            w[ld + 2] = -1.5 * t2 + t + 0.5;
+            w[ld + 3] = 0.5 * t2;
+        }
+        if (nderiv >= 2) {
+            w[2 * ld + 0] = s;
+            w[2 * ld + 1] = 3.0 * t - 2.0;
+            w[2 * ld + 2] = 1.0 - 3.0 * t;
+            w[2 * ld + 3] = t;
+        }
+        return;
+    }
+    /* work[q][j]: the order-q weights, up to the order needed */
+    int top = order == 6 ? (nderiv >= 1 ? 5 : 0) : order;
+    double work[GS_MAX_ORDER + 1][GS_MAX_ORDER + 1];
+    if (top > 0) {
+        work[1][0] = 1.0;
+        for (int q = 2; q <= top; ++q)
+            for (int j = 0; j < q; ++j) {
+                double left = j >= 1 ? work[q - 1][j - 1] : 0.0;
+                double right = j <= q - 2 ? work[q - 1][j] : 0.0;
+                work[q][j] = ((t + q - 1 - j) * left + (1 + j - t) * right) / (q - 1);
+            }
+    }
+    if (order == 6) {
+        double s = 1.0 - t, t2 = t * t, t3 = t2 * t, t4 = t2 * t2, t5 = t4 * t, c = 1.0 / 120.0;
+        w[0] = s * s * s * s * s * c;
+        w[1] = (26.0 - 50.0 * t + 20.0 * t2 + 20.0 * t3 - 20.0 * t4 + 5.0 * t5) * c;
+        w[2] = (66.0 - 60.0 * t2 + 30.0 * t4 - 10.0 * t5) * c;
+        w[3] = (26.0 + 50.0 * t + 20.0 * t2 - 20.0 * t3 - 20.0 * t4 + 10.0 * t5) * c;
+        w[4] = (1.0 + 5.0 * t + 10.0 * t2 + 10.0 * t3 + 5.0 * t4 - 5.0 * t5) * c;
+        w[5] = t5 * c;
+    } else {
+        for (int j = 0; j < order; ++j)
+            w[j] = work[order][j];
+    }
+    if (nderiv >= 1) {
+        int q = order - 1;
+        for (int j = 0; j < order; ++j) {
+            double left = j >= 1 ? work[q][j - 1] : 0.0;
+            double right = j <= q - 1 ? work[q][j] : 0.0;
+            w[ld + j] = left - right;
+        }
+    }
+    if (nderiv >= 2) {
+        int q = order - 2;
+        for (int j = 0; j < order; ++j) {
+            double a = j >= 2 ? work[q][j - 2] : 0.0;
+            double b = (j >= 1 && j - 1 <= q - 1) ? work[q][j - 1] : 0.0;
+            double c = j <= q - 1 ? work[q][j] : 0.0;
+            w[2 * ld + j] = a - 2.0 * b + c;
+        }
+    }
+}
+
 
 /* Run fn(ctx, task) for task = 0..ntasks-1 on up to nthreads threads (the caller's thread
  * among them), tasks handed out one at a time from a shared counter; returns when all are

@@ -1,2 +1,895 @@
-/* Kernels of query (geoidspline/_kernels/query.py calls them through ctypes). */
+/* Kernels of queries: the brick index, its evaluation and batches of latitude/longitude
+ * (geoidspline/_kernels/query.py calls them through ctypes; conventions in gs_common.h).
+ *
+ * A spline's query tables travel as one gs_spline record (query.py's Spline mirrors it).
+ * Evaluation is written once, with the spline order and the number of derivatives as
+ * parameters of always-inline functions; the callers switch on them with constants
+ * (order 4, 6 or any), so the compiler emits one specialised loop per case from one
+ * definition. The hot loops are built twice (x86-64-v3 and baseline, chosen at load time
+ * by the CPU) when the compiler can: both give the same bits, as -ffp-contract=off keeps
+ * every product and sum as written and no sum is reassociated.
+ */
+#include <stdlib.h>
+#include <string.h>
+
 #include "gs_common.h"
+
+#define BRICK_BITS 4
+#define BRICK_MASK ((1 << BRICK_BITS) - 1)
+#define COL_KBITS 5 /* a column entry: run offset << COL_SHIFT | first local k << COL_KBITS | length */
+#define COL_SHIFT (2 * COL_KBITS)
+#define COL_KMASK ((1 << COL_KBITS) - 1)
+#define PRESENCE_CELL 0.125
+#define PRESENCE_SIDE 20
+#define HASH_MULT 0x9E3779B97F4A7C15ULL
+#define CHUNK 4096 /* points per task of the evaluation loops */
+
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && !defined(GS_NO_CLONES)
+#define GS_HOT __attribute__((target_clones("arch=x86-64-v3", "default")))
+#else
+#define GS_HOT
+#endif
+
+/* The query tables of one spline (geoidspline.bspline.index.BrickIndex); levels coarse to
+ * fine. Mirrored field for field by query.py's Spline. */
+typedef struct {
+    int64_t order, nlev, side;
+    const double *inv_hs, *band_lo2, *band_hi2; /* per level: 1/h, band |x|^2 bounds */
+    const uint8_t *presence;                    /* (nlev, PRESENCE_SIDE^3) */
+    const int64_t *slots;                       /* (capacity, 2): brick key, brick index */
+    const int64_t *slot_start, *slot_mask;      /* per level */
+    const int64_t *fold_base, *own_base;        /* per brick: first value of its table */
+    const int32_t *fold_cols, *own_cols;        /* (bricks, side, side) column entries */
+    const double *values;
+} gs_spline;
+
+/* ---- the brick hash --------------------------------------------------------------- */
+
+GS_INLINE int64_t hash_slot(int64_t key, int64_t mask)
+{
+    return (int64_t)((((uint64_t)key * HASH_MULT) >> 32) & (uint64_t)mask);
+}
+
+/* Open-addressing table (linear probing) from key to its position: slots (capacity, 2),
+ * capacity a power of two > n; a probe reads one 16-byte slot. */
+GS_EXPORT void gs_build_hash(const int64_t *keys, int64_t n, int64_t *slots, int64_t capacity)
+{
+    int64_t mask = capacity - 1;
+    for (int64_t s = 0; s < 2 * capacity; ++s)
+        slots[s] = -1;
+    for (int64_t pos = 0; pos < n; ++pos) {
+        int64_t s = hash_slot(keys[pos], mask);
+        while (slots[2 * s] != -1)
+            s = (s + 1) & mask;
+        slots[2 * s] = keys[pos];
+        slots[2 * s + 1] = pos;
+    }
+}
+
+GS_INLINE int64_t hash_find(const int64_t *slots, int64_t mask, int64_t key)
+{
+    int64_t s = hash_slot(key, mask);
+    for (;;) {
+        int64_t k = slots[2 * s];
+        if (k == key)
+            return slots[2 * s + 1];
+        if (k == -1)
+            return -1;
+        s = (s + 1) & mask;
+    }
+}
+
+/* Whether level lev may have a brick at the point (0: it has none there); outside the
+ * presence map's cube [-1.25, 1.25)^3 the hash probe decides. */
+GS_INLINE int present(const gs_spline *S, int64_t lev, double x, double y, double z)
+{
+    double fi = floor(x / PRESENCE_CELL) + PRESENCE_SIDE / 2;
+    double fj = floor(y / PRESENCE_CELL) + PRESENCE_SIDE / 2;
+    double fk = floor(z / PRESENCE_CELL) + PRESENCE_SIDE / 2;
+    if (!(fi >= 0.0 && fj >= 0.0 && fk >= 0.0 && fi < PRESENCE_SIDE && fj < PRESENCE_SIDE && fk < PRESENCE_SIDE))
+        return 1;
+    int64_t i = (int64_t)fi, j = (int64_t)fj, k = (int64_t)fk;
+    return S->presence[((lev * PRESENCE_SIDE + i) * PRESENCE_SIDE + j) * PRESENCE_SIDE + k] != 0;
+}
+
+/* ---- evaluation ------------------------------------------------------------------- */
+
+/* Lanes: order doubles (one per z index r) held in vector registers, 4 to a vector, then
+ * a pair, then one; GCC's vector extensions, so every lane is its own scalar sum (the
+ * same bits in the baseline and x86-64-v3 builds). */
+typedef double gs_v4 __attribute__((vector_size(32)));
+typedef double gs_v2 __attribute__((vector_size(16)));
+typedef struct {
+    gs_v4 v[GS_MAX_ORDER / 4];
+    gs_v2 pair;
+    double one;
+} lanes;
+
+#define LANE_V(order) ((order) / 4)
+#define LANE_PAIR(order) (((order) % 4) >= 2)
+#define LANE_ONE(order) (((order) % 2) == 1)
+
+GS_INLINE void lanes_zero(const int order, lanes *a)
+{
+    for (int k = 0; k < LANE_V(order); ++k)
+        a->v[k] = (gs_v4){0.0, 0.0, 0.0, 0.0};
+    a->pair = (gs_v2){0.0, 0.0};
+    a->one = 0.0;
+}
+
+/* a += w c for c order contiguous doubles */
+GS_INLINE void lanes_axpy(const int order, lanes *a, double w, const double *c)
+{
+    for (int k = 0; k < LANE_V(order); ++k) {
+        gs_v4 x;
+        memcpy(&x, c + 4 * k, sizeof x);
+        a->v[k] += w * x;
+    }
+    if (LANE_PAIR(order)) {
+        gs_v2 x;
+        memcpy(&x, c + 4 * LANE_V(order), sizeof x);
+        a->pair += w * x;
+    }
+    if (LANE_ONE(order))
+        a->one += w * c[order - 1];
+}
+
+/* a += w b */
+GS_INLINE void lanes_add(const int order, lanes *a, double w, const lanes *b)
+{
+    for (int k = 0; k < LANE_V(order); ++k)
+        a->v[k] += w * b->v[k];
+    if (LANE_PAIR(order))
+        a->pair += w * b->pair;
+    if (LANE_ONE(order))
+        a->one += w * b->one;
+}
+
+/* sum_r w[r] a[r], r in order */
+GS_INLINE double lanes_dot(const int order, const lanes *a, const double *w)
+{
+    double s = 0.0;
+    for (int k = 0; k < LANE_V(order); ++k)
+        for (int j = 0; j < 4; ++j)
+            s += w[4 * k + j] * a->v[k][j];
+    if (LANE_PAIR(order)) {
+        s += w[4 * LANE_V(order)] * a->pair[0];
+        s += w[4 * LANE_V(order) + 1] * a->pair[1];
+    }
+    if (LANE_ONE(order))
+        s += w[order - 1] * a->one;
+    return s;
+}
+
+/* Add one brick table's spline (and derivatives) at a point into result.
+ *
+ * The table's column (p, q) is a run of coefficients along z. Sums go per z lane r,
+ * separably: B_p[r] = sum_q wy_q c_pqr, A[r] = sum_p wx_p B_p[r], then value = sum_r
+ * wz_r A[r] (and the same with derivative weights): a column is order contiguous doubles
+ * added into vector lanes, rows p are independent chains (short add latencies). A column
+ * whose run does not hold all order coefficients (a band's edge) is read through a
+ * zero-padded copy. */
+GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, const double *wx, const double *wy,
+                         const double *wz, int64_t base, const int32_t *cols, int64_t brick, int64_t lx, int64_t ly,
+                         int64_t lz, double inv_h, double *result)
+{
+    const int64_t side = (1 << BRICK_BITS) + order - 1;
+    const int32_t *col0 = cols + (brick * side + lx) * side + ly;
+    const double *values = S->values + base;
+    /* A per derivative (x, y): 00 value; 10 01 first; 20 02 11 second */
+    lanes a00, a10, a01, a20, a02, a11;
+    double pad[GS_MAX_ORDER];
+    lanes_zero(order, &a00);
+    if (nderiv >= 1) {
+        lanes_zero(order, &a10);
+        lanes_zero(order, &a01);
+    }
+    if (nderiv >= 2) {
+        lanes_zero(order, &a20);
+        lanes_zero(order, &a02);
+        lanes_zero(order, &a11);
+    }
+    for (int p = 0; p < order; ++p) {
+        const int32_t *row = col0 + p * side;
+        lanes b0, b1, b2; /* B_p with the y weights of derivative 0, 1, 2 */
+        lanes_zero(order, &b0);
+        if (nderiv >= 1)
+            lanes_zero(order, &b1);
+        if (nderiv >= 2)
+            lanes_zero(order, &b2);
+        for (int q = 0; q < order; ++q) {
+            int32_t packed = row[q];
+            int64_t length = packed & COL_KMASK;
+            if (length == 0)
+                continue;
+            int64_t start = lz - ((packed >> COL_KBITS) & COL_KMASK);
+            int64_t offset = (int64_t)(packed >> COL_SHIFT) + start;
+            const double *c;
+            if (start >= 0 && start + order <= length) {
+                c = values + offset;
+            } else {
+                for (int r = 0; r < order; ++r)
+                    pad[r] = (start + r >= 0 && start + r < length) ? values[offset + r] : 0.0;
+                c = pad;
+            }
+            lanes_axpy(order, &b0, wy[q], c);
+            if (nderiv >= 1)
+                lanes_axpy(order, &b1, wy[order + q], c);
+            if (nderiv >= 2)
+                lanes_axpy(order, &b2, wy[2 * order + q], c);
+        }
+        lanes_add(order, &a00, wx[p], &b0);
+        if (nderiv >= 1) {
+            lanes_add(order, &a10, wx[order + p], &b0);
+            lanes_add(order, &a01, wx[p], &b1);
+        }
+        if (nderiv >= 2) {
+            lanes_add(order, &a20, wx[2 * order + p], &b0);
+            lanes_add(order, &a02, wx[p], &b2);
+            lanes_add(order, &a11, wx[order + p], &b1);
+        }
+    }
+    result[0] += lanes_dot(order, &a00, wz);
+    if (nderiv >= 1) {
+        result[1] += lanes_dot(order, &a10, wz) * inv_h;
+        result[2] += lanes_dot(order, &a01, wz) * inv_h;
+        result[3] += lanes_dot(order, &a00, wz + order) * inv_h;
+    }
+    if (nderiv >= 2) {
+        double ih2 = inv_h * inv_h;
+        result[4] += lanes_dot(order, &a20, wz) * ih2;
+        result[5] += lanes_dot(order, &a02, wz) * ih2;
+        result[6] += lanes_dot(order, &a00, wz + 2 * order) * ih2;
+        result[7] += lanes_dot(order, &a11, wz) * ih2;
+        result[8] += lanes_dot(order, &a10, wz + order) * ih2;
+        result[9] += lanes_dot(order, &a01, wz + order) * ih2;
+    }
+}
+
+/* Add the spline (and derivatives) at a finite point into result (zeroed by the caller).
+ *
+ * From the finest level down, the first level with a brick at the point whose band holds
+ * the point is evaluated from its folded table (which includes every coarser level) and
+ * ends the sum; a level with a brick there but outside its band adds its own table and
+ * the descent goes on; a level without a brick there has no B-spline touching the point.
+ * last_key/last_brick (per level, per task) remember the last brick looked up: points
+ * visited in a locality-preserving order mostly stay in the brick of the point before,
+ * and then neither the presence map nor the hash table is read. */
+GS_INLINE void point_sum(const gs_spline *S, const int order, const int nderiv, double x, double y, double z,
+                         int64_t *last_key, int64_t *last_brick, double *result)
+{
+    double r2 = x * x + y * y + z * z;
+    double wx[3 * GS_MAX_ORDER], wy[3 * GS_MAX_ORDER], wz[3 * GS_MAX_ORDER];
+    for (int64_t lev = S->nlev - 1; lev >= 0; --lev) {
+        double inv_h = S->inv_hs[lev];
+        double fx = x * inv_h, fy = y * inv_h, fz = z * inv_h;
+        double flx = floor(fx), fly = floor(fy), flz = floor(fz);
+        int64_t ax = (int64_t)flx, ay = (int64_t)fly, az = (int64_t)flz;
+        int64_t key = gs_pack(ax >> BRICK_BITS, ay >> BRICK_BITS, az >> BRICK_BITS);
+        int64_t brick;
+        if (key == last_key[lev]) {
+            brick = last_brick[lev];
+        } else {
+            brick = present(S, lev, x, y, z) ? hash_find(S->slots + 2 * S->slot_start[lev], S->slot_mask[lev], key)
+                                             : -1;
+            last_key[lev] = key;
+            last_brick[lev] = brick;
+        }
+        if (brick < 0)
+            continue;
+        gs_weights(fx - flx, order, nderiv, wx, order);
+        gs_weights(fy - fly, order, nderiv, wy, order);
+        gs_weights(fz - flz, order, nderiv, wz, order);
+        int64_t lx = ax & BRICK_MASK, ly = ay & BRICK_MASK, lz = az & BRICK_MASK;
+        if (S->band_lo2[lev] <= r2 && r2 <= S->band_hi2[lev]) {
+            table_sum(S, order, nderiv, wx, wy, wz, S->fold_base[brick], S->fold_cols, brick, lx, ly, lz, inv_h,
+                      result);
+            break;
+        }
+        table_sum(S, order, nderiv, wx, wy, wz, S->own_base[brick], S->own_cols, brick, lx, ly, lz, inv_h, result);
+    }
+}
+
+GS_INLINE void reset_cache(int64_t nlev, int64_t *last_key, int64_t *last_brick)
+{
+    for (int64_t l = 0; l < nlev; ++l)
+        last_key[l] = last_brick[l] = -1; /* -1 is no packed key */
+}
+
+typedef struct {
+    const gs_spline *S;
+    const double *points;
+    double *out;
+    int64_t m, nderiv, width;
+} points_job;
+
+GS_INLINE void points_range(const points_job *J, const int order, const int nderiv, int64_t lo, int64_t hi)
+{
+    const gs_spline *S = J->S;
+    int64_t last_key[S->nlev], last_brick[S->nlev];
+    reset_cache(S->nlev, last_key, last_brick);
+    for (int64_t s = lo; s < hi; ++s) {
+        double x = J->points[3 * s], y = J->points[3 * s + 1], z = J->points[3 * s + 2];
+        if (!(isfinite(x) && isfinite(y) && isfinite(z)))
+            continue;
+        double result[10] = {0.0};
+        point_sum(S, order, nderiv, x, y, z, last_key, last_brick, result);
+        for (int r = 0; r < J->width; ++r)
+            J->out[s * J->width + r] += result[r];
+    }
+}
+
+/* One definition, instantiated per (order, nderiv) by constant arguments. */
+#define GS_DISPATCH(order, nderiv, call)                                                                              \
+    do {                                                                                                              \
+        if ((order) == 4) {                                                                                           \
+            if ((nderiv) == 0) call(4, 0); else if ((nderiv) == 1) call(4, 1); else call(4, 2);                       \
+        } else if ((order) == 6) {                                                                                    \
+            if ((nderiv) == 0) call(6, 0); else if ((nderiv) == 1) call(6, 1); else call(6, 2);                       \
+        } else {                                                                                                      \
+            if ((nderiv) == 0) call((order), 0); else if ((nderiv) == 1) call((order), 1); else call((order), 2);     \
+        }                                                                                                             \
+    } while (0)
+
+GS_HOT static void points_task(void *ctx, int64_t task)
+{
+    const points_job *J = ctx;
+    int64_t lo = task * CHUNK, hi = lo + CHUNK < J->m ? lo + CHUNK : J->m;
+    const int order = (int)J->S->order;
+#define GS_POINTS(o, d) points_range(J, (o), (d), lo, hi)
+    GS_DISPATCH(order, J->nderiv, GS_POINTS);
+#undef GS_POINTS
+}
+
+/* The spline (and derivatives) at points (m, 3), added into out (m, width): width 1
+ * (value), 4 (+ gradient) or 10 (+ Hessian xx yy zz xy xz yz) for nderiv 0, 1, 2.
+ * Non-finite points are skipped. */
+GS_EXPORT void gs_evaluate_bricks(const gs_spline *S, const double *points, int64_t m, int64_t nderiv, double *out,
+                                  int64_t nthreads)
+{
+    points_job J = {S, points, out, m, nderiv, nderiv == 0 ? 1 : (nderiv == 1 ? 4 : 10)};
+    gs_parallel_for((int)nthreads, (m + CHUNK - 1) / CHUNK, points_task, &J);
+}
+
+/* ---- visiting orders -------------------------------------------------------------- */
+
+#define ORDER_BITS 6 /* query_order: 2**ORDER_BITS buckets an axis over [-1.25, 1.25) */
+
+GS_INLINE int64_t spread3(int64_t v)
+{
+    v &= 0x3FF;
+    v = (v | (v << 16)) & 0x30000FF;
+    v = (v | (v << 8)) & 0x300F00F;
+    v = (v | (v << 4)) & 0x30C30C3;
+    v = (v | (v << 2)) & 0x9249249;
+    return v;
+}
+
+GS_INLINE int64_t clamped_cell(double f, int64_t side)
+{
+    f = floor(f);
+    return f < 0.0 ? 0 : (f > side - 1 ? side - 1 : (int64_t)f);
+}
+
+/* A stable visiting order of points (m, 3) in which neighbours follow each other: a
+ * counting sort on the Morton index of a coarse grid (points outside it clamped, NaN
+ * last). key: work array of m. */
+GS_EXPORT void gs_query_order(const double *points, int64_t m, int64_t *key, int64_t *order)
+{
+    const int64_t side = 1 << ORDER_BITS, nbuckets = side * side * side;
+    const double scale = side / 2.5;
+    int64_t *counts = calloc((size_t)nbuckets + 1, sizeof(int64_t));
+    for (int64_t s = 0; s < m; ++s) {
+        double x = points[3 * s], y = points[3 * s + 1], z = points[3 * s + 2];
+        int64_t b = nbuckets;
+        if (isfinite(x) && isfinite(y) && isfinite(z)) {
+            int64_t i = clamped_cell((x + 1.25) * scale, side);
+            int64_t j = clamped_cell((y + 1.25) * scale, side);
+            int64_t k = clamped_cell((z + 1.25) * scale, side);
+            b = spread3(i) | (spread3(j) << 1) | (spread3(k) << 2);
+        }
+        key[s] = b;
+        counts[b] += 1;
+    }
+    int64_t total = 0;
+    for (int64_t b = 0; b <= nbuckets; ++b) {
+        int64_t c = counts[b];
+        counts[b] = total;
+        total += c;
+    }
+    for (int64_t s = 0; s < m; ++s)
+        order[counts[key[s]]++] = s;
+    free(counts);
+}
+
+/* ---- latitude/longitude batches --------------------------------------------------- */
+
+#define LL_LAT_BITS 7 /* the sort grid: 2**7 rows and 2**8 columns of 1.41 degrees */
+#define LL_LON_BITS 8
+#define LL_BUCKETS (1 << (LL_LAT_BITS + LL_LON_BITS)) /* one more for NaN */
+#define LL_FINE_BITS 3 /* inside a bucket, points are sorted on a grid 2**3 times finer (0.18 degrees) */
+
+GS_INLINE uint32_t spread2(uint32_t v)
+{
+    v &= 0xFFFF;
+    v = (v | (v << 8)) & 0x00FF00FF;
+    v = (v | (v << 4)) & 0x0F0F0F0F;
+    v = (v | (v << 2)) & 0x33333333;
+    v = (v | (v << 1)) & 0x55555555;
+    return v;
+}
+
+/* Morton code of the point's cell on the fine latitude/longitude sort grid; its bucket
+ * (the 1.41 degree cell) is code >> (2 LL_FINE_BITS). NaN: bucket LL_BUCKETS. */
+GS_INLINE uint32_t latlon_code(double la, double lo)
+{
+    const int lat_bits = LL_LAT_BITS + LL_FINE_BITS, lon_bits = LL_LON_BITS + LL_FINE_BITS;
+    if (la != la || lo != lo)
+        return (uint32_t)LL_BUCKETS << (2 * LL_FINE_BITS);
+    double fi = (la + 90.0) * ((1 << lat_bits) / 180.0);
+    uint32_t i = fi < 0.0 ? 0 : (fi >= (1 << lat_bits) ? (1 << lat_bits) - 1 : (uint32_t)fi);
+    double w = lo + 180.0;
+    if (w < 0.0 || w >= 360.0)
+        w -= 360.0 * floor(w / 360.0);
+    double fj = w * ((1 << lon_bits) / 360.0);
+    uint32_t j = fj < 0.0 ? 0 : (fj >= (1 << lon_bits) ? (1 << lon_bits) - 1 : (uint32_t)fj);
+    return spread2(j) | (spread2(i) << 1);
+}
+
+/* sin and cos of one angle at once (fdlibm's k_sin.c/k_cos.c polynomials on [-pi/4, pi/4]
+ * after a Cody-Waite reduction by pi/2), in less time than two libm calls. Absolute error
+ * at most 1.2e-16 on [-pi, pi] (below 1e-14 m in N: a unit vector only needs absolute
+ * accuracy); |x| <= 2 pi. NaN gives NaN. */
+GS_INLINE void gs_sincos(double x, double *sin_x, double *cos_x)
+{
+    const double pio2_hi = 1.57079632673412561417e+00; /* first 33 bits of pi/2: n * pio2_hi is exact */
+    const double pio2_lo = 6.07710050650619224932e-11, two_over_pi = 6.36619772367581382433e-01;
+    const double S1 = -1.66666666666666324348e-01, S2 = 8.33333333332248946124e-03, S3 = -1.98412698298579493134e-04,
+                 S4 = 2.75573137070700676789e-06, S5 = -2.50507602534068634195e-08, S6 = 1.58969099521155010221e-10;
+    const double C1 = 4.16666666666666019037e-02, C2 = -1.38888888888741095749e-03, C3 = 2.48015872894767294178e-05,
+                 C4 = -2.75573143513906633035e-07, C5 = 2.08757232129817482790e-09, C6 = -1.13596475577881948265e-11;
+    double n = floor(x * two_over_pi + 0.5);
+    double r = (x - n * pio2_hi) - n * pio2_lo;
+    double z = r * r;
+    double sin_r = r + (z * r) * (S1 + z * (S2 + z * (S3 + z * (S4 + z * (S5 + z * S6)))));
+    double hz = 0.5 * z;
+    double w = 1.0 - hz;
+    double cos_r = w + (((1.0 - w) - hz) + z * (z * (C1 + z * (C2 + z * (C3 + z * (C4 + z * (C5 + z * C6)))))));
+    if (n != n) {
+        *sin_x = *cos_x = n;
+        return;
+    }
+    switch ((int64_t)n & 3) {
+    case 0: *sin_x = sin_r; *cos_x = cos_r; break;
+    case 1: *sin_x = cos_r; *cos_x = -sin_r; break;
+    case 2: *sin_x = -sin_r; *cos_x = -cos_r; break;
+    default: *sin_x = -cos_r; *cos_x = sin_r; break;
+    }
+}
+
+/* Unit vector of latitude/longitude in degrees: the one formula of every compiled path
+ * (unit_vectors, undulation_latlon), so they agree bit for bit. Longitudes are wrapped to
+ * [-180, 180) first. */
+GS_INLINE void direction(double latitude, double longitude, double *x, double *y, double *z)
+{
+    if (longitude < -180.0 || longitude >= 180.0)
+        longitude -= 360.0 * floor((longitude + 180.0) / 360.0);
+    const double d2r = 3.141592653589793 / 180.0;
+    double sin_phi, cos_phi, sin_lam, cos_lam;
+    gs_sincos(latitude * d2r, &sin_phi, &cos_phi);
+    gs_sincos(longitude * d2r, &sin_lam, &cos_lam);
+    *x = cos_phi * cos_lam;
+    *y = cos_phi * sin_lam;
+    *z = sin_phi;
+}
+
+typedef struct {
+    const double *latitude, *longitude;
+    double *out;
+    int64_t m;
+} unit_job;
+
+static void unit_task(void *ctx, int64_t task)
+{
+    const unit_job *J = ctx;
+    int64_t lo = task * CHUNK, hi = lo + CHUNK < J->m ? lo + CHUNK : J->m;
+    for (int64_t s = lo; s < hi; ++s)
+        direction(J->latitude[s], J->longitude[s], &J->out[3 * s], &J->out[3 * s + 1], &J->out[3 * s + 2]);
+}
+
+/* Directions (m, 3) (cos phi cos lambda, cos phi sin lambda, sin phi) of latitude and
+ * longitude in degrees (direction()). */
+GS_EXPORT void gs_unit_vectors(const double *latitude, const double *longitude, int64_t m, double *out,
+                               int64_t nthreads)
+{
+    unit_job J = {latitude, longitude, out, m};
+    gs_parallel_for((int)nthreads, (m + CHUNK - 1) / CHUNK, unit_task, &J);
+}
+
+/* A point in the sort: its latlon_code above AT_BITS, its position in the caller's arrays
+ * below; 8 bytes, so the scatter and the bucket sorts move little. */
+#define AT_BITS 42
+#define KEY_AT(key) ((int64_t)((key) & ((((uint64_t)1) << AT_BITS) - 1)))
+#define KEY_CODE(key) ((key) >> AT_BITS)
+
+typedef struct {
+    const gs_spline *S;
+    const double *latitude, *longitude;
+    double *out;
+    int64_t m, nblocks, size;
+    uint32_t *code;
+    int64_t *counts, *invalid; /* (nblocks, LL_BUCKETS + 1), (nblocks) */
+    int64_t *bucket_start;     /* LL_BUCKETS + 2 */
+    uint64_t *sorted; /* the points in the order of their cells (code, position) */
+    double *ordered;       /* their values, in that order */
+} latlon_job;
+
+static void latlon_count(void *ctx, int64_t blk)
+{
+    latlon_job *J = ctx;
+    int64_t *counts = J->counts + blk * (LL_BUCKETS + 1), bad = 0;
+    int64_t lo = blk * J->size, hi = lo + J->size < J->m ? lo + J->size : J->m;
+    for (int64_t s = lo; s < hi; ++s) {
+        double la = J->latitude[s], lo_ = J->longitude[s];
+        if (fabs(la) > 90.0 || fabs(lo_) == INFINITY)
+            bad += 1;
+        uint32_t code = latlon_code(la, lo_);
+        J->code[s] = code;
+        counts[code >> (2 * LL_FINE_BITS)] += 1;
+    }
+    J->invalid[blk] = bad;
+}
+
+static void latlon_scatter(void *ctx, int64_t blk)
+{
+    latlon_job *J = ctx;
+    int64_t *counts = J->counts + blk * (LL_BUCKETS + 1);
+    int64_t lo = blk * J->size, hi = lo + J->size < J->m ? lo + J->size : J->m;
+    for (int64_t s = lo; s < hi; ++s) {
+        uint32_t code = J->code[s];
+        J->sorted[counts[code >> (2 * LL_FINE_BITS)]++] = ((uint64_t)code << AT_BITS) | (uint64_t)s;
+    }
+}
+
+#define SORT_TASK_BUCKETS 256
+
+/* Each bucket's points sorted by their fine code, ties by position (keys compare as
+ * (code, position); the scatter leaves a bucket in increasing position): insertion sort for the few tens of points a bucket of a
+ * global million-point batch holds, a stable counting sort on the fine bits for larger
+ * ones. Nearby points then follow each other, so they read the same coefficients. */
+static void latlon_refine(void *ctx, int64_t task)
+{
+    latlon_job *J = ctx;
+    int64_t b_lo = task * SORT_TASK_BUCKETS, b_hi = b_lo + SORT_TASK_BUCKETS;
+    if (b_hi > LL_BUCKETS)
+        b_hi = LL_BUCKETS; /* NaN's bucket stays as it is */
+    const uint64_t fine_mask = (1u << (2 * LL_FINE_BITS)) - 1;
+    uint64_t *scratch = NULL;
+    int64_t scratch_size = 0;
+    for (int64_t b = b_lo; b < b_hi; ++b) {
+        uint64_t *a = J->sorted + J->bucket_start[b];
+        int64_t n = J->bucket_start[b + 1] - J->bucket_start[b];
+        if (n <= 48) {
+            for (int64_t i = 1; i < n; ++i) {
+                uint64_t t = a[i];
+                int64_t j = i;
+                for (; j >= 1 && a[j - 1] > t; --j)
+                    a[j] = a[j - 1];
+                a[j] = t;
+            }
+            continue;
+        }
+        if (n > scratch_size) {
+            free(scratch);
+            scratch_size = 2 * n;
+            scratch = malloc(sizeof(uint64_t) * (size_t)scratch_size);
+            if (!scratch) { /* no memory: the bucket stays coarse, values are the same */
+                scratch_size = 0;
+                continue;
+            }
+        }
+        int64_t counts[(1 << (2 * LL_FINE_BITS)) + 1];
+        memset(counts, 0, sizeof counts);
+        for (int64_t i = 0; i < n; ++i)
+            counts[(KEY_CODE(a[i]) & fine_mask) + 1] += 1;
+        for (uint64_t k = 1; k <= fine_mask + 1; ++k)
+            counts[k] += counts[k - 1];
+        for (int64_t i = 0; i < n; ++i)
+            scratch[counts[KEY_CODE(a[i]) & fine_mask]++] = a[i];
+        memcpy(a, scratch, sizeof(uint64_t) * (size_t)n);
+    }
+    free(scratch);
+}
+
+GS_INLINE void latlon_range(const latlon_job *J, const int order, int64_t lo, int64_t hi)
+{
+    const gs_spline *S = J->S;
+    int64_t last_key[S->nlev], last_brick[S->nlev];
+    reset_cache(S->nlev, last_key, last_brick);
+    for (int64_t p = lo; p < hi; ++p) {
+        double x, y, z, result[1] = {0.0};
+        if (p + 16 < hi) { /* the coordinates are read out of order: ask for them early */
+            __builtin_prefetch(&J->latitude[KEY_AT(J->sorted[p + 16])]);
+            __builtin_prefetch(&J->longitude[KEY_AT(J->sorted[p + 16])]);
+        }
+        int64_t at = KEY_AT(J->sorted[p]);
+        direction(J->latitude[at], J->longitude[at], &x, &y, &z);
+        if (x == x && z == z) {
+            point_sum(S, order, 0, x, y, z, last_key, last_brick, result);
+            J->ordered[p] = result[0];
+        } else {
+            J->ordered[p] = NAN;
+        }
+    }
+}
+
+GS_HOT static void latlon_evaluate(void *ctx, int64_t task)
+{
+    const latlon_job *J = ctx;
+    int64_t lo = task * CHUNK, hi = lo + CHUNK < J->m ? lo + CHUNK : J->m;
+    const int order = (int)J->S->order;
+    if (order == 4)
+        latlon_range(J, 4, lo, hi);
+    else if (order == 6)
+        latlon_range(J, 6, lo, hi);
+    else
+        latlon_range(J, order, lo, hi);
+}
+
+static void latlon_back(void *ctx, int64_t blk)
+{
+    latlon_job *J = ctx;
+    int64_t lo = blk * J->size, hi = lo + J->size < J->m ? lo + J->size : J->m;
+    for (int64_t p = lo; p < hi; ++p)
+        J->out[KEY_AT(J->sorted[p])] = J->ordered[p];
+}
+
+/* Spline values at the directions of latitude/longitude (degrees) into out. Returns the
+ * number of invalid coordinates (a latitude beyond +-90 or infinite, an infinite
+ * longitude; out is then left unset), or -1 when memory ran out. NaN gives NaN.
+ *
+ * 1. per block of points (nblocks in parallel): the Morton code of the point's 1.41 degree
+ *    cell and a histogram of the codes per block;
+ * 2. exclusive prefix sums over (code, block): a stable order by cell;
+ * 3. per block: each point's (code, position) scattered in that order; then each bucket
+ *    sorted by the fine code (latlon_refine);
+ * 4. per chunk of the ordered points: direction and value, neighbours sharing bricks;
+ * 5. per block: each value written to the point's own position (writing it from step 4
+ *    made numba's loop 1.6 times slower).
+ * A point's value does not depend on the order, blocks or threads, and equals
+ * gs_evaluate_bricks at the direction gs_unit_vectors gives. */
+GS_EXPORT int64_t gs_undulation_latlon(const gs_spline *S, const double *latitude, const double *longitude, int64_t m,
+                                       int64_t nblocks, double *out, int64_t nthreads)
+{
+    latlon_job J = {S, latitude, longitude, out, m, nblocks, (m + nblocks - 1) / nblocks};
+    int64_t result = -1;
+    J.code = malloc(sizeof(uint32_t) * (size_t)(m ? m : 1));
+    J.bucket_start = malloc(sizeof(int64_t) * (LL_BUCKETS + 2));
+    J.counts = calloc((size_t)nblocks * (LL_BUCKETS + 1), sizeof(int64_t));
+    J.invalid = calloc((size_t)nblocks, sizeof(int64_t));
+    J.sorted = malloc(sizeof(uint64_t) * (size_t)(m ? m : 1));
+    J.ordered = malloc(sizeof(double) * (size_t)(m ? m : 1));
+    if (!J.code || !J.bucket_start || !J.counts || !J.invalid || !J.sorted || !J.ordered)
+        goto done;
+    gs_parallel_for((int)nthreads, nblocks, latlon_count, &J);
+    result = 0;
+    for (int64_t blk = 0; blk < nblocks; ++blk)
+        result += J.invalid[blk];
+    if (result)
+        goto done;
+    int64_t total = 0;
+    for (int64_t b = 0; b <= LL_BUCKETS; ++b) {
+        J.bucket_start[b] = total;
+        for (int64_t blk = 0; blk < nblocks; ++blk) {
+            int64_t *c = J.counts + blk * (LL_BUCKETS + 1) + b, n = *c;
+            *c = total;
+            total += n;
+        }
+    }
+    J.bucket_start[LL_BUCKETS + 1] = total;
+    gs_parallel_for((int)nthreads, nblocks, latlon_scatter, &J);
+    gs_parallel_for((int)nthreads, (LL_BUCKETS + SORT_TASK_BUCKETS - 1) / SORT_TASK_BUCKETS, latlon_refine, &J);
+    gs_parallel_for((int)nthreads, (m + CHUNK - 1) / CHUNK, latlon_evaluate, &J);
+    gs_parallel_for((int)nthreads, nblocks, latlon_back, &J);
+done:
+    free(J.code);
+    free(J.bucket_start);
+    free(J.counts);
+    free(J.invalid);
+    free(J.sorted);
+    free(J.ordered);
+    return result;
+}
+
+/* ---- building the index ----------------------------------------------------------- */
+
+/* Every (brick, coefficient) pair of one row of a level's bricks (brick index row on the
+ * first axis): a B-spline is listed in each brick of 2**bits cells a side whose tables
+ * hold it (1 to 8; within a row at most 4, so every output holds 4 n entries). keys:
+ * sorted packed keys (those outside the row are skipped). Fills brick_keys (B),
+ * brick_start (B + 1), brick_of_entry (E), local (E, 3) = k - brick 2**bits + order - 1
+ * per axis, coef (E), entries sorted by (brick key, local position) (a counting sort by
+ * brick over the keys in order); sizes = (B, E). Returns 0, or -1 when memory ran out. */
+GS_EXPORT int64_t gs_brick_row_entries(const int64_t *keys, int64_t n, int64_t order, int64_t bits, int64_t row,
+                                       int64_t *brick_keys, int64_t *brick_start, int32_t *brick_of_entry,
+                                       int16_t *local, int32_t *coef, int64_t *sizes)
+{
+    const int64_t big = ((int64_t)1) << 40;
+    int64_t lo1 = big, hi1 = -big, lo2 = big, hi2 = -big;
+    for (int64_t c = 0; c < n; ++c) {
+        int64_t a0 = ((keys[c] >> (2 * GS_KEY_BITS)) & GS_KEY_MASK) - GS_KEY_OFFSET;
+        if ((a0 >> bits) != row && ((a0 + order - 1) >> bits) != row)
+            continue;
+        int64_t a1 = ((keys[c] >> GS_KEY_BITS) & GS_KEY_MASK) - GS_KEY_OFFSET;
+        int64_t a2 = (keys[c] & GS_KEY_MASK) - GS_KEY_OFFSET;
+        if ((a1 >> bits) < lo1) lo1 = a1 >> bits;
+        if (((a1 + order - 1) >> bits) > hi1) hi1 = (a1 + order - 1) >> bits;
+        if ((a2 >> bits) < lo2) lo2 = a2 >> bits;
+        if (((a2 + order - 1) >> bits) > hi2) hi2 = (a2 + order - 1) >> bits;
+    }
+    int64_t n1 = hi1 - lo1 + 1 > 0 ? hi1 - lo1 + 1 : 0, n2 = hi2 - lo2 + 1 > 0 ? hi2 - lo2 + 1 : 0;
+    int64_t *counts = calloc((size_t)(n1 * n2 + 1), sizeof(int64_t));
+    int64_t *brick_of_cell = malloc(sizeof(int64_t) * (size_t)(n1 * n2 + 1));
+    if (!counts || !brick_of_cell) {
+        free(counts);
+        free(brick_of_cell);
+        return -1;
+    }
+    int64_t nb = 0, total = 0;
+    for (int sweep = 0; sweep < 2; ++sweep) { /* 0: count per brick; 1: place */
+        if (sweep == 1) {
+            for (int64_t cell = 0; cell < n1 * n2; ++cell) {
+                brick_of_cell[cell] = -1;
+                if (counts[cell] > 0) {
+                    brick_keys[nb] = gs_pack(row, lo1 + cell / n2, lo2 + cell % n2);
+                    brick_start[nb] = total;
+                    brick_of_cell[cell] = nb;
+                    total += counts[cell];
+                    counts[cell] = brick_start[nb]; /* now the brick's cursor */
+                    nb += 1;
+                }
+            }
+            brick_start[nb] = total;
+        }
+        for (int64_t c = 0; c < n; ++c) {
+            int64_t a0 = ((keys[c] >> (2 * GS_KEY_BITS)) & GS_KEY_MASK) - GS_KEY_OFFSET;
+            if ((a0 >> bits) != row && ((a0 + order - 1) >> bits) != row)
+                continue;
+            int64_t l0 = a0 - (row << bits) + order - 1;
+            int64_t a1 = ((keys[c] >> GS_KEY_BITS) & GS_KEY_MASK) - GS_KEY_OFFSET;
+            int64_t a2 = (keys[c] & GS_KEY_MASK) - GS_KEY_OFFSET;
+            for (int64_t b1 = a1 >> bits; b1 <= (a1 + order - 1) >> bits; ++b1)
+                for (int64_t b2 = a2 >> bits; b2 <= (a2 + order - 1) >> bits; ++b2) {
+                    int64_t cell = (b1 - lo1) * n2 + (b2 - lo2);
+                    if (sweep == 0) {
+                        counts[cell] += 1;
+                    } else {
+                        int64_t e = counts[cell]++;
+                        local[3 * e] = (int16_t)l0;
+                        local[3 * e + 1] = (int16_t)(a1 - (b1 << bits) + order - 1);
+                        local[3 * e + 2] = (int16_t)(a2 - (b2 << bits) + order - 1);
+                        coef[e] = (int32_t)c;
+                        brick_of_entry[e] = (int32_t)brick_of_cell[cell];
+                    }
+                }
+        }
+    }
+    free(counts);
+    free(brick_of_cell);
+    sizes[0] = nb;
+    sizes[1] = total;
+    return 0;
+}
+
+/* The own table of one row of bricks from its entries (gs_brick_row_entries): a run per
+ * (brick, column lx, ly) from its first to its last local k (gaps hold 0), runs in entry
+ * order; the column entry is the run's offset from its brick's base << COL_SHIFT | first
+ * k << COL_KBITS | length. With values NULL only counts: returns the number of values.
+ * Otherwise fills base (nb), cols (nb, side, side; zeroed by the caller) and values
+ * (zeroed). */
+GS_EXPORT int64_t gs_own_table_row(const int64_t *brick_start, int64_t nb, const int16_t *local,
+                                   const int32_t *coef_index, const double *coefficients, int64_t side, int64_t *base,
+                                   int32_t *cols, double *values)
+{
+    int64_t at = 0;
+    for (int64_t b = 0; b < nb; ++b) {
+        int64_t b_base = at;
+        if (values)
+            base[b] = at;
+        int64_t e = brick_start[b], end = brick_start[b + 1];
+        while (e < end) {
+            int64_t f = e;
+            while (f + 1 < end && local[3 * (f + 1)] == local[3 * e] && local[3 * (f + 1) + 1] == local[3 * e + 1])
+                f += 1;
+            int64_t k0 = local[3 * e + 2];
+            int64_t length = (int64_t)local[3 * f + 2] - k0 + 1;
+            if (values) {
+                cols[(b * side + local[3 * e]) * side + local[3 * e + 1]] =
+                    (int32_t)(((at - b_base) << COL_SHIFT) | (k0 << COL_KBITS) | length);
+                for (int64_t g = e; g <= f; ++g)
+                    values[at + local[3 * g + 2] - k0] = coefficients[coef_index[g]];
+            }
+            at += length;
+            e = f + 1;
+        }
+    }
+    return at;
+}
+
+typedef struct {
+    const double *parents;
+    const int64_t *parent_of, *half;
+    const double *weights;
+    double *out;
+    int64_t n, nout, nparents;
+} subdivide_job;
+
+/* Child brick i's table on spacing h from its parent brick's table on 2h (see
+ * gs_subdivide_bricks), axis by axis. */
+static void subdivide_task(void *ctx, int64_t i)
+{
+    const subdivide_job *J = ctx;
+    const int64_t n = J->n, cells = 1 << BRICK_BITS, side = cells + n - 1, width = cells / 2 + n - 1;
+    double *tx = calloc((size_t)(side * width * width + side * side * width), sizeof(double));
+    if (!tx) {
+        for (int64_t c = 0; c < side * side * side; ++c)
+            J->out[i * side * side * side + c] = NAN; /* out of memory: no numbers made up */
+        return;
+    }
+    double *ty = tx + side * width * width;
+    const double *parent = J->parents + J->parent_of[i] * side * side * side;
+    int64_t ox = J->half[3 * i] * (cells / 2), oy = J->half[3 * i + 1] * (cells / 2),
+            oz = J->half[3 * i + 2] * (cells / 2);
+    for (int64_t a = 0; a < side; ++a)
+        for (int64_t m = 0; m <= n; ++m) {
+            int64_t num = a + n - 1 - m;
+            if (num < 0 || (num & 1) != 0 || (num >> 1) >= width)
+                continue;
+            int64_t q = ox + (num >> 1);
+            double wm = J->weights[m];
+            for (int64_t j = 0; j < width; ++j)
+                for (int64_t k = 0; k < width; ++k)
+                    tx[(a * width + j) * width + k] += wm * parent[(q * side + oy + j) * side + oz + k];
+        }
+    for (int64_t a = 0; a < side; ++a)
+        for (int64_t b = 0; b < side; ++b)
+            for (int64_t m = 0; m <= n; ++m) {
+                int64_t num = b + n - 1 - m;
+                if (num < 0 || (num & 1) != 0 || (num >> 1) >= width)
+                    continue;
+                int64_t q = num >> 1;
+                double wm = J->weights[m];
+                for (int64_t k = 0; k < width; ++k)
+                    ty[(a * side + b) * width + k] += wm * tx[(a * width + q) * width + k];
+            }
+    double *out = J->out + i * side * side * side;
+    for (int64_t a = 0; a < side; ++a)
+        for (int64_t b = 0; b < side; ++b)
+            for (int64_t c = 0; c < side; ++c) {
+                double acc = 0.0;
+                for (int64_t m = 0; m <= n; ++m) {
+                    int64_t num = c + n - 1 - m;
+                    if (num < 0 || (num & 1) != 0 || (num >> 1) >= width)
+                        continue;
+                    acc += J->weights[m] * ty[(a * side + b) * width + (num >> 1)];
+                }
+                out[(a * side + b) * side + c] = acc;
+            }
+    free(tx);
+}
+
+/* Brick tables of a spline written on the grid of half the spacing (folding).
+ *
+ * parents (P, side, side, side) are brick tables on spacing 2h (table index c of brick b
+ * is B-spline b S - n + 1 + c, S = 2**BRICK_BITS, n = order); child brick i lies in parent
+ * brick parent_of[i], in its half half[i] (0/1 per axis). out[i] (side^3) receives the
+ * child's table on spacing h by the refinement relation B(x) = sum_m weights[m] B(2x - m)
+ * (weights: n + 1 of them, 2^-(n-1) binom(n, m)): child index c draws on parent index
+ * q = (c + n - 1 - m) / 2 + half S / 2. n + 1 multiply-adds per output of each pass. */
+GS_EXPORT void gs_subdivide_bricks(const double *parents, int64_t nparents, const int64_t *parent_of,
+                                   const int64_t *half, const double *weights, int64_t nweights, double *out,
+                                   int64_t nout, int64_t nthreads)
+{
+    subdivide_job J = {parents, parent_of, half, weights, out, nweights - 1, nout, nparents};
+    gs_parallel_for((int)nthreads, nout, subdivide_task, &J);
+}
