@@ -44,17 +44,22 @@ def pin_mmap_threshold() -> bool:
         return bool(_pinned)
 
 
-def available_bytes() -> float | None:
-    """Memory the system can give this process without swapping (Linux's
-    ``MemAvailable``), in bytes; ``None`` where it is not known."""
+def _meminfo_bytes(field: str) -> float | None:
+    """A field of Linux's ``/proc/meminfo`` in bytes; ``None`` where it is not known."""
     try:
         with open("/proc/meminfo") as f:
             for line in f:
-                if line.startswith("MemAvailable:"):
+                if line.startswith(field + ":"):
                     return float(line.split()[1]) * 1024.0
     except OSError:
         pass
     return None
+
+
+def available_bytes() -> float | None:
+    """Memory the system can give this process without swapping (Linux's
+    ``MemAvailable``), in bytes; ``None`` where it is not known."""
+    return _meminfo_bytes("MemAvailable")
 
 
 #: Share of the machine's memory a fit plans against when no ``max_memory`` is given:
@@ -65,14 +70,7 @@ MEMORY_FRACTION = 0.6
 
 def total_bytes() -> float | None:
     """The machine's memory (Linux's ``MemTotal``), in bytes; ``None`` where not known."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemTotal:"):
-                    return float(line.split()[1]) * 1024.0
-    except OSError:
-        pass
-    return None
+    return _meminfo_bytes("MemTotal")
 
 
 def memory_budget(max_memory_bytes: float | None = None) -> float | None:
