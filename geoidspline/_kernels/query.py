@@ -13,6 +13,7 @@ import ctypes
 import numpy as np
 
 from ._clib import F64, I64, PTR, c_in, c_out, function, ptr, threads
+from .layout import KEY_BITS, KEY_OFFSET
 
 BRICK_BITS = 4
 
@@ -75,7 +76,7 @@ _undulation_latlon = function("gs_undulation_latlon", _SPLINE, PTR, PTR, I64, I6
 _unit_vectors = function("gs_unit_vectors", PTR, PTR, I64, PTR, I64)
 _query_order = function("gs_query_order", PTR, I64, PTR, PTR)
 _build_hash = function("gs_build_hash", PTR, I64, PTR, I64)
-_brick_row_entries = function("gs_brick_row_entries", PTR, I64, I64, I64, I64, PTR, PTR, PTR, PTR, PTR, PTR,
+_brick_row_entries = function("gs_brick_row_entries", PTR, I64, I64, I64, I64, I64, PTR, PTR, PTR, PTR, PTR, PTR,
                               restype=I64)
 _own_table_row = function("gs_own_table_row", PTR, I64, PTR, PTR, PTR, I64, PTR, PTR, PTR, restype=I64)
 _subdivide_bricks = function("gs_subdivide_bricks", PTR, I64, PTR, PTR, PTR, I64, PTR, I64, I64)
@@ -93,15 +94,23 @@ def brick_row_entries(keys, order, bits, row):
     per axis.
     """
     keys = c_in(keys, np.int64)
-    bound = 4 * keys.size  # a key is in at most 2 x 2 bricks of one row
+    # the row's keys are one run of the sorted keys (first index a0 from row 2**bits -
+    # order + 1 to row 2**bits + 2**bits - 1, the major part of the key): scanning only
+    # it makes a level's rows cost one pass over its keys, not one pass a row
+    a0_first = (row << bits) - order + 1
+    a0_end = (row + 1) << bits
+    first, last = np.searchsorted(keys, [(a0_first + KEY_OFFSET) << (2 * KEY_BITS),
+                                         (a0_end + KEY_OFFSET) << (2 * KEY_BITS)])
+    run = keys[first:last]
+    bound = 4 * run.size  # a key is in at most 2 x 2 bricks of one row
     brick_keys = np.empty(bound, np.int64)
     brick_start = np.empty(bound + 1, np.int64)
     brick_of_entry = np.empty(bound, np.int32)
     local = np.empty((bound, 3), np.int16)  # 0 .. 2**bits + order - 2: small (memory)
     coef = np.empty(bound, np.int32)
     sizes = np.zeros(2, np.int64)
-    if _brick_row_entries(ptr(keys), keys.size, int(order), int(bits), int(row), ptr(brick_keys), ptr(brick_start),
-                          ptr(brick_of_entry), ptr(local), ptr(coef), ptr(sizes)) != 0:
+    if _brick_row_entries(ptr(run), run.size, int(first), int(order), int(bits), int(row), ptr(brick_keys),
+                          ptr(brick_start), ptr(brick_of_entry), ptr(local), ptr(coef), ptr(sizes)) != 0:
         raise MemoryError("brick_row_entries: out of memory")
     nb, total = int(sizes[0]), int(sizes[1])
     # views: the bound's unused tail was never written, so its pages were never touched;

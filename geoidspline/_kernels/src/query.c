@@ -710,8 +710,8 @@ done:
  * brick_start (B + 1), brick_of_entry (E), local (E, 3) = k - brick 2**bits + order - 1
  * per axis, coef (E), entries sorted by (brick key, local position) (a counting sort by
  * brick over the keys in order); sizes = (B, E). Returns 0, or -1 when memory ran out. */
-GS_EXPORT int64_t gs_brick_row_entries(const int64_t *keys, int64_t n, int64_t order, int64_t bits, int64_t row,
-                                       int64_t *brick_keys, int64_t *brick_start, int32_t *brick_of_entry,
+GS_EXPORT int64_t gs_brick_row_entries(const int64_t *keys, int64_t n, int64_t first, int64_t order, int64_t bits,
+                                       int64_t row, int64_t *brick_keys, int64_t *brick_start, int32_t *brick_of_entry,
                                        int16_t *local, int32_t *coef, int64_t *sizes)
 {
     const int64_t big = ((int64_t)1) << 40;
@@ -768,7 +768,7 @@ GS_EXPORT int64_t gs_brick_row_entries(const int64_t *keys, int64_t n, int64_t o
                         local[3 * e] = (int16_t)l0;
                         local[3 * e + 1] = (int16_t)(a1 - (b1 << bits) + order - 1);
                         local[3 * e + 2] = (int16_t)(a2 - (b2 << bits) + order - 1);
-                        coef[e] = (int32_t)c;
+                        coef[e] = (int32_t)(first + c);
                         brick_of_entry[e] = (int32_t)brick_of_cell[cell];
                     }
                 }
