@@ -2,7 +2,7 @@
 by :mod:`._clib`); nothing is compiled at run time.
 
 - :mod:`.layout`: the packed key layout (plain integers);
-- :mod:`.common`: key packing, binary search, B-spline weights;
+- :mod:`.common`: the B-spline weights (for Python callers and tests);
 - :mod:`.fitting`: the domain test and the normal equations of least squares;
 - :mod:`.interpolation`: the quasi-interpolant's lattice lookups and prefilter;
 - :mod:`.query`: the brick index and the evaluation of batches;
