@@ -56,7 +56,7 @@ def build_banded_store(source, path, region, params, progress=None, overwrite=Fa
     from ..fitting.parameters import check_promise
     from ..fitting.progress import as_progress
     from ..hierarchy.ambient import AmbientSpline
-    from ..store.codec import value_step
+    from ..store.codec import slack_step
     from ..store.reader import TileStore
     from ..store.writer import BandedWrite, tile_groups, tile_stats, tolerance_asked
 
@@ -67,9 +67,11 @@ def build_banded_store(source, path, region, params, progress=None, overwrite=Fa
     check_plan(source, region, params, executor.memory_budget)
     margin = band_margin_deg(params) if margin_deg is None else float(margin_deg)
     asked = tolerance_asked({"tolerance_m": params.tolerance_m, **(extra or {})})
-    # one step for every band, fixed before the fit: its proven bound fits in the room the
-    # fit leaves under the tolerance at every level the fit may have
-    step = value_step(asked, params.max_level + 1)
+    # one step for every band, fixed before the fit: its proven bound (levels x step / 2,
+    # at every level the fit may have) fits in the room the fit's node target leaves
+    # under the tolerance asked (the whole-globe writer tries coarser steps at the nodes,
+    # which a band cannot: they are all the globe's at once)
+    step = slack_step(asked, params.node_target_m, params.max_level + 1)
     check_lat, check_lon = random_positions(region, check_count, CHECK_SEED)
     identity = json.loads(json.dumps({
         "source": source.provenance.source, "sha256": source.provenance.sha256, "parameters": params.as_dict(),

@@ -72,14 +72,20 @@ def group_by_tile(dirs, tile_size):
     return keys
 
 
+_crash_counts: dict = {}
+
+
 def crash_point(name):
     """Test hooks at the commit points of a write.
 
-    ``GEOIDSPLINE_CRASH_AT=name``: die here like SIGKILL (no clean-up).
+    ``GEOIDSPLINE_CRASH_AT=name``: die here like SIGKILL (no clean-up), the
+    ``GEOIDSPLINE_CRASH_AFTER``-th time (default the first) the write gets here.
     ``GEOIDSPLINE_STOP_AT=name``: stop here (SIGSTOP), for a test to SIGKILL the process.
     """
     if os.environ.get("GEOIDSPLINE_CRASH_AT") == name:
-        os._exit(77)
+        _crash_counts[name] = _crash_counts.get(name, 0) + 1
+        if _crash_counts[name] >= int(os.environ.get("GEOIDSPLINE_CRASH_AFTER", "1")):
+            os._exit(77)
     if os.environ.get("GEOIDSPLINE_STOP_AT") == name:
         os.kill(os.getpid(), signal.SIGSTOP)
 
