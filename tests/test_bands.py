@@ -78,7 +78,8 @@ def test_bands_give_the_whole_globe_coefficients_bit_for_bit(model, whole, reach
     the default margin and with one covering every overlay block's reach."""
     params = FitParameters(**PARAMS)
     margin = band_margin_deg(params, overlay_reach=reach)
-    bands = [fit_band(model, params, band, 1e-6, np.empty(0), np.empty(0), margin) for band in band_indices(params)]
+    bands = [fit_band(model, params, band, np.empty(0), np.empty(0), margin_deg=margin)
+             for band in band_indices(params)]
     assert len(bands) == 6  # z slabs of 0.4 from -1.2 to 1.2
     banded = band_spline(bands, params)
     assert [lv.level for lv in whole.spline.levels] == [lv.level for lv in banded.levels] == [0, 1]

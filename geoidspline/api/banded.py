@@ -25,10 +25,19 @@ CHECK_SEED = 0
 
 def _band_task(shared, band):
     """One band's fit (a module-level function: what a dask worker runs)."""
+    return _band_in_process(shared, band)
+
+
+def _band_in_process(shared, band, executor=None, progress=None):
+    """A band fitted here, its overlay blocks solved by ``executor``'s workers."""
+    import functools
+
     from ..fitting.bands import fit_band
+    from ..store.codec import quantised_spline
 
     source, params, step, check_lat, check_lon, margin = shared
-    return fit_band(source, params, band, step, check_lat, check_lon, margin)
+    return fit_band(source, params, band, check_lat, check_lon, functools.partial(quantised_spline, step=step),
+                    margin, executor=executor, progress=progress)
 
 
 def _plain(value):
@@ -113,14 +122,6 @@ def build_banded_store(source, path, region, params, progress=None, overwrite=Fa
             write.finish(manifest)
             advance(1)
     return result, TileStore.open(path).info()
-
-
-def _band_in_process(shared, band, executor, progress):
-    """A band fitted here, its overlay blocks solved by ``executor``'s workers."""
-    from ..fitting.bands import fit_band
-
-    source, params, step, check_lat, check_lon, margin = shared
-    return fit_band(source, params, band, step, check_lat, check_lon, margin, executor=executor, progress=progress)
 
 
 def _banded_manifest(write, source, region, params, step, extra, started, check_count):

@@ -123,17 +123,18 @@ class BandResult:
     notes: list = field(default_factory=list)
 
 
-def fit_band(source, params: FitParameters, band: int, value_step_m: float, check_latitude, check_longitude,
+def fit_band(source, params: FitParameters, band: int, check_latitude, check_longitude, stored=None,
              margin_deg: float | None = None, executor=None, progress=None) -> BandResult:
     """Fit band ``band`` of the globe (see the module's docstring).
 
-    ``value_step_m``: the store's quantisation step, fixed before the fit (every band
-    rounds alike); ``check_latitude``/``check_longitude``: the whole fit's check points
+    ``stored``: the spline a store holds for a fitted one (its coefficients rounded to
+    the store's step, fixed before the fit so that every band rounds alike; default: the
+    fitted one), where the band measures its nodes and check points;
+    ``check_latitude``/``check_longitude``: the whole fit's check points
     (degrees), of which the band measures those it owns by the exact synthesis.
     ``margin_deg``: how far the band's fit reaches beyond its slab (default
     :func:`band_margin_deg`). ``executor`` solves the overlay blocks (default: here).
     """
-    from ..store.codec import quantised_spline
     from .check_points import exact_values
     from .driver import fit_nodes, finer_data_hint
 
@@ -159,7 +160,7 @@ def fit_band(source, params: FitParameters, band: int, value_step_m: float, chec
                        finer_hint=finer_data_hint(source))
     rows = sample.latitude.size
     del sample, level0, keys, coefficients
-    stored = quantised_spline(result.spline, value_step_m)
+    stored = result.spline if stored is None else stored(result.spline)
     owned_levels = []
     for lv in result.spline.levels:
         mine = cube_of_support_centres(lv.indices, lv.h, lv.order, params.tile_size)[:, 2] == band
