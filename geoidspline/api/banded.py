@@ -61,7 +61,7 @@ def build_banded_store(source, path, region, params, progress=None, overwrite=Fa
     from ..fitting.bands import band_indices, band_margin_deg
     from ..fitting.check_points import random_positions
     from ..fitting.executors import Executor, run_tasks
-    from ..fitting.memory import check_plan
+    from ..fitting.memory import banded_parameters, check_plan
     from ..fitting.parameters import check_promise
     from ..fitting.progress import as_progress
     from ..hierarchy.ambient import AmbientSpline
@@ -73,6 +73,7 @@ def build_banded_store(source, path, region, params, progress=None, overwrite=Fa
     executor = executor or Executor()
     progress = as_progress(progress)
     check_promise(params)
+    params = banded_parameters(source, region, params, executor.memory_budget)
     check_plan(source, region, params, executor.memory_budget)
     margin = band_margin_deg(params) if margin_deg is None else float(margin_deg)
     asked = tolerance_asked({"tolerance_m": params.tolerance_m, **(extra or {})})
