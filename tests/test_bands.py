@@ -215,3 +215,17 @@ def test_a_dask_cluster_over_tcp_writes_the_local_store(model_file, tmp_path):
             process.terminate()
         for process in processes:
             process.wait(timeout=60)
+
+
+def test_bands_are_made_smaller_until_the_largest_fits_the_memory(model):
+    from geoidspline.fitting.memory import SMALLEST_BAND_TILE, banded_parameters, plan
+
+    params = FitParameters(**PARAMS)
+    need = plan(model, GLOBAL, params).bytes
+    smaller = banded_parameters(model, GLOBAL, params, 0.9 * need)
+    assert smaller.tile_size == 0.2 and plan(model, GLOBAL, smaller).bytes <= 0.9 * need
+    assert len(band_indices(smaller)) == 12  # z from -1.2 to 1.2 (support centres lie off the sphere)
+    assert banded_parameters(model, GLOBAL, params, need) == params  # fits: unchanged
+    assert banded_parameters(model, GLOBAL, params, 1.0).tile_size >= SMALLEST_BAND_TILE  # then refused by the plan
+    regional = Region(-60, -180, 60, 180)
+    assert banded_parameters(model, regional, params, 1.0) == params  # not fitted by bands
