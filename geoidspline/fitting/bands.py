@@ -38,7 +38,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -119,8 +119,7 @@ class BandResult:
     converged: bool
     data_limited: bool
     seconds: float
-    sample_rows: int = 0
-    notes: list = field(default_factory=list)
+    sample_rows: int = 0  # lattice rows the band synthesised (its margin included)
 
 
 def fit_band(source, params: FitParameters, band: int, check_latitude, check_longitude, stored=None,
