@@ -100,16 +100,18 @@ def test_only_a_models_whole_globe_is_fitted_by_bands():
 def test_a_banded_store_holds_the_whole_fit_and_measures_it(model, whole, tmp_path):
     result, info = build_store(model, tmp_path / "s", params=FitParameters(**PARAMS), check_count=2000)
     levels = store_levels(tmp_path / "s")
-    step = info_step(tmp_path / "s")
-    for lv in whole.spline.levels:  # the whole fit's coefficients, rounded to the store's step
+    manifest = json.loads((tmp_path / "s" / "manifest.json").read_text())
+    start, steps = manifest["spline"]["value_step_m"], manifest["fit"]["bands"]["value_steps_m"]
+    assert all(start / step in (1, 2, 4, 8, 16) for step in steps)  # each band's nests in the store's
+    for lv in whole.spline.levels:  # the whole fit's coefficients, each rounded to its band's step
         keys, coefs = levels[lv.level]
         assert np.array_equal(keys, lv.keys)
-        assert np.array_equal(coefs, np.rint(lv.coefficients / step) * step)
+        assert np.abs(coefs - lv.coefficients).max() <= start / 2
+        assert np.all(np.isclose(coefs / min(steps), np.rint(coefs / min(steps)), rtol=0, atol=1e-6))
     assert info["converged"] and info["nodes"] == whole.node_count and info["check_points"] == 2000
     # the store keeps the tolerance at the nodes and the random check points (exact synthesis)
     assert info["node_max_error_m"] <= 0.14 and info["max_error_m"] <= 0.14
     assert not (tmp_path / "s" / PROGRESS).exists()
-    manifest = json.loads((tmp_path / "s" / "manifest.json").read_text())
     assert manifest["fit"]["bands"]["count"] == 6 and result.spline is None
 
 
