@@ -23,6 +23,19 @@ log = logging.getLogger("geoidspline.api")
 CHECK_SEED = 0
 
 
+def _fitted_bands(bands, shared, executor, progress):
+    """``(band, BandResult)`` as each band is fitted: on the executor's dask cluster when
+    it has one (a band a task), else here one after the other (the executor's workers
+    solving each band's overlay blocks, the stages reported to ``progress``)."""
+    from ..fitting.executors import run_tasks
+
+    if executor.scheduler:
+        yield from run_tasks(_band_task, bands, executor, shared)
+    else:
+        for band in bands:
+            yield band, _band_in_process(shared, band, executor, progress)
+
+
 def _band_task(shared, band):
     """One band's fit (a module-level function: what a dask worker runs)."""
     return _band_in_process(shared, band)
@@ -55,14 +68,13 @@ def build_banded_store(source, path, region, params, progress=None, overwrite=Fa
     :func:`~geoidspline.api.build_store` does (the result's ``spline`` is None: the
     store holds it, read it with :func:`~geoidspline.api.open_store`)."""
     from ..bspline.level import LevelSpline
-    from ..fitting.bands import band_indices, band_margin_deg
+    from ..fitting.bands import Rounding, band_indices, band_margin_deg
     from ..fitting.check_points import random_positions
-    from ..fitting.executors import Executor, run_tasks
+    from ..fitting.executors import Executor
     from ..fitting.memory import banded_parameters, check_plan
     from ..fitting.parameters import check_promise
     from ..fitting.progress import as_progress
     from ..hierarchy.ambient import AmbientSpline
-    from ..fitting.bands import Rounding
     from ..store.codec import stored_values, value_step
     from ..store.reader import TileStore
     from ..store.writer import BandedWrite, tile_groups, tile_stats, tolerance_asked
@@ -86,7 +98,7 @@ def build_banded_store(source, path, region, params, progress=None, overwrite=Fa
         "region": list(region.as_tuple()), "extra": extra or {},
     }, default=_plain))
     bands = band_indices(params)
-    spline_meta = {"order": params.order, "h0": params.h0, "tile_size": params.tile_size, "value_step_m": step}
+    spline_meta = {"order": params.order, "h0": params.h0, "tile_size": params.tile_size}
     with BandedWrite(path, identity, overwrite=overwrite, resume=resume, sign=sign) as write:
         done = write.done()
         if done:
@@ -95,8 +107,7 @@ def build_banded_store(source, path, region, params, progress=None, overwrite=Fa
         shared = (source, params, rounding, check_lat, check_lon, margin)
         with progress.stage("bands", len(bands), "band") as advance:
             advance(len(done))
-            for band, result in run_tasks(_band_task, todo, executor, shared) if executor.scheduler else (
-                    (band, _band_in_process(shared, band, executor, progress)) for band in todo):
+            for band, result in _fitted_bands(todo, shared, executor, progress):
                 levels = [LevelSpline(level, h, params.order, keys, coefs)
                           for level, h, keys, coefs in result.levels if keys.size]
                 groups = tile_groups(AmbientSpline(levels), params.tile_size)
@@ -112,7 +123,6 @@ def build_banded_store(source, path, region, params, progress=None, overwrite=Fa
                     "value_step_m": result.value_step_m,
                 }, default=_plain))
                 write.commit_band(band, groups, stats, {**spline_meta, "value_step_m": result.value_step_m}, summary)
-                done[band] = {**summary, "tiles": []}
                 log.info("band %d: %d coefficients, node max %.4f m, %.1f s", band,
                          sum(summary["levels"].values()), summary["node_max_error_m"], summary["seconds"])
                 advance(1)
