@@ -184,7 +184,8 @@ def _check_hierarchy(basis, rng):
     values = rng.normal(size=pts.shape[0])
     matrix, rhs = normal_matrix(basis, [(pts[lvl == lv], values[lvl == lv]) for lv in range(basis.levels)])
     direct = (a.T @ a).toarray()
-    np.testing.assert_allclose(matrix.toarray(), direct, rtol=0, atol=1e-12 * np.abs(direct).max())
+    # the upper triangle, diagonal included (the matrix is symmetric)
+    np.testing.assert_allclose(matrix.toarray(), np.triu(direct), rtol=0, atol=1e-12 * np.abs(direct).max())
     np.testing.assert_allclose(rhs, a.T @ values, rtol=0, atol=1e-12 * np.abs(rhs).max())
     return pts, lvl, a
 
@@ -267,7 +268,8 @@ def test_hierarchical_space_reproduces_polynomials(plane):
 
     pts, lvl = leaf_points(basis, 4**3 + 6, rng)
     matrix, rhs = normal_matrix(basis, [(pts[lvl == lv], poly(pts[lvl == lv])) for lv in range(basis.levels)])
-    b = np.linalg.solve(matrix.toarray(), rhs)
+    upper = matrix.toarray()
+    b = np.linalg.solve(upper + np.triu(upper, 1).T, rhs)
     check, _ = leaf_points(basis, 5, rng)
     s = AmbientSpline(basis.level_splines(b))
     np.testing.assert_allclose(s.evaluate_points(check), poly(check), rtol=0, atol=1e-8 * np.abs(poly(check)).max())

@@ -61,7 +61,7 @@ from ..sphere.region import Region
 __all__ = [
     "up", "down", "boxes_meet_sphere", "coarsen_cells", "Domain", "HierarchicalBasis", "algorithm1", "algorithm2",
     "initial_basis", "refine", "violations_53", "marked_functions", "HierarchicalRefinement", "design_matrix",
-    "level_expansion", "normal_matrix",
+    "level_expansion", "level_normal_matrix", "normal_matrix",
 ]
 
 _EMPTY = np.empty(0, dtype=np.int64)
@@ -502,26 +502,102 @@ def level_expansion(basis: HierarchicalBasis, level: int):
     return x, r
 
 
+#: Bytes of the dense scratch table of one level's normal equations, filled one slice of
+#: the level's B-splines at a time (64 MB: about 23,000 cubic B-splines), so that the
+#: table follows the slice, not the globe.
+NORMAL_TABLE_BYTES = 64_000_000
+
+#: Columns of the hierarchical basis whose part of ``Rᵀ F R`` one sparse product forms
+#: (its temporaries are those columns' share of the whole product).
+PRODUCT_COLUMNS = 16_384
+
+
+def level_normal_matrix(points, values, h, order, keys):
+    """One level's AᵀA (upper triangle, CSC) and Aᵀv over the B-splines ``keys`` (sorted)
+    at ``points``, built one slice of :data:`NORMAL_TABLE_BYTES` at a time from the sites
+    that can reach the slice (by the first axis of their cell, in their order, so every
+    entry is summed as by one table)."""
+    n = keys.size
+    rhs = np.zeros(n)
+    per_slice = max(1, NORMAL_TABLE_BYTES // (8 * (2 * order - 1) ** 3))
+    # the kernel's cell: floor(x * (1 / h))
+    axis = np.floor(points[:, 0] * (1.0 / h)).astype(np.int64)
+    by_axis = np.argsort(axis, kind="stable")
+    axis = axis[by_axis]
+    indptr, indices, data, at = [np.zeros(1, np.int64)], [], [], 0
+    for first in range(0, n, per_slice):
+        last = min(n, first + per_slice)
+        lo, hi = unpack_keys(keys[[first, last - 1]])[:, 0]
+        # the B-spline i spans the cells i .. i + order - 1 of the first axis
+        a, b = np.searchsorted(axis, [lo, hi + order])
+        chosen = np.sort(by_axis[a:b])
+        ptr_, idx_, val_, _ = normal_equations(points[chosen], values[chosen], h, order, keys, first, last, rhs)
+        indptr.append(ptr_[1:] + at)
+        indices.append(idx_)
+        data.append(val_)
+        at += idx_.size
+    upper = sp.csc_matrix((np.concatenate(data), np.concatenate(indices), np.concatenate(indptr)), shape=(n, n))
+    return upper, rhs
+
+
+def _upper_of_congruence(upper, r, total):
+    """The upper triangle of ``Rᵀ F R`` (F symmetric, ``upper`` its upper triangle, CSC;
+    R CSR with ``total`` columns) as one CSC piece per :data:`PRODUCT_COLUMNS` columns,
+    so that the full product is never formed."""
+    lower = upper.T  # the strict lower part and the diagonal, a CSR view: no copy
+    diagonal = sp.diags(upper.diagonal())
+    r_columns = r.tocsc()
+    rt = r.T.tocsr()
+    pieces = []
+    for j0 in range(0, total, PRODUCT_COLUMNS):
+        j1 = min(total, j0 + PRODUCT_COLUMNS)
+        rj = r_columns[:, j0:j1]
+        part = (rt @ (upper @ rj + lower @ rj - diagonal @ rj)).tocsc()
+        rows = part.indices
+        cols = np.repeat(np.arange(j1 - j0), np.diff(part.indptr))
+        keep = rows <= cols + j0
+        pieces.append(sp.csc_matrix((part.data[keep], (rows[keep], cols[keep])), shape=(total, j1 - j0)))
+    return pieces
+
+
 def normal_matrix(basis: HierarchicalBasis, sites):
-    """AᵀA (CSC, symmetric, all levels) and Aᵀv for ``sites``: one ``(points, values)``
-    pair per level, the points inside that level's leaves.
+    """The upper triangle (CSC, diagonal included) of AᵀA over all levels, and Aᵀv, for
+    ``sites``: one ``(points, values)`` pair per level, the points inside that level's leaves.
 
     Each level's AᵀA on the B-splines touching its leaves comes from the single-level
-    kernel (:func:`geoidspline._kernels.fitting.normal_equations`), then ``Rᵀ (AᵀA) R`` with
-    the level's expansion R (:func:`level_expansion`) puts it on the hierarchical basis.
+    kernel (:func:`level_normal_matrix`), then ``Rᵀ (AᵀA) R`` with the level's expansion R
+    (:func:`level_expansion`) puts it on the hierarchical basis, a slice of columns at a
+    time. Only the upper triangle is kept: the matrix is symmetric, and the whole one
+    is twice the memory (:class:`geoidspline.fitting.hierarchical.SymmetricMatrix` multiplies
+    by the whole from it).
     """
     total = basis.coefficient_count
-    matrix = sp.csc_matrix((total, total))
     rhs = np.zeros(total)
+    pieces = []
     for lv, (points, values) in enumerate(sites):
         if points.shape[0] == 0 or basis.leaves[lv].size == 0:
             continue
         x, r = level_expansion(basis, lv)
-        indptr, indices, data, b = normal_equations(
-            np.ascontiguousarray(points), np.ascontiguousarray(values, dtype=float),
-            basis.spacing(lv), basis.order, x)
-        upper = sp.csc_matrix((data, indices, indptr), shape=(x.size, x.size))
-        full = upper + sp.triu(upper, 1, format="csc").T
-        matrix = matrix + (r.T @ (full @ r)).tocsc()
+        upper, b = level_normal_matrix(np.ascontiguousarray(points, dtype=float),
+                                       np.ascontiguousarray(values, dtype=float), basis.spacing(lv), basis.order, x)
         rhs += r.T @ b
-    return matrix, rhs
+        level_pieces = _upper_of_congruence(upper, r, total)
+        del upper
+        if not pieces:
+            pieces = level_pieces
+            continue
+        for i, piece in enumerate(level_pieces):  # one piece at a time: no second whole matrix
+            pieces[i] = pieces[i] + piece
+            level_pieces[i] = None
+    if not pieces:
+        return sp.csc_matrix((total, total)), rhs
+    indptr, at = [np.zeros(1, np.int64)], 0
+    for piece in pieces:
+        piece.sort_indices()
+        indptr.append(piece.indptr[1:].astype(np.int64) + at)
+        at += piece.nnz
+    indices = np.concatenate([p.indices for p in pieces])
+    data = np.concatenate([p.data for p in pieces])
+    del pieces
+    return sp.csc_matrix((data, indices, np.concatenate(indptr)), shape=(total, total)), rhs
+
