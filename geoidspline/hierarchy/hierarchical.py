@@ -467,10 +467,15 @@ def design_matrix(basis: HierarchicalBasis, points):
                          shape=(points.shape[0], basis.coefficient_count))
 
 
+#: Coarser B-splines whose children :func:`level_expansion` forms at once (125 children
+#: each for cubics, about 50 bytes a child in the temporaries: about 13 MB).
+EXPANSION_PARENTS = 2048
+
+
 def level_expansion(basis: HierarchicalBasis, level: int):
-    """Keys ``X`` of the level-ℓ B-splines touching the leaves ω^ℓ, and the sparse
-    matrix R (len(X) x all coefficients) writing the hierarchical spline on them:
-    on ω^ℓ, ``S = Σ_x (R b)_x B^ℓ_x``.
+    """Keys ``X`` of the level-ℓ B-splines touching the leaves ω^ℓ that carry a part of
+    the hierarchical spline, and the sparse matrix R (len(X) x all coefficients) writing
+    the spline on them: on ω^ℓ, ``S = Σ_x (R b)_x B^ℓ_x``.
 
     On a leaf of level ℓ only the active B-splines of levels ℓ and ℓ - 1 are non-zero
     (finer supports hold no leaf of level ℓ, and requirement 5.3 keeps level ℓ - 2 and
@@ -488,28 +493,34 @@ def level_expansion(basis: HierarchicalBasis, level: int):
         rows.append(pos[hit])
         cols.append(at[level] + np.flatnonzero(hit))
         vals.append(np.ones(int(hit.sum())))
-    if level > 0 and basis.active[level - 1].size:
-        child, parent, weight = children(basis.active[level - 1], n)
+    coarser = basis.active[level - 1] if level > 0 else _EMPTY
+    for first in range(0, coarser.size, EXPANSION_PARENTS):
+        # (n + 1)³ children a parent, most outside the leaves: a slice of parents at a time
+        child, parent, weight = children(coarser[first:first + EXPANSION_PARENTS], n)
         pos = np.searchsorted(x, child)
         hit = (pos < x.size) & (x[np.minimum(pos, x.size - 1)] == child)
         rows.append(pos[hit])
-        cols.append(at[level - 1] + parent[hit])
+        cols.append(at[level - 1] + first + parent[hit])
         vals.append(weight[hit])
     if not rows:
         return x, sp.csr_matrix((x.size, basis.coefficient_count))
     r = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
                       shape=(x.size, basis.coefficient_count))
-    return x, r
+    # B-splines touching a leaf that carry no part of the spline (the thin basis leaves
+    # about 40 % of them out): dropped, since their normal equations would be multiplied
+    # by zero rows of R
+    carrying = np.diff(r.indptr) > 0
+    return x[carrying], r[carrying]
 
 
 #: Bytes of the dense scratch table of one level's normal equations, filled one slice of
-#: the level's B-splines at a time (64 MB: about 23,000 cubic B-splines), so that the
+#: the level's B-splines at a time (32 MB: about 11,700 cubic B-splines), so that the
 #: table follows the slice, not the globe.
-NORMAL_TABLE_BYTES = 64_000_000
+NORMAL_TABLE_BYTES = 32_000_000
 
 #: Columns of the hierarchical basis whose part of ``Rᵀ F R`` one sparse product forms
 #: (its temporaries are those columns' share of the whole product).
-PRODUCT_COLUMNS = 16_384
+PRODUCT_COLUMNS = 4096
 
 
 def level_normal_matrix(points, values, h, order, keys):
@@ -524,7 +535,8 @@ def level_normal_matrix(points, values, h, order, keys):
     axis = np.floor(points[:, 0] * (1.0 / h)).astype(np.int64)
     by_axis = np.argsort(axis, kind="stable")
     axis = axis[by_axis]
-    indptr, indices, data, at = [np.zeros(1, np.int64)], [], [], 0
+    indptr = np.zeros(n + 1, np.int64)
+    indices, data, at = np.empty(0, np.int32), np.empty(0), 0
     for first in range(0, n, per_slice):
         last = min(n, first + per_slice)
         lo, hi = unpack_keys(keys[[first, last - 1]])[:, 0]
@@ -532,27 +544,50 @@ def level_normal_matrix(points, values, h, order, keys):
         a, b = np.searchsorted(axis, [lo, hi + order])
         chosen = np.sort(by_axis[a:b])
         ptr_, idx_, val_, _ = normal_equations(points[chosen], values[chosen], h, order, keys, first, last, rhs)
-        indptr.append(ptr_[1:] + at)
-        indices.append(idx_)
-        data.append(val_)
+        if at + idx_.size > indices.size:
+            # room for the rest at this slice's entries per column, and a little more:
+            # growing by a guess, not by concatenating every slice (twice the level's matrix)
+            size = at + idx_.size + int(1.05 * idx_.size / (last - first) * (n - last)) + 1024
+            grown_indices, grown_data = np.empty(size, np.int32), np.empty(size)
+            grown_indices[:at], grown_data[:at] = indices[:at], data[:at]
+            indices, data = grown_indices, grown_data
+            del grown_indices, grown_data
+        indptr[first + 1:last + 1] = ptr_[1:] + at
+        indices[at:at + idx_.size] = idx_
+        data[at:at + idx_.size] = val_
         at += idx_.size
-    upper = sp.csc_matrix((np.concatenate(data), np.concatenate(indices), np.concatenate(indptr)), shape=(n, n))
-    return upper, rhs
+    indices, data = (indices[:at], data[:at]) if at >= 0.9 * data.size else (indices[:at].copy(), data[:at].copy())
+    return sp.csc_matrix((data, indices, indptr), shape=(n, n)), rhs
 
 
 def _upper_of_congruence(upper, r, total):
-    """The upper triangle of ``Rᵀ F R`` (F symmetric, ``upper`` its upper triangle, CSC;
-    R CSR with ``total`` columns) as one CSC piece per :data:`PRODUCT_COLUMNS` columns,
-    so that the full product is never formed."""
-    lower = upper.T  # the strict lower part and the diagonal, a CSR view: no copy
-    diagonal = sp.diags(upper.diagonal())
+    """The upper triangle of ``Rᵀ F R`` (F symmetric, ``upper`` its upper triangle, CSC with
+    sorted rows; R CSR with ``total`` columns) as one CSC piece per :data:`PRODUCT_COLUMNS`
+    columns, so that the full product is never formed.
+
+    F couples B-splines only a few key rows apart, so the columns of a slice, which reach
+    the B-splines ``lo..hi`` of the level, see F only on ``lo - reach .. hi + reach``
+    (``reach``: the largest distance of an entry from the diagonal): the product is formed
+    on that band of F."""
+    n = upper.shape[0]
+    starts = upper.indptr[:-1]
+    filled = np.diff(upper.indptr) > 0
+    reach = int((np.arange(n)[filled] - upper.indices[starts[filled]]).max()) if filled.any() else 0
     r_columns = r.tocsc()
-    rt = r.T.tocsr()
     pieces = []
     for j0 in range(0, total, PRODUCT_COLUMNS):
         j1 = min(total, j0 + PRODUCT_COLUMNS)
         rj = r_columns[:, j0:j1]
-        part = (rt @ (upper @ rj + lower @ rj - diagonal @ rj)).tocsc()
+        if rj.nnz == 0:
+            pieces.append(sp.csc_matrix((total, j1 - j0)))
+            continue
+        b0 = max(0, int(rj.indices.min()) - reach)
+        b1 = min(n, int(rj.indices.max()) + reach + 1)
+        band = upper if (b0, b1) == (0, n) else upper[:, b0:b1][b0:b1]
+        rb = rj[b0:b1]
+        product = band @ rb + band.T @ rb - sp.diags(band.diagonal()) @ rb  # F on the band times R's columns
+        part = (r[b0:b1].T @ product).tocsc()
+        del product
         rows = part.indices
         cols = np.repeat(np.arange(j1 - j0), np.diff(part.indptr))
         keep = rows <= cols + j0
@@ -591,13 +626,19 @@ def normal_matrix(basis: HierarchicalBasis, sites):
             level_pieces[i] = None
     if not pieces:
         return sp.csc_matrix((total, total)), rhs
-    indptr, at = [np.zeros(1, np.int64)], 0
-    for piece in pieces:
+    # the pieces side by side, each freed once copied: no second whole matrix
+    count = sum(piece.nnz for piece in pieces)
+    indptr = np.zeros(total + 1, np.int64)
+    indices = np.empty(count, np.int32)
+    data = np.empty(count)
+    column = at = 0
+    for i, piece in enumerate(pieces):
         piece.sort_indices()
-        indptr.append(piece.indptr[1:].astype(np.int64) + at)
-        at += piece.nnz
-    indices = np.concatenate([p.indices for p in pieces])
-    data = np.concatenate([p.data for p in pieces])
-    del pieces
-    return sp.csc_matrix((data, indices, np.concatenate(indptr)), shape=(total, total)), rhs
+        width = piece.shape[1]
+        indptr[column + 1:column + width + 1] = piece.indptr[1:] + at
+        indices[at:at + piece.nnz] = piece.indices
+        data[at:at + piece.nnz] = piece.data
+        column, at = column + width, at + piece.nnz
+        pieces[i] = None
+    return sp.csc_matrix((data, indices, indptr), shape=(total, total)), rhs
 
