@@ -129,10 +129,17 @@ GS_EXPORT void gs_schwarz_apply(int64_t blocks, const int64_t *block_at, const i
         /* L y = r: row i of L is contiguous */
         for (int64_t i = 0; i < m; ++i) {
             const double *row = l + i * (i + 1) / 2;
-            double s = r[idx[i]];
-            for (int64_t k = 0; k < i; ++k)
-                s -= row[k] * work[k];
-            work[i] = s / row[i];
+            double s0 = 0.0, s1 = 0.0, s2 = 0.0, s3 = 0.0; /* as in gs_cholesky_packed */
+            int64_t k = 0;
+            for (; k + 4 <= i; k += 4) {
+                s0 += row[k] * work[k];
+                s1 += row[k + 1] * work[k + 1];
+                s2 += row[k + 2] * work[k + 2];
+                s3 += row[k + 3] * work[k + 3];
+            }
+            for (; k < i; ++k)
+                s0 += row[k] * work[k];
+            work[i] = (r[idx[i]] - ((s0 + s1) + (s2 + s3))) / row[i];
         }
         /* Lᵀ z = y, by rows of L from the last: z_i final, then taken out of the rows above */
         for (int64_t i = m - 1; i >= 0; --i) {
