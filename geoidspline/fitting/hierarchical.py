@@ -94,11 +94,14 @@ SCHWARZ_OVERLAP = 0.0
 SOLVE_FRACTION = 0.01
 MAX_ITERATIONS = 1_000
 
-#: Peak memory of a fit per unknown of its largest step (bytes): the whole problem
-#: (about 300 non-zeros a row), the local factorisations and the normal equations' table
-#: (global EGM96 at 0.1 m: 5.93 GB peak resident for 280,230 unknowns, 21,200 bytes each).
-#: A step needing more than the memory available is not built (:class:`BasisTooLarge`).
-BYTES_PER_UNKNOWN = 22_000
+#: Peak memory of a fit per unknown of its largest step (bytes): the upper triangle of
+#: the whole problem (about 85 non-zeros a row), the cubes' packed Cholesky factors (about
+#: 2.5 local unknowns per unknown, about 3.5 kB), the slices of the normal equations being
+#: assembled, and the data nodes (global EGM96 15' grid at 0.1 m, 2026-12-03: 1.70 GB peak
+#: resident for 281,071 unknowns, 6,040 bytes each; at 0.5 m 1.07 GB for 172,152, 6,200;
+#: benchmarks/README.md, issue 21's memory). A step needing more than the memory
+#: available is not built (:class:`BasisTooLarge`).
+BYTES_PER_UNKNOWN = 6_500
 
 #: Ridge relative to the mean diagonal of AᵀA: keeps B-splines no site sees decided.
 RIDGE = 1e-10
