@@ -17,6 +17,7 @@ _normal_compress = function("gs_normal_compress", PTR, PTR, I64, I64, I64, I64, 
 _schwarz_apply = function("gs_schwarz_apply", I64, PTR, PTR, PTR, PTR, PTR, PTR, PTR)
 _cholesky_packed = function("gs_cholesky_packed", PTR, I64, F64, PTR, restype=I64)
 
+
 def cells_meet_sphere(cells, h, radius):
     """Whether each cell (M, 3) of spacing h meets the sphere |x| = radius.
 

@@ -361,7 +361,7 @@ class SchwarzPreconditioner:
     packed (the lower triangle by rows, one array for all blocks) and all blocks applied
     by one compiled call (:func:`geoidspline._kernels.fitting.schwarz_apply`). The blocks
     are nearly full, so the packed triangle is the least they can be held in; sparse LDLᵀ
-    factors (qdldl) of the same blocks took about twice the memory (benchmarks/README.md)."""
+    factors (qdldl) of the same blocks took 1.5 times the memory (benchmarks/README.md)."""
 
     def __init__(self, system: SymmetricMatrix, index_sets, advance=None):
         sizes = np.array([idx.size for idx in index_sets], dtype=np.int64)

@@ -503,7 +503,7 @@ def level_expansion(basis: HierarchicalBasis, level: int):
         cols.append(at[level - 1] + first + parent[hit])
         vals.append(weight[hit])
     if not rows:
-        return x, sp.csr_matrix((x.size, basis.coefficient_count))
+        return _EMPTY, sp.csr_matrix((0, basis.coefficient_count))
     r = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
                       shape=(x.size, basis.coefficient_count))
     # B-splines touching a leaf that carry no part of the spline (the thin basis leaves
