@@ -547,3 +547,20 @@ def test_schwarz_preconditioner_solves_each_block_and_sums():
     for idx in blocks:
         expected[idx] += np.linalg.solve(whole[np.ix_(idx, idx)], r[idx])
     np.testing.assert_allclose(precondition(r), expected, rtol=1e-11, atol=1e-14)
+
+
+def test_a_block_that_is_not_positive_definite_is_factorised_shifted():
+    """Rounding can leave a principal block semidefinite: its factor is that of the block
+    with a small relative shift of the diagonal (the preconditioner need not be exact)."""
+    from geoidspline.fitting.hierarchical import _cholesky
+
+    block = np.array([[4.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 3.0]])  # rank 2
+    packed = np.empty(6)
+    _cholesky(block, packed)
+    factor = np.zeros((3, 3))
+    factor[np.tril_indices(3)] = packed
+    shifted = factor @ factor.T - block
+    assert np.all(np.isfinite(packed)) and factor[1, 1] > 0
+    np.testing.assert_allclose(shifted - np.diag(np.diag(shifted)), 0, atol=1e-12)
+    assert 0 < shifted[0, 0] <= 1e-3 * 4.0
+    np.testing.assert_allclose(np.diag(shifted), shifted[0, 0], rtol=1e-3)  # one shift for all rows
