@@ -160,6 +160,8 @@ class CoveragePart:
     source: str | None = None
 
     def covers(self, latitude, longitude):
+        if self.lattice is None and self.region.longitude_span >= 360.0:
+            return self.region.contains(latitude, longitude)  # longitudes do not matter: no pole rule
         latitude, longitude = self._pole_inside(latitude, longitude)
         if self.lattice is not None and np.size(latitude) >= COMPILED_FROM_POINTS:
             return self.lattice.cells_have_data(latitude, longitude, region=self.region)
