@@ -271,6 +271,7 @@ class Coverage:
         in_region = np.zeros(lat.shape, dtype=bool)
         for part in self.parts:
             in_region |= part.region.contains(*part._pole_inside(lat, lon))
+        in_region &= ~np.isnan(lon)  # a region spanning 360 degrees does not look at longitudes
         out = np.where(covered, INSIDE, np.where(in_region, NO_DATA, OUTSIDE)).astype(object)
         return str(out[()]) if out.ndim == 0 else out
 
