@@ -182,7 +182,7 @@ def print_store(r):
         label = {"ours-1": "geoidspline, 1 thread", "ours-all": f"geoidspline, {r['threads_all']} threads",
                  "pyproj": "pyproj bilinear egm96_15.gtx",
                  "geographiclib": f"GeographicLib cubic (PyGeodesy) {Path(r['geographiclib_pgm'] or '').name}"}[variant]
-        print(f"| {batch} | {label} | {med[name]:.1f} | {min(v):.1f}..{max(v):.1f} | {ratio:.2f} |")
+        print(f"| {batch} | {label} | {med[name]:.1f} | {min(v):.1f}..{max(v):.1f} | {ratio:.3g} |")
     if r["geographiclib"] != "measured":
         print(f"GeographicLib cubic: not measured ({r['geographiclib']})")
     f = r["roofline_1_thread_global"]
