@@ -564,7 +564,7 @@ static void latlon_refine(void *ctx, int64_t task)
     if (b_hi > LL_BUCKETS + 1)
         b_hi = LL_BUCKETS + 1; /* NaN's bucket: its codes are all equal */
     const uint64_t low_mask = (1u << LL_LOW_BITS) - 1;
-    uint32_t counts[(1 << LL_LOW_BITS) + 1];
+    int64_t counts[(1 << LL_LOW_BITS) + 1];
     for (int64_t b = b_lo; b < b_hi; ++b) {
         const uint64_t *in = J->by_bucket + J->bucket_start[b];
         uint64_t *a = J->sorted + J->bucket_start[b];
