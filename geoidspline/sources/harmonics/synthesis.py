@@ -384,6 +384,41 @@ class GeoidSynthesis:
         """T (m²/s²) at the ellipsoid point (h = 0), degrees 2..N, normal zonals removed."""
         return self._points(latitude, longitude, "T")
 
+    def degree_power(self, latitude) -> np.ndarray:
+        """Mean square (m²) of each degree's part of N along latitude rings.
+
+        ``latitude``: geodetic latitudes (degrees). Row i, column n: the mean over the
+        longitudes of the ring of (degree n of ζ)² plus (degree n of the correction)², on
+        the ellipsoid ((a/r)^n at the ring's radius), Σ_m w_m (ΔC̄nm² + S̄nm²) P̄nm² times
+        the ring's scale², w_0 = 1, w_m = 1/2. Degrees are summed incoherently: terms of
+        distinct m vanish in the mean along the ring, those of distinct degrees (and of ζ
+        and the correction) are left out, as they average out over latitude. The spectrum
+        the fit's parameter choice reads (:mod:`geoidspline.fitting.level0_error`).
+        """
+        lat = np.atleast_1d(np.asarray(latitude, dtype=np.float64))
+        if lat.ndim != 1 or not np.all(np.abs(lat) <= 90.0):
+            raise CoordinateError(f"latitudes must be a list within [-90, 90] degrees, got {latitude!r}")
+        nmax = self.max_degree
+        size = nmax + 1
+        t, u, r, gamma = self._geometry(lat)
+        scale = self._scales(r, gamma, "N")
+        weight = np.full(size, 0.5)
+        weight[0] = 1.0
+        # order-major power of each set, the order weight folded in: (k, m, n)
+        power = (self._CT**2 + self._ST**2) * weight[None, :, None]
+        degree = np.arange(size)
+        plm = np.zeros((size, size))
+        out = np.empty((lat.size, size))
+        for i in range(lat.size):
+            legendre.plm_bar(nmax, float(t[i]), float(u[i]), self._AT, self._BT, plm)
+            plm_squared = np.tril(plm) ** 2  # [n, m]; m > n is left untouched by plm_bar
+            for k in range(power.shape[0]):
+                ring = np.einsum("mn,nm->n", power[k], plm_squared) * scale[i, k] ** 2
+                if self._radial[k]:
+                    ring *= (self.conventions.scale_a / r[i]) ** (2 * degree)
+                out[i] = ring if k == 0 else out[i] + ring
+        return out
+
     # ------------------------------------------------------------------ lattices
     def lattice_step(self, spacing_deg: float | None = None) -> float:
         """The lattice spacing (degrees) used for ``spacing_deg``: 180/k for the smallest
