@@ -44,7 +44,7 @@ def run(model, region_bounds, tolerance, points, cache, correction=None, preset=
     region = Region.from_bounds(*region_bounds)
     choice = choose.choose_parameters(source, tolerance, region)
     params = dataclasses.replace(choice.parameters, max_level=0)
-    spectrum = level0_error.ModelSpectrum.of(source, region.south, region.north)
+    spectrum = level0_error.ModelSpectrum.of(source, region.south, region.north, region.west, region.east)
     area = choose.region_area(region)
     predicted_max, predicted_rms = level0_error.predicted_level0(spectrum, params.h0, params.order, area)
     lat, lon, truth, ref_seconds = reference_values(model, region_bounds, points, cache, correction_path=correction)

@@ -36,11 +36,11 @@ def test_degree_power_is_the_mean_square_along_the_ring_on_the_ellipsoid():
     lon = np.arange(0.0, 360.0, 0.25)
     latitudes = np.array([0.0, 37.5, -61.0, 89.0])
     power = synthesis.degree_power(latitudes)
-    assert power.shape == (4, 12)
+    assert power.shape == (4, 12, 1)
     for i, lat in enumerate(latitudes):
         values = synthesis.undulation(np.full(lon.size, lat), lon)
-        assert power[i, 11] == pytest.approx(np.var(values), rel=1e-9)
-        assert power[i, [3, 5, 7, 9]].max() == 0.0 and power[i, 4] > 0.0  # the normal field's J4 remains
+        assert power[i, 11, 0] == pytest.approx(np.var(values), rel=1e-9)
+        assert power[i, [3, 5, 7, 9]].max() == 0.0 and power[i, 4, 0] > 0.0  # the normal field's J4 remains
 
 
 def test_the_transfer_error_falls_as_the_spline_order_at_long_waves():
@@ -64,7 +64,7 @@ def test_the_predicted_rms_is_that_of_a_level_0_fit(make_synthesis, order, h):
     lon = rng.uniform(10, 20, 3000)
     errors = result.spline.undulation(lat, lon) - synthesis.undulation(lat, lon)
     measured_rms = float(np.sqrt(np.mean(errors**2)))
-    spectrum = level0_error.ModelSpectrum.of(synthesis, 20, 30)
+    spectrum = level0_error.ModelSpectrum.of(synthesis, 20, 30, 10, 20)
     predicted_max, predicted_rms = level0_error.predicted_level0(spectrum, h, order, choose.region_area(region))
     assert 0.7 < measured_rms / predicted_rms < 1.4
     assert np.abs(errors).max() <= predicted_max  # the max is predicted with EGM96's (rougher) factor
@@ -76,11 +76,11 @@ def test_the_chosen_level_0_is_the_coarsest_the_prediction_allows(make_synthesis
     choice = choose.choose_parameters(synthesis, 0.002, region)
     p = choice.parameters
     assert "degree variances" in choice.reasons["h0"]
-    spectrum = level0_error.ModelSpectrum.of(synthesis, 20, 30)
+    spectrum = level0_error.ModelSpectrum.of(synthesis, 20, 30, 10, 20)
     area = choose.region_area(region)
     target = choose.LEVEL0_OVER_TOLERANCE * 0.002
     assert level0_error.predicted_level0(spectrum, p.h0, p.order, area)[0] <= target
     assert level0_error.predicted_level0(spectrum, p.h0 * 1.01, p.order, area)[0] > target * 0.99
     # a model with the same degrees but ten times the power above degree 40 needs a finer level 0
-    rough = dataclasses.replace(spectrum, power=spectrum.power * np.where(np.arange(61) > 40, 10.0, 1.0))
+    rough = dataclasses.replace(spectrum, power=spectrum.power * np.where(np.arange(61) > 40, 10.0, 1.0)[None, :, None])
     assert level0_error.spacing_for_level0(rough, p.order, target, area, 0.05) < p.h0 * 0.95

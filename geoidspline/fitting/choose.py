@@ -209,7 +209,7 @@ def _for_model(source, tolerance_m, region, given):
                               "points of the exact synthesis, in the store read back")
     level0_target = LEVEL0_OVER_TOLERANCE * tolerance_m
     area = region_area(region)
-    spectrum = (ModelSpectrum.of(source, region.south, region.north)
+    spectrum = (ModelSpectrum.of(source, region.south, region.north, region.west, region.east)
                 if hasattr(source, "degree_power") and not ("h0" in given and "order" in given) else None)
     # the order with the fewest level-0 coefficients at the error target
     candidates = {}

@@ -11,12 +11,18 @@ for the tensor product along the three axes of a wave vector θu,
     E²(θu) = |1 - Π_d a_0(θ u_d)|² + Π_d Σ_l |a_l(θ u_d)|² - Π_d |a_0(θ u_d)|²,
     a_l(θ) = q(θ) φ̂(θ + 2πl),
 
-averaged here over directions u (a geoid wave runs in every direction tangent to the
-sphere, and the tangents of the whole sphere take every direction). Degree n has
-(n + 1/2) radians per unit length on the unit sphere, so at spacing h level 0's mean
-square error on a latitude ring is Σ_n P_n E²((n + 1/2) h), P_n the degree's mean
-square on that ring (:meth:`~geoidspline.sources.harmonics.GeoidSynthesis.degree_power`:
-on the ellipsoid, with the (a/r)^n of the ring). The prediction takes the worst ring.
+for a wave running in the direction u. The error depends on that direction (a wave along
+an axis of the grid is worse than one across it: for order 6 and long waves about
+three times in RMS), and a model's waves need not run equally in every direction (the
+synthetic EGM2008's orders near the degree, amplified so that its undulations on the
+ellipsoid are as rough at the poles as at the equator, run mostly east-west). Degree n
+has (n + 1/2) radians per unit length on the unit sphere, so at spacing h level 0's
+mean square error at a point of a latitude ring is Σ_n Σ_b P_nb E²((n + 1/2) h u_b),
+P_nb the degree's mean square on that ring from waves running at angle b from east
+(:meth:`~geoidspline.sources.harmonics.GeoidSynthesis.degree_power`: on the ellipsoid,
+with the (a/r)^n of the ring) and u_b that direction in R³ at the point. The
+prediction takes the worst ring and the worst longitude of the region (the grid's axes
+turn with the longitude: 0° and 45° are the extremes).
 
 The max error is that RMS times a factor: for a field of M independent cells the
 largest of Gaussian values is about √(2 ln M) standard deviations, M = area · n_eff²
@@ -39,30 +45,35 @@ import numpy as np
 from ..bspline.basis import centred_bspline_samples
 from .interpolation import prefilter_terms
 
-__all__ = ["transfer_error", "ModelSpectrum", "predicted_level0", "spacing_for_level0", "KAPPA", "ring_latitudes"]
+__all__ = ["transfer_error", "wave_directions", "ModelSpectrum", "predicted_level0", "spacing_for_level0", "KAPPA",
+           "ring_latitudes", "grid_longitudes"]
 
 #: Directions averaged over (a Fibonacci lattice of the sphere).
 _DIRECTIONS = 96
 #: Aliases summed each side (sinc^order falls as (2πl)^-order).
 _ALIASES = 8
 #: Table of E² against θ (radians per cell): step and end (beyond, E² is taken at the end).
-_THETA_STEP = 0.002
+_THETA_STEP = 0.005
 _THETA_END = 3.0 * math.pi
 
 
-def transfer_error(theta, order: int, terms: int | None = None) -> np.ndarray:
-    """E²(θ): mean square error of quasi-interpolating a unit wave of ``theta`` radians
-    per cell (averaged over the directions of the wave in R³), for a spline ``order``
-    and a prefilter of ``terms`` (default :func:`~.interpolation.prefilter_terms`)."""
+def transfer_error(theta, order: int, terms: int | None = None, directions=None) -> np.ndarray:
+    """E²(θ u): mean square error of quasi-interpolating a unit wave of ``theta``
+    radians per cell running along ``directions`` (unit vectors in R³, shape (D, 3);
+    returns shape (T, D)), or averaged over all directions when None (shape (T,)), for a
+    spline ``order`` and a prefilter of ``terms`` (default :func:`~.interpolation.prefilter_terms`)."""
     terms = prefilter_terms(order) if terms is None else terms
     theta = np.atleast_1d(np.asarray(theta, dtype=np.float64))
     samples = centred_bspline_samples(order)
     centre = samples.size // 2
-    i = np.arange(_DIRECTIONS) + 0.5
-    z = 1.0 - 2.0 * i / _DIRECTIONS
-    azimuth = math.pi * (1.0 + math.sqrt(5.0)) * i
-    u = np.stack([np.sqrt(1 - z * z) * np.cos(azimuth), np.sqrt(1 - z * z) * np.sin(azimuth), z], axis=1)
-    out = np.empty(theta.size)
+    if directions is None:
+        i = np.arange(_DIRECTIONS) + 0.5
+        z = 1.0 - 2.0 * i / _DIRECTIONS
+        azimuth = math.pi * (1.0 + math.sqrt(5.0)) * i
+        u = np.stack([np.sqrt(1 - z * z) * np.cos(azimuth), np.sqrt(1 - z * z) * np.sin(azimuth), z], axis=1)
+    else:
+        u = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+    out = np.empty((theta.size, u.shape[0]))
     for start in range(0, theta.size, 256):  # in chunks: (θ, direction, axis, alias) arrays
         th = np.abs(theta[start:start + 256, None, None] * u[None, :, :])
         symbol = samples[centre] + 2.0 * sum(samples[centre + j] * np.cos(j * th) for j in range(1, centre + 1))
@@ -74,27 +85,57 @@ def transfer_error(theta, order: int, terms: int | None = None) -> np.ndarray:
         # Π(x + r) - Π x written without the difference of two near-equal products
         aliases = (r[..., 0] * (x[..., 1] + r[..., 1]) * (x[..., 2] + r[..., 2])
                    + x[..., 0] * r[..., 1] * (x[..., 2] + r[..., 2]) + x[..., 0] * x[..., 1] * r[..., 2])
-        e2 = (1.0 - a[..., _ALIASES].prod(-1)) ** 2 + aliases
-        out[start:start + 256] = e2.mean(-1)
-    return out
+        out[start:start + 256] = (1.0 - a[..., _ALIASES].prod(-1)) ** 2 + aliases
+    return out.mean(axis=1) if directions is None else out
 
 
-@functools.lru_cache(maxsize=8)
-def _table(order: int, terms: int):
+def wave_directions(latitude_deg: float, longitude_deg: float, bins: int) -> np.ndarray:
+    """Unit vectors (bins, 3) in R³ of waves tangent to the sphere at a point, at the
+    centres of ``bins`` equal bins of angle from east, 0°..90°."""
+    lat, lon = math.radians(latitude_deg), math.radians(longitude_deg)
+    east = np.array([-math.sin(lon), math.cos(lon), 0.0])
+    north = np.array([-math.sin(lat) * math.cos(lon), -math.sin(lat) * math.sin(lon), math.cos(lat)])
+    angle = (np.arange(bins) + 0.5) * (0.5 * math.pi / bins)
+    return np.cos(angle)[:, None] * east[None, :] + np.sin(angle)[:, None] * north[None, :]
+
+
+@functools.lru_cache(maxsize=256)
+def _table(order: int, terms: int, latitude_deg: float, longitude_deg: float, bins: int):
     theta = np.arange(0.0, _THETA_END + _THETA_STEP, _THETA_STEP)
-    table = transfer_error(theta, order, terms)
+    table = transfer_error(theta, order, terms, wave_directions(latitude_deg, longitude_deg, bins))
     table.flags.writeable = False
     return theta, table
 
 
-def _e2(theta, order: int, terms: int):
-    grid, table = _table(order, terms)
-    return np.interp(theta, grid, table)  # clamped beyond the end: the wave is lost anyway
+def _e2(theta, order: int, terms: int, latitude_deg: float, longitude_deg: float, bins: int):
+    """E² at ``theta`` (T,) for each direction bin: (T, bins), by the table (linear in θ;
+    clamped beyond its end, where the wave is lost anyway)."""
+    grid, table = _table(order, terms, latitude_deg, longitude_deg, bins)
+    index = np.clip(theta / _THETA_STEP, 0.0, grid.size - 1.000001)
+    low = index.astype(np.int64)
+    frac = (index - low)[:, None]
+    return table[low] * (1.0 - frac) + table[low + 1] * frac
 
 
 #: Latitudes (degrees) at which a global model's spectrum is taken: north and south give
 #: the same ring powers (P̄nm² is even in sin ψ), so |latitude| only.
 GLOBAL_RING_LATITUDES = (0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 85.0, 89.5)
+
+
+#: Angle bins (0°..90° from east) the spectrum is resolved in.
+DIRECTION_BINS = 12
+
+
+def grid_longitudes(west: float, east: float) -> tuple:
+    """Longitudes (degrees, folded into 0..45: the grid's axes repeat every 90° and
+    mirror at 45°) at which a region's error is predicted: its edges, its centre and
+    the extremes 0° and 45° where the region holds them."""
+    if east - west >= 90.0:
+        return (0.0, 45.0)
+    values = [west, east, 0.5 * (west + east)]
+    values += [45.0 * k for k in range(math.ceil(west / 45.0), math.floor(east / 45.0) + 1)]
+    folded = {round(min(v % 90.0, 90.0 - v % 90.0), 6) for v in values}
+    return tuple(sorted(folded))
 
 
 def ring_latitudes(south: float, north: float) -> tuple:
@@ -109,10 +150,12 @@ def ring_latitudes(south: float, north: float) -> tuple:
 
 @dataclass(frozen=True)
 class ModelSpectrum:
-    """A model's degree powers (m²) on latitude rings: ``power[i, n]`` on ring i
-    (``latitudes`` in degrees); ``max_degree`` N."""
+    """A model's degree powers (m²) on latitude rings by wave direction:
+    ``power[i, n, b]`` on ring i (``latitudes`` in degrees) from waves at angle bin b
+    from east; ``longitudes``: where the grid's orientation is taken (0..45°)."""
 
     latitudes: tuple
+    longitudes: tuple
     power: np.ndarray
 
     @property
@@ -120,28 +163,35 @@ class ModelSpectrum:
         return self.power.shape[1] - 1
 
     @classmethod
-    def of(cls, source, south: float = -90.0, north: float = 90.0) -> "ModelSpectrum":
-        """The spectrum of ``source`` (anything with ``degree_power(latitudes)``) on the
-        rings of a region from ``south`` to ``north`` (degrees)."""
+    def of(cls, source, south: float = -90.0, north: float = 90.0, west: float = -180.0,
+           east: float = 180.0) -> "ModelSpectrum":
+        """The spectrum of ``source`` (anything with ``degree_power(latitudes,
+        directions)``) on the rings and longitudes of a region (degrees)."""
         latitudes = ring_latitudes(south, north)
-        return cls(latitudes, np.asarray(source.degree_power(np.array(latitudes)), dtype=np.float64))
+        power = np.asarray(source.degree_power(np.array(latitudes), DIRECTION_BINS), dtype=np.float64)
+        return cls(latitudes, grid_longitudes(west, east), power)
 
     def upper_half_rms_m(self) -> float:
         """RMS (m) of degrees above N/2 on the worst ring: the scale of the error ratio."""
-        return float(np.sqrt(self.power[:, self.max_degree // 2 + 1:].sum(axis=1).max()))
+        return float(np.sqrt(self.power[:, self.max_degree // 2 + 1:].sum(axis=(1, 2)).max()))
 
 
 def _rms_and_degree(spectrum: ModelSpectrum, h: float, order: int, terms: int):
-    """Level 0's RMS error (m) on the worst ring at spacing ``h`` and the RMS degree of it."""
+    """Level 0's RMS error (m) at the worst ring and longitude at spacing ``h``, and the
+    RMS degree of that error."""
     n = np.arange(spectrum.max_degree + 1)
-    error_power = spectrum.power * _e2((n + 0.5) * h, order, terms)[None, :]
-    per_ring = error_power.sum(axis=1)
-    worst = int(np.argmax(per_ring))
-    total = per_ring[worst]
-    if total <= 0.0:
+    bins = spectrum.power.shape[2]
+    worst, worst_power = 0.0, None
+    for i, latitude in enumerate(spectrum.latitudes):
+        for longitude in spectrum.longitudes:
+            per_degree = (spectrum.power[i] * _e2((n + 0.5) * h, order, terms, latitude, longitude, bins)).sum(axis=1)
+            total = float(per_degree.sum())
+            if worst_power is None or total > worst:
+                worst, worst_power = total, per_degree
+    if worst <= 0.0:
         return 0.0, 1.0
-    n_eff = math.sqrt(float((error_power[worst] * (n + 0.5) ** 2).sum() / total))
-    return math.sqrt(total), n_eff
+    n_eff = math.sqrt(float((worst_power * (n + 0.5) ** 2).sum() / worst))
+    return math.sqrt(worst), n_eff
 
 
 #: κ against the error relative to the upper half of degrees, per order: EGM96 (F477 +
@@ -151,8 +201,8 @@ def _rms_and_degree(spectrum: ModelSpectrum, h: float, order: int, terms: int):
 #: ``python benchmarks/level0_convergence.py --calibrate``; interpolated log-log in the
 #: ratio, constant beyond the ends.
 KAPPA = {
-    6: ((0.000125, 2.2302), (0.000345, 2.0856), (0.002345, 1.9047), (0.011455, 1.8408)),
-    4: ((0.000598, 2.7909), (0.002297, 2.495), (0.007208, 2.2713)),
+    6: ((0.000221, 1.2607), (0.000636, 1.1296), (0.004476, 0.9976), (0.021003, 1.0037)),
+    4: ((0.000828, 2.0147), (0.003293, 1.7394), (0.010657, 1.5354)),
 }
 
 
