@@ -3,14 +3,16 @@ by fits (issue 22 item 3).
 
     python benchmarks/level0_prediction.py MODEL --region S,W,N,E [--region ...]
         [--tolerance 0.01 0.001] [--points 10000] [--cache DIR] [--json OUT]
+        [--correction FILE] [--truth independent|geoidspline]
 
 For each region and tolerance: the parameters ``geoid-fit MODEL --tolerance T --region``
 chooses (spectrum-aware), then level 0 alone (``max_level=0``) by the existing engine,
 and its max / RMS error at the lattice nodes and at ``--points`` random points in the
 region against the independent exact synthesis (``independent_synthesis.py``, cached by
-model hash), beside the prediction (max over the region, RMS on the worst ring) and
-the target the chooser aimed at (``choose.LEVEL0_OVER_TOLERANCE`` x T). One JSON line
-per fit; the date, commit and load average with it.
+model hash; ``--truth geoidspline`` for EGM96, whose F477 conventions it does not
+know), beside the prediction (max over the region, RMS at the worst ring and grid
+orientation) and the target the chooser aimed at (``choose.LEVEL0_OVER_TOLERANCE`` x T).
+One JSON line per fit; the date, commit and load average with it.
 """
 
 from __future__ import annotations
@@ -26,13 +28,13 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy as np  # noqa: E402
 from _common import git_commit, machine_info  # noqa: E402
-from independent_synthesis import reference_values  # noqa: E402
+from independent_synthesis import reference_values, ring_points  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_CACHE = Path("/work/scratch/egm2008/reference")
 
 
-def run(model, region_bounds, tolerance, points, cache, correction=None, preset=None):
+def run(model, region_bounds, tolerance, points, cache, correction=None, preset=None, truth_by="independent"):
     import dataclasses
 
     from geoidspline.fitting import choose, level0_error
@@ -47,7 +49,14 @@ def run(model, region_bounds, tolerance, points, cache, correction=None, preset=
     spectrum = level0_error.ModelSpectrum.of(source, region.south, region.north, region.west, region.east)
     area = choose.region_area(region)
     predicted_max, predicted_rms = level0_error.predicted_level0(spectrum, params.h0, params.order, area)
-    lat, lon, truth, ref_seconds = reference_values(model, region_bounds, points, cache, correction_path=correction)
+    if truth_by == "independent":
+        lat, lon, truth, ref_seconds = reference_values(model, region_bounds, points, cache, correction_path=correction)
+    else:  # EGM96 (F477 + CORRCOEF): the independent evaluator knows hsynth only
+        lat, lon = ring_points(points, 10, region_bounds, 22)
+        lat, lon = np.repeat(lat, lon.shape[1]), lon.ravel()
+        start = time.perf_counter()
+        truth = source.undulation(lat, lon)
+        ref_seconds = time.perf_counter() - start
     load = os.getloadavg()[0]
     start = time.perf_counter()
     result = fit_source(source, region, params)
@@ -61,7 +70,7 @@ def run(model, region_bounds, tolerance, points, cache, correction=None, preset=
         "level0_target_mm": choose.LEVEL0_OVER_TOLERANCE * tolerance * 1e3,
         "predicted_max_mm": predicted_max * 1e3, "predicted_rms_mm": predicted_rms * 1e3,
         "node_max_mm": result.node_max_error_m * 1e3, "node_rms_mm": result.node_rms_error_m * 1e3,
-        "check_points": int(truth.size), "check_max_mm": float(np.abs(errors).max() * 1e3),
+        "truth": truth_by, "check_points": int(truth.size), "check_max_mm": float(np.abs(errors).max() * 1e3),
         "check_rms_mm": float(np.sqrt(np.mean(errors**2)) * 1e3),
         "coefficients": int(sum(len(level) for level in result.spline.levels)),
         "fit_s": round(seconds, 1), "reference_s": round(ref_seconds, 1), "machine": machine_info(),
@@ -77,11 +86,14 @@ def main(argv=None):
     parser.add_argument("--points", type=int, default=10_000)
     parser.add_argument("--cache", default=str(DEFAULT_CACHE))
     parser.add_argument("--json", default=None, help="append the rows to this JSONL file")
+    parser.add_argument("--truth", choices=("independent", "geoidspline"), default="independent",
+                        help="the exact values: the independent synthesis (EGM2008, hsynth) or geoidspline's own "
+                             "(EGM96 with F477 and CORRCOEF)")
     args = parser.parse_args(argv)
     for region in args.region:
         bounds = tuple(float(v) for v in region.split(","))
         for tolerance in args.tolerance:
-            row = run(args.model, bounds, tolerance, args.points, args.cache, args.correction)
+            row = run(args.model, bounds, tolerance, args.points, args.cache, args.correction, truth_by=args.truth)
             line = json.dumps(row)
             print(line, flush=True)
             if args.json:
