@@ -10,8 +10,9 @@ chooses (spectrum-aware), then level 0 alone (``max_level=0``) by the existing e
 and its max / RMS error at the lattice nodes and at ``--points`` random points in the
 region against the independent exact synthesis (``independent_synthesis.py``, cached by
 model hash; ``--truth geoidspline`` for EGM96, whose F477 conventions it does not
-know), beside the prediction (max over the region, RMS at the worst ring and grid
-orientation) and the target the chooser aimed at (``choose.LEVEL0_OVER_TOLERANCE`` x T).
+know), beside the chooser's prediction (max over the sphere, RMS at the worst ring and
+grid orientation), the region's own (its rings and longitudes, the extreme over its
+area) and the target the chooser aimed at (``choose.LEVEL0_OVER_TOLERANCE`` x T).
 One JSON line per fit; the date, commit and load average with it.
 """
 
@@ -20,6 +21,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import math
 import os
 import sys
 import time
@@ -46,9 +48,11 @@ def run(model, region_bounds, tolerance, points, cache, correction=None, preset=
     region = Region.from_bounds(*region_bounds)
     choice = choose.choose_parameters(source, tolerance, region)
     params = dataclasses.replace(choice.parameters, max_level=0)
+    # the chooser's prediction (the whole sphere's), and the region's own rings and extreme
+    predicted_max, predicted_rms = level0_error.predicted_level0(
+        level0_error.ModelSpectrum.of(source), params.h0, params.order, 4 * math.pi)
     spectrum = level0_error.ModelSpectrum.of(source, region.south, region.north, region.west, region.east)
-    area = choose.region_area(region)
-    predicted_max, predicted_rms = level0_error.predicted_level0(spectrum, params.h0, params.order, area)
+    tile_max, tile_rms = level0_error.predicted_level0(spectrum, params.h0, params.order, choose.region_area(region))
     if truth_by == "independent":
         lat, lon, truth, ref_seconds = reference_values(model, region_bounds, points, cache, correction_path=correction)
     else:  # EGM96 (F477 + CORRCOEF): the independent evaluator knows hsynth only
@@ -69,6 +73,7 @@ def run(model, region_bounds, tolerance, points, cache, correction=None, preset=
         "h_times_degree": params.h0 * source.max_degree,
         "level0_target_mm": choose.LEVEL0_OVER_TOLERANCE * tolerance * 1e3,
         "predicted_max_mm": predicted_max * 1e3, "predicted_rms_mm": predicted_rms * 1e3,
+        "region_predicted_max_mm": tile_max * 1e3, "region_predicted_rms_mm": tile_rms * 1e3,
         "node_max_mm": result.node_max_error_m * 1e3, "node_rms_mm": result.node_rms_error_m * 1e3,
         "truth": truth_by, "check_points": int(truth.size), "check_max_mm": float(np.abs(errors).max() * 1e3),
         "check_rms_mm": float(np.sqrt(np.mean(errors**2)) * 1e3),

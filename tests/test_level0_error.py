@@ -76,8 +76,11 @@ def test_the_chosen_level_0_is_the_coarsest_the_prediction_allows(make_synthesis
     choice = choose.choose_parameters(synthesis, 0.002, region)
     p = choice.parameters
     assert "degree variances" in choice.reasons["h0"]
-    spectrum = level0_error.ModelSpectrum.of(synthesis, 20, 30, 10, 20)
-    area = choose.region_area(region)
+    # the whole sphere's prediction, whatever the region (a region's rings hold their
+    # latitudes' average, not the region's own roughness)
+    assert choose.choose_parameters(synthesis, 0.002).parameters == p
+    spectrum = level0_error.ModelSpectrum.of(synthesis)
+    area = 4 * math.pi
     target = choose.LEVEL0_OVER_TOLERANCE * 0.002
     assert level0_error.predicted_level0(spectrum, p.h0, p.order, area)[0] <= target
     assert level0_error.predicted_level0(spectrum, p.h0 * 1.01, p.order, area)[0] > target * 0.99
