@@ -57,11 +57,21 @@ def region_nodes(source, region: Region) -> float:
 
 
 def plan(source, region: Region, params: FitParameters) -> MemoryPlan:
-    """The least memory (bytes) a fit of ``source`` over ``region`` with ``params`` needs."""
+    """The least memory (bytes) a fit of ``source`` over ``region`` with ``params`` needs
+    (a fit made band by band, :mod:`geoidspline.fitting.bands`: its largest band's)."""
+    from .bands import band_indices, band_latitudes, band_margin_deg, uses_bands
     from .choose import region_area
     from .hierarchical import BYTES_PER_UNKNOWN, WHOLE_MAX_UNKNOWNS
 
     level0 = coefficient_density(params.order) * region_area(region) / params.h0 ** 2
+    if uses_bands(params, region):
+        margin = band_margin_deg(params)
+        largest = max(region_area(Region(max(-90.0, s - margin), -180.0, min(90.0, n + margin), 180.0))
+                      for s, n in (band_latitudes(b, params.tile_size) for b in band_indices(params)))
+        band0 = coefficient_density(params.order) * largest / params.h0 ** 2
+        return MemoryPlan(band0 * INTERPOLATION_BYTES_PER_COEFFICIENT,
+                          f"the largest band's about {band0:,.0f} level-0 coefficients by quasi-interpolation (of "
+                          f"{level0:,.0f}; a smaller tile_size makes smaller bands)")
     if params.method == "interpolation":
         return MemoryPlan(level0 * INTERPOLATION_BYTES_PER_COEFFICIENT,
                           f"about {level0:,.0f} level-0 coefficients by quasi-interpolation")
