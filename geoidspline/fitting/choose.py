@@ -39,6 +39,7 @@ import numpy as np
 from ..errors import FitError
 from ..options import check_number, check_numbers
 from ..sphere.region import GLOBAL, Region
+from .bands import uses_bands
 from .level0_error import ModelSpectrum, predicted_level0, spacing_for_level0
 from .parameters import MIN_H_PER_DATA_SPACING, FitParameters
 
@@ -113,7 +114,8 @@ GLOBAL_OVER_REGIONAL = 0.0026 / 0.002171
 LEVEL0_OVER_TOLERANCE = 0.8 * 0.0026 / 0.0015
 
 #: Level-0 coefficients above which h0 is not made finer (about 0.7 GB of peak memory
-#: per million in the measured fits: 3.8 GB for 5.6 M); overlays take the rest.
+#: per million in the measured fits: 3.8 GB for 5.6 M); overlays take the rest. A whole
+#: globe fitted band by band is not capped: its bands are made this small (tile_size).
 MAX_LEVEL0_COEFFICIENTS = 12_000_000
 
 #: Node lattice of a model: 5' (the measured fits) or 30/N degrees when finer (the
@@ -236,10 +238,13 @@ def _for_model(source, tolerance_m, region, given):
                             + ("the model's spectrum" if spectrum is not None else "the measured convergence"))
     values["order"] = order
     capped = False
+    # a whole globe is fitted band by band (fitting.bands): the cap is on a band's level
+    # 0 (its tile_size below), not on the globe's
+    banded = uses_bands(FitParameters(method="interpolation", refinement="overlays"), region)
     if "h0" not in given:
         ref = MEASURED[order]
         exact = h0
-        if count > MAX_LEVEL0_COEFFICIENTS:
+        if count > MAX_LEVEL0_COEFFICIENTS and not banded:
             h0 = math.sqrt(ref.density * area / MAX_LEVEL0_COEFFICIENTS)
             capped = True
         h0 = min(_round_down(h0), 0.1)
@@ -260,6 +265,16 @@ def _for_model(source, tolerance_m, region, given):
             reasons["h0"] = (f"{h0:g}: h N = {h0 * degree:.3g} for a level-0 max error of "
                              f"{level0_target * 1e3:.2g} mm by {law}")
     values["h0"] = h0
+    total = MEASURED[order].density * area / h0**2 if order in MEASURED else math.nan
+    # slabs of equal height hold equal areas (a band of height t: t/2 of the sphere); a
+    # fifth kept for the band's margins
+    tile = _round_down(0.8 * 2.0 * MAX_LEVEL0_COEFFICIENTS / total, 2) if total > 0 else math.inf
+    if banded and "tile_size" not in given and tile < FitParameters().tile_size:
+        tile = max(tile, h0)
+        values["tile_size"] = tile
+        reasons["tile_size"] = (f"{tile:g}: bands of the globe (and store tiles) of height {tile:g}, about "
+                                f"{total * tile / 2:,.0f} of the {total:,.0f} level-0 coefficients each, within "
+                                f"the {MAX_LEVEL0_COEFFICIENTS:,} a piece of work holds (memory)")
     if "max_level" not in given:
         values["max_level"] = 2 if capped else 1
         reasons["max_level"] = (f"{values['max_level']}: " + (
