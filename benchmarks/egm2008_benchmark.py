@@ -21,7 +21,8 @@ absent it is generated with ``make_synthetic_egm2008.py`` (``--generator``, defa
    ratio pyproj / ours reported for the batch inside the store (the globe or the region).
 
 One JSON line per fit (date, commit, load average before and after, machine) to stdout
-and ``--json``. Big runs go through the shared lock: ``flock /work/scratch/bigrun.lock
+and ``--json``. ``--resume`` continues an interrupted global fit (``--keep`` its store
+so that it can be). Big runs go through the shared lock: ``flock /work/scratch/bigrun.lock
 python benchmarks/egm2008_benchmark.py ...``.
 """
 
@@ -74,9 +75,10 @@ def store_bytes(path: Path) -> int:
     return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
 
 
-def fit(model: Path, region, tolerance: float, store: Path, max_memory: float, extra) -> dict:
+def fit(model: Path, region, tolerance: float, store: Path, max_memory: float, extra, resume=False) -> dict:
     command = [sys.executable, "-m", "geoidspline", "fit", str(model), "--tolerance", repr(tolerance),
-               "--store", str(store), "--overwrite", "--json", "--max-memory", repr(max_memory), *extra]
+               "--store", str(store), "--resume" if resume else "--overwrite", "--json", "--max-memory",
+               repr(max_memory), *extra]
     if tuple(region) != GLOBAL:
         command += ["--region", *[repr(v) for v in region]]
     done = subprocess.run([sys.executable, "-c", _WRAPPER, *command], capture_output=True, text=True)
@@ -137,6 +139,9 @@ def main(argv=None):
     parser.add_argument("--query-points", type=int, default=1_000_000)
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--keep", action="store_true", help="keep the stores (default: removed after measuring)")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue an interrupted global fit in --workdir (geoid-fit --resume; the time and "
+                             "peak RSS are then this run's only) instead of starting anew")
     parser.add_argument("fit_args", nargs="*", help="after --: more geoid-fit options")
     args = parser.parse_args(argv)
     model = ensure_model(Path(args.model), Path(args.generator))
@@ -144,17 +149,19 @@ def main(argv=None):
     regions = [GLOBAL if r == "global" else tuple(float(v) for v in r.split(",")) for r in (args.region or ["global"])]
     for region in regions:
         count = args.points or (20_000 if region == GLOBAL else 10_000)
-        lat, lon, truth, ref_s = reference_values(model, region, count, args.cache)
         for tolerance in args.tolerance:
             tag = "global" if region == GLOBAL else "_".join(f"{v:g}" for v in region)
             store = Path(args.workdir) / f"egm2008_{tag}_{tolerance:g}"
             load_before = os.getloadavg()
             row = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
                    "commit": git_commit(REPO), "model": str(model), "model_sha256": model_sha,
-                   "region": "global" if region == GLOBAL else list(region), "tolerance_m": tolerance,
-                   "reference_s": round(ref_s, 1)}
-            row.update(fit(model, region, tolerance, store, args.max_memory, args.fit_args))
+                   "region": "global" if region == GLOBAL else list(region), "tolerance_m": tolerance}
+            row.update(fit(model, region, tolerance, store, args.max_memory, args.fit_args, args.resume))
+            row["resumed"] = args.resume
             if row["returncode"] in (0, 3) and store.exists():
+                # after the fit: the reference may be computed meanwhile by another process (the cache)
+                lat, lon, truth, ref_s = reference_values(model, region, count, args.cache)
+                row["reference_s"] = round(ref_s, 1)
                 row["store_bytes"] = store_bytes(store)
                 row.update(errors_at_reference(store, lat, lon, truth))
                 row.update(query_speed(store, region, args.query_points, args.repeat))
