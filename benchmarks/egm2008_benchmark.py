@@ -81,15 +81,20 @@ def fit(model: Path, region, tolerance: float, store: Path, max_memory: float, e
                repr(max_memory), *extra]
     if tuple(region) != GLOBAL:
         command += ["--region", *[repr(v) for v in region]]
-    done = subprocess.run([sys.executable, "-c", _WRAPPER, *command], capture_output=True, text=True)
-    figures = next(json.loads(line[8:]) for line in done.stderr.splitlines()[::-1] if line.startswith("WRAPPER "))
+    log = store.with_name(store.name + ".log")  # the fit's progress, to follow a long run
+    store.parent.mkdir(parents=True, exist_ok=True)
+    with open(log, "w", encoding="utf-8") as err:
+        done = subprocess.run([sys.executable, "-c", _WRAPPER, *command], stdout=subprocess.PIPE, stderr=err,
+                              text=True)
+    lines = log.read_text(encoding="utf-8", errors="replace").splitlines()
+    figures = next(json.loads(line[8:]) for line in lines[::-1] if line.startswith("WRAPPER "))
     summary = None
     try:
         summary = json.loads(done.stdout)
     except json.JSONDecodeError:
         pass
-    tail = [line for line in done.stderr.splitlines() if not line.startswith("WRAPPER ")][-5:]
-    return {"command": " ".join(command), **figures, "summary": summary, "stderr_tail": tail}
+    tail = [line for line in lines if not line.startswith("WRAPPER ")][-5:]
+    return {"command": " ".join(command), **figures, "summary": summary, "stderr_tail": tail, "fit_log": str(log)}
 
 
 def errors_at_reference(store: Path, lat, lon, truth) -> dict:
