@@ -77,7 +77,7 @@ def store_bytes(path: Path) -> int:
 
 def fit(model: Path, region, tolerance: float, store: Path, max_memory: float, extra, resume=False) -> dict:
     command = [sys.executable, "-m", "geoidspline", "fit", str(model), "--tolerance", repr(tolerance),
-               "--store", str(store), "--resume" if resume else "--overwrite", "--json", "--max-memory",
+               "--store", str(store), "--resume" if resume else "--overwrite", "--json", "-v", "--max-memory",
                repr(max_memory), *extra]
     if tuple(region) != GLOBAL:
         command += ["--region", *[repr(v) for v in region]]
