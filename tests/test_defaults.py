@@ -17,7 +17,6 @@ from hypothesis import strategies as st
 from geoidspline.cli.fit import main as fit_main
 from geoidspline.fitting import choose
 from geoidspline.fitting.choose import MEASURED, choose_parameters, region_area
-from geoidspline.fitting.parameters import FitParameters
 from geoidspline.fitting.progress import LineProgress, Progress, as_progress, for_terminal
 from geoidspline.sphere.region import GLOBAL, Region
 from geoidspline.store.format import load_manifest
@@ -89,20 +88,12 @@ def test_beyond_the_memory_cap_level_0_is_capped_and_overlays_go_deeper():
     assert "capped" in choice.reasons["h0"]
 
 
-def test_the_whole_globe_is_not_capped_its_bands_are_made_small_enough():
+def test_the_whole_globe_is_not_capped_it_is_fitted_band_by_band():
     capped = choose_parameters(model(360), 1e-5, Region.from_bounds(0, -180, 90, 180)).parameters
     choice = choose_parameters(model(360), 1e-5)
     p = choice.parameters
     assert p.h0 < capped.h0 and p.max_level == 1 and "capped" not in choice.reasons["h0"]
-    # slabs of height tile_size hold tile_size / 2 of the sphere: a band within the cap
-    assert level0_estimate(p) * p.tile_size / 2 <= choose.MAX_LEVEL0_COEFFICIENTS
-    # EGM96 at 2 mm needs no smaller bands than the default; degree 2190 at 1 mm does
-    assert choose_parameters(model(360), 0.002).parameters.tile_size == FitParameters().tile_size
-    choice = choose_parameters(model(2190), 0.001)
-    p = choice.parameters
-    assert level0_estimate(p) > 10 * choose.MAX_LEVEL0_COEFFICIENTS
-    assert level0_estimate(p) * p.tile_size / 2 <= choose.MAX_LEVEL0_COEFFICIENTS
-    assert p.tile_size < FitParameters().tile_size and "bands" in choice.reasons["tile_size"]
+    assert level0_estimate(p) > choose.MAX_LEVEL0_COEFFICIENTS
 
 
 def test_given_options_are_used_as_given_and_the_rest_chosen_around_them():

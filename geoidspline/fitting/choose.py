@@ -115,7 +115,7 @@ LEVEL0_OVER_TOLERANCE = 0.8 * 0.0026 / 0.0015
 
 #: Level-0 coefficients above which h0 is not made finer (about 0.7 GB of peak memory
 #: per million in the measured fits: 3.8 GB for 5.6 M); overlays take the rest. A whole
-#: globe fitted band by band is not capped: its bands are made this small (tile_size).
+#: globe, fitted band by band, is not capped: its bands are sized by the memory.
 MAX_LEVEL0_COEFFICIENTS = 12_000_000
 
 #: Node lattice of a model: 5' (the measured fits) or 30/N degrees when finer (the
@@ -238,8 +238,8 @@ def _for_model(source, tolerance_m, region, given):
                             + ("the model's spectrum" if spectrum is not None else "the measured convergence"))
     values["order"] = order
     capped = False
-    # a whole globe is fitted band by band (fitting.bands): the cap is on a band's level
-    # 0 (its tile_size below), not on the globe's
+    # a whole globe is fitted band by band (fitting.bands), its bands made as small as
+    # the memory allows (fitting.memory.banded_parameters): no cap on the globe's level 0
     banded = uses_bands(FitParameters(method="interpolation", refinement="overlays"), region)
     if "h0" not in given:
         ref = MEASURED[order]
@@ -265,16 +265,6 @@ def _for_model(source, tolerance_m, region, given):
             reasons["h0"] = (f"{h0:g}: h N = {h0 * degree:.3g} for a level-0 max error of "
                              f"{level0_target * 1e3:.2g} mm by {law}")
     values["h0"] = h0
-    total = MEASURED[order].density * area / h0**2 if order in MEASURED else math.nan
-    # slabs of equal height hold equal areas (a band of height t: t/2 of the sphere); a
-    # fifth kept for the band's margins
-    tile = _round_down(0.8 * 2.0 * MAX_LEVEL0_COEFFICIENTS / total, 2) if total > 0 else math.inf
-    if banded and "tile_size" not in given and tile < FitParameters().tile_size:
-        tile = max(tile, h0)
-        values["tile_size"] = tile
-        reasons["tile_size"] = (f"{tile:g}: bands of the globe (and store tiles) of height {tile:g}, about "
-                                f"{total * tile / 2:,.0f} of the {total:,.0f} level-0 coefficients each, within "
-                                f"the {MAX_LEVEL0_COEFFICIENTS:,} a piece of work holds (memory)")
     if "max_level" not in given:
         values["max_level"] = 2 if capped else 1
         reasons["max_level"] = (f"{values['max_level']}: " + (
