@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
 from conftest import random_synthesis
 from test_interpolation import _write_gfc
 
@@ -78,7 +77,8 @@ def test_bands_give_the_whole_globe_coefficients_bit_for_bit(model, whole, reach
     the default margin and with one covering every overlay block's reach."""
     params = FitParameters(**PARAMS)
     margin = band_margin_deg(params, overlay_reach=reach)
-    bands = [fit_band(model, params, band, 1e-6, np.empty(0), np.empty(0), margin) for band in band_indices(params)]
+    bands = [fit_band(model, params, band, np.empty(0), np.empty(0), margin_deg=margin)
+             for band in band_indices(params)]
     assert len(bands) == 6  # z slabs of 0.4 from -1.2 to 1.2
     banded = band_spline(bands, params)
     assert [lv.level for lv in whole.spline.levels] == [lv.level for lv in banded.levels] == [0, 1]
@@ -100,16 +100,18 @@ def test_only_a_models_whole_globe_is_fitted_by_bands():
 def test_a_banded_store_holds_the_whole_fit_and_measures_it(model, whole, tmp_path):
     result, info = build_store(model, tmp_path / "s", params=FitParameters(**PARAMS), check_count=2000)
     levels = store_levels(tmp_path / "s")
-    step = info_step(tmp_path / "s")
-    for lv in whole.spline.levels:  # the whole fit's coefficients, rounded to the store's step
+    manifest = json.loads((tmp_path / "s" / "manifest.json").read_text())
+    start, steps = manifest["spline"]["value_step_m"], manifest["fit"]["bands"]["value_steps_m"]
+    assert all(start / step in (1, 2, 4, 8, 16) for step in steps)  # each band's nests in the store's
+    for lv in whole.spline.levels:  # the whole fit's coefficients, each rounded to its band's step
         keys, coefs = levels[lv.level]
         assert np.array_equal(keys, lv.keys)
-        assert np.array_equal(coefs, np.rint(lv.coefficients / step) * step)
+        assert np.abs(coefs - lv.coefficients).max() <= start / 2
+        assert np.all(np.isclose(coefs / min(steps), np.rint(coefs / min(steps)), rtol=0, atol=1e-6))
     assert info["converged"] and info["nodes"] == whole.node_count and info["check_points"] == 2000
     # the store keeps the tolerance at the nodes and the random check points (exact synthesis)
     assert info["node_max_error_m"] <= 0.14 and info["max_error_m"] <= 0.14
     assert not (tmp_path / "s" / PROGRESS).exists()
-    manifest = json.loads((tmp_path / "s" / "manifest.json").read_text())
     assert manifest["fit"]["bands"]["count"] == 6 and result.spline is None
 
 
@@ -214,3 +216,17 @@ def test_a_dask_cluster_over_tcp_writes_the_local_store(model_file, tmp_path):
             process.terminate()
         for process in processes:
             process.wait(timeout=60)
+
+
+def test_bands_are_made_smaller_until_the_largest_fits_the_memory(model):
+    from geoidspline.fitting.memory import SMALLEST_BAND_TILE, banded_parameters, plan
+
+    params = FitParameters(**PARAMS)
+    need = plan(model, GLOBAL, params).bytes
+    smaller = banded_parameters(model, GLOBAL, params, 0.9 * need)
+    assert smaller.tile_size == 0.2 and plan(model, GLOBAL, smaller).bytes <= 0.9 * need
+    assert len(band_indices(smaller)) == 12  # z from -1.2 to 1.2 (support centres lie off the sphere)
+    assert banded_parameters(model, GLOBAL, params, need) == params  # fits: unchanged
+    assert banded_parameters(model, GLOBAL, params, 1.0).tile_size >= SMALLEST_BAND_TILE  # then refused by the plan
+    regional = Region(-60, -180, 60, 180)
+    assert banded_parameters(model, regional, params, 1.0) == params  # not fitted by bands

@@ -25,10 +25,16 @@ CHECK_SEED = 0
 
 def _band_task(shared, band):
     """One band's fit (a module-level function: what a dask worker runs)."""
+    return _band_in_process(shared, band)
+
+
+def _band_in_process(shared, band, executor=None, progress=None):
+    """A band fitted here, its overlay blocks solved by ``executor``'s workers."""
     from ..fitting.bands import fit_band
 
-    source, params, step, check_lat, check_lon, margin = shared
-    return fit_band(source, params, band, step, check_lat, check_lon, margin)
+    source, params, rounding, check_lat, check_lon, margin = shared
+    return fit_band(source, params, band, check_lat, check_lon, rounding, margin, executor=executor,
+                    progress=progress)
 
 
 def _plain(value):
@@ -52,11 +58,12 @@ def build_banded_store(source, path, region, params, progress=None, overwrite=Fa
     from ..fitting.bands import band_indices, band_margin_deg
     from ..fitting.check_points import random_positions
     from ..fitting.executors import Executor, run_tasks
-    from ..fitting.memory import check_plan
+    from ..fitting.memory import banded_parameters, check_plan
     from ..fitting.parameters import check_promise
     from ..fitting.progress import as_progress
     from ..hierarchy.ambient import AmbientSpline
-    from ..store.codec import slack_step
+    from ..fitting.bands import Rounding
+    from ..store.codec import stored_values, value_step
     from ..store.reader import TileStore
     from ..store.writer import BandedWrite, tile_groups, tile_stats, tolerance_asked
 
@@ -64,14 +71,14 @@ def build_banded_store(source, path, region, params, progress=None, overwrite=Fa
     executor = executor or Executor()
     progress = as_progress(progress)
     check_promise(params)
+    params = banded_parameters(source, region, params, executor.memory_budget)
     check_plan(source, region, params, executor.memory_budget)
     margin = band_margin_deg(params) if margin_deg is None else float(margin_deg)
     asked = tolerance_asked({"tolerance_m": params.tolerance_m, **(extra or {})})
-    # one step for every band, fixed before the fit: its proven bound (levels x step / 2,
-    # at every level the fit may have) fits in the room the fit's node target leaves
-    # under the tolerance asked (the whole-globe writer tries coarser steps at the nodes,
-    # which a band cannot: they are all the globe's at once)
-    step = slack_step(asked, params.node_target_m, params.max_level + 1)
+    # the store's step, as a whole-globe write starts from; each band halves it as often
+    # as its own nodes need (tiles of finer steps nest in the store's)
+    step = value_step(asked, params.max_level + 1)
+    rounding = Rounding(step, asked, stored_values)
     check_lat, check_lon = random_positions(region, check_count, CHECK_SEED)
     identity = json.loads(json.dumps({
         "source": source.provenance.source, "sha256": source.provenance.sha256, "parameters": params.as_dict(),
@@ -85,7 +92,7 @@ def build_banded_store(source, path, region, params, progress=None, overwrite=Fa
         if done:
             log.info("resuming: %d of %d bands committed already", len(done), len(bands))
         todo = [band for band in bands if band not in done]
-        shared = (source, params, step, check_lat, check_lon, margin)
+        shared = (source, params, rounding, check_lat, check_lon, margin)
         with progress.stage("bands", len(bands), "band") as advance:
             advance(len(done))
             for band, result in run_tasks(_band_task, todo, executor, shared) if executor.scheduler else (
@@ -102,8 +109,9 @@ def build_banded_store(source, path, region, params, progress=None, overwrite=Fa
                     "check_errors": result.check_errors, "level_reports": result.level_reports,
                     "converged": result.converged, "data_limited": result.data_limited,
                     "seconds": round(result.seconds, 3), "rows": result.sample_rows,
+                    "value_step_m": result.value_step_m,
                 }, default=_plain))
-                write.commit_band(band, groups, stats, spline_meta, summary)
+                write.commit_band(band, groups, stats, {**spline_meta, "value_step_m": result.value_step_m}, summary)
                 done[band] = {**summary, "tiles": []}
                 log.info("band %d: %d coefficients, node max %.4f m, %.1f s", band,
                          sum(summary["levels"].values()), summary["node_max_error_m"], summary["seconds"])
@@ -113,14 +121,6 @@ def build_banded_store(source, path, region, params, progress=None, overwrite=Fa
             write.finish(manifest)
             advance(1)
     return result, TileStore.open(path).info()
-
-
-def _band_in_process(shared, band, executor, progress):
-    """A band fitted here, its overlay blocks solved by ``executor``'s workers."""
-    from ..fitting.bands import fit_band
-
-    source, params, step, check_lat, check_lon, margin = shared
-    return fit_band(source, params, band, step, check_lat, check_lon, margin, executor=executor, progress=progress)
 
 
 def _banded_manifest(write, source, region, params, step, extra, started, check_count):
@@ -152,7 +152,8 @@ def _banded_manifest(write, source, region, params, step, extra, started, check_
     fit = {"method": method_text(params), "converged": converged, "seconds": round(seconds, 3),
            "level_reports": reports,
            "bands": {"count": len(bands), "tile_size": params.tile_size, "margin_deg": write.identity["margin_deg"],
-                     "seconds": [record["seconds"] for record in bands]},
+                     "seconds": [record["seconds"] for record in bands],
+                     "value_steps_m": [record["value_step_m"] for record in bands]},
            **(extra or {})}
     coverage = Coverage.of_region(region)
     manifest = fit_manifest(entries, write.previous, write.version, write.store_id, source.provenance, region,

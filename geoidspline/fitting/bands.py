@@ -38,7 +38,8 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -54,7 +55,7 @@ from .parameters import FitParameters
 from .progress import as_progress
 
 __all__ = ["band_indices", "band_latitudes", "band_margin_deg", "fit_band", "BandResult", "uses_bands",
-           "band_of_directions"]
+           "band_of_directions", "Rounding", "band_step"]
 
 
 def uses_bands(params: FitParameters, region: Region) -> bool:
@@ -99,19 +100,31 @@ def band_margin_deg(params: FitParameters, overlay_reach: bool = False) -> float
     return math.degrees(support + reach)
 
 
+class Rounding(NamedTuple):
+    """How a store rounds a band's coefficients: ``round(values, step)`` gives the
+    stored values; a band takes ``start_step`` halved as often as its own nodes need to
+    stay within ``tolerance_m`` (steps nest: a coarser step's multiples are multiples of
+    the finer ones)."""
+
+    start_step: float
+    tolerance_m: float
+    round: object
+
+
 @dataclass
 class BandResult:
     """What a band's fit gives the store: the coefficients it owns (level, h, keys,
-    coefficients), per tile the statistics of its nodes and check points on the
-    quantised spline, and its part of the fit's account."""
+    coefficients), the step its tiles are rounded to, per tile the statistics of its
+    nodes and check points on the rounded spline, and its part of the fit's account."""
 
     band: int
     levels: list  # [(level, h, keys, coefficients)], owned B-splines only
+    value_step_m: float | None  # the step the band's tiles are rounded to (None: not rounded)
     tile_stats: dict  # packed tile key -> (node errors, check errors) of the stored spline
     node_count: int
-    node_max_error_m: float  # the stored spline's
+    node_max_error_m: float  # the stored spline's, at most (see :func:`band_step`)
     node_sum_squares: float
-    fit_node_max_error_m: float  # the fit's, before quantisation
+    fit_node_max_error_m: float  # the fit's, before rounding
     check_latitude: np.ndarray
     check_longitude: np.ndarray
     check_errors: np.ndarray  # truth - stored spline at the band's check points
@@ -119,21 +132,21 @@ class BandResult:
     converged: bool
     data_limited: bool
     seconds: float
-    sample_rows: int = 0
-    notes: list = field(default_factory=list)
+    sample_rows: int = 0  # lattice rows the band synthesised (its margin included)
 
 
-def fit_band(source, params: FitParameters, band: int, value_step_m: float, check_latitude, check_longitude,
-             margin_deg: float | None = None, executor=None, progress=None) -> BandResult:
+def fit_band(source, params: FitParameters, band: int, check_latitude, check_longitude,
+             rounding: Rounding | None = None, margin_deg: float | None = None, executor=None,
+             progress=None) -> BandResult:
     """Fit band ``band`` of the globe (see the module's docstring).
 
-    ``value_step_m``: the store's quantisation step, fixed before the fit (every band
-    rounds alike); ``check_latitude``/``check_longitude``: the whole fit's check points
+    ``rounding``: how the store rounds the band's coefficients (:class:`Rounding`;
+    default none), where the band measures its nodes and check points;
+    ``check_latitude``/``check_longitude``: the whole fit's check points
     (degrees), of which the band measures those it owns by the exact synthesis.
     ``margin_deg``: how far the band's fit reaches beyond its slab (default
     :func:`band_margin_deg`). ``executor`` solves the overlay blocks (default: here).
     """
-    from ..store.codec import quantised_spline
     from .check_points import exact_values
     from .driver import fit_nodes, finer_data_hint
 
@@ -159,17 +172,13 @@ def fit_band(source, params: FitParameters, band: int, value_step_m: float, chec
                        finer_hint=finer_data_hint(source))
     rows = sample.latitude.size
     del sample, level0, keys, coefficients
-    stored = quantised_spline(result.spline, value_step_m)
-    owned_levels = []
-    for lv in result.spline.levels:
-        mine = cube_of_support_centres(lv.indices, lv.h, lv.order, params.tile_size)[:, 2] == band
-        owned_levels.append((lv.level, lv.h, lv.keys[mine], lv.coefficients[mine]))
-    # the band's nodes, on the spline as stored
+    owned = [cube_of_support_centres(lv.indices, lv.h, lv.order, params.tile_size)[:, 2] == band
+             for lv in result.spline.levels]
+    # the band's nodes and check points, on the spline as stored
     mine = band_of_directions(result.node_directions, params.tile_size) == band
     node_dirs = result.node_directions[mine]
     fit_errors = result.node_errors[mine]
-    node_errors = fit_errors - (stored.evaluate_points(node_dirs) - result.spline.evaluate_points(node_dirs))
-    # the band's check points: the exact synthesis there
+    step, stored, node_errors, node_bound = band_step(result.spline, owned, node_dirs, fit_errors, rounding)
     check_latitude = np.asarray(check_latitude, dtype=float)
     check_longitude = np.asarray(check_longitude, dtype=float)
     check_dirs = directions(check_latitude, check_longitude)
@@ -177,17 +186,52 @@ def fit_band(source, params: FitParameters, band: int, value_step_m: float, chec
     check_lat, check_lon = check_latitude[own_checks], check_longitude[own_checks]
     truth = exact_values(source, check_lat, check_lon, progress)
     check_errors = truth - stored.undulation(check_lat, check_lon) if check_lat.size else np.empty(0)
+    owned_levels = [(lv.level, lv.h, lv.keys[m], lv.coefficients[m]) for lv, m in zip(result.spline.levels, owned)]
     tile_stats = _tile_stats(owned_levels, node_dirs, node_errors, check_dirs[own_checks], check_errors,
                              params)
     return BandResult(
-        band=band, levels=owned_levels, tile_stats=tile_stats, node_count=int(node_errors.size),
-        node_max_error_m=float(np.abs(node_errors).max()) if node_errors.size else 0.0,
+        band=band, levels=owned_levels, value_step_m=step, tile_stats=tile_stats,
+        node_count=int(node_errors.size), node_max_error_m=node_bound,
         node_sum_squares=float(np.sum(node_errors ** 2)),
         fit_node_max_error_m=float(np.abs(fit_errors).max()) if fit_errors.size else 0.0,
         check_latitude=check_lat, check_longitude=check_lon, check_errors=check_errors,
         level_reports=[vars(r) for r in result.levels], converged=bool(result.converged),
         data_limited=bool(result.data_limited), seconds=time.perf_counter() - started, sample_rows=rows,
     )
+
+
+def band_step(spline: AmbientSpline, owned, node_dirs, fit_errors, rounding: Rounding | None):
+    """(step, stored spline, node errors, largest node error at most) of a band.
+
+    The band's own coefficients are rounded to ``rounding.start_step`` halved until its
+    nodes stay within ``max(rounding.tolerance_m, the fit's own node max)`` (as
+    :func:`geoidspline.store.codec.node_safe_step` does for a whole store). Its
+    neighbours' coefficients that reach its nodes are rounded by them, to a step of
+    at most ``start_step``: each moves by at most ``start_step / 2``, so their share is
+    bounded by ``start_step / 2`` times their B-splines' sum at a node, added to that
+    node's error for the test and for the largest error reported (only nodes within a
+    support of the band's edge have any). The node errors returned are those with the
+    neighbours' coefficients unrounded."""
+    if rounding is None:
+        return None, spline, fit_errors, float(np.abs(fit_errors).max()) if fit_errors.size else 0.0
+    others = AmbientSpline([LevelSpline(lv.level, lv.h, lv.order, lv.keys[~m], np.ones(int((~m).sum())))
+                            for lv, m in zip(spline.levels, owned)])
+    reach = 0.5 * rounding.start_step * others.evaluate_points(node_dirs, any_batch=True) if node_dirs.size \
+        else np.empty(0)
+    fit_max = float(np.abs(fit_errors).max()) if fit_errors.size else 0.0
+    target = max(float(rounding.tolerance_m), fit_max)
+    exact = spline.evaluate_points(node_dirs, any_batch=True) if node_dirs.size else np.empty(0)
+    step = float(rounding.start_step)
+    while True:
+        stored = AmbientSpline([LevelSpline(lv.level, lv.h, lv.order, lv.keys,
+                                            np.where(m, rounding.round(lv.coefficients, step), lv.coefficients))
+                                for lv, m in zip(spline.levels, owned)])
+        errors = fit_errors - (stored.evaluate_points(node_dirs, any_batch=True) - exact) if node_dirs.size \
+            else np.empty(0)
+        largest = float((np.abs(errors) + reach).max()) if errors.size else 0.0
+        if largest <= target or step / 2.0 < 1e-6:
+            return step, stored, errors, largest
+        step /= 2.0
 
 
 def _tile_stats(owned_levels, node_dirs, node_errors, check_dirs, check_errors, params):

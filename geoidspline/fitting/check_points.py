@@ -44,8 +44,6 @@ def check_points(source, region: Region, count: int = 20_000, seed: int = 0, pro
     A model is exact everywhere: ``count`` random points uniform in area over the region,
     synthesised in chunks reported to ``progress`` as the stage "check points".
     """
-    from .progress import as_progress
-
     if hasattr(source, "latitude_spacing"):  # a GeoidGrid
         sample = source.nodes(region)
         lat = sample.latitude[:-1] + 0.5 * np.diff(sample.latitude)

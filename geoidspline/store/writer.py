@@ -648,6 +648,7 @@ class BandedWrite:
         self.lock: StoreLock | None = None
         self.progress: dict | None = None
         self.previous: dict | None = None
+        self.state: str | None = None
 
     # the record of committed bands
     def _read_progress(self) -> dict | None:
@@ -720,6 +721,7 @@ class BandedWrite:
             else:
                 self.progress = record
                 self.previous = load_manifest(self.root) if (self.root / MANIFEST).exists() else None
+            self.state = _manifest_state(self.root)  # as read under the lock, for the commit
         except BaseException:
             self.lock.__exit__(None, None, None)
             raise
@@ -768,7 +770,7 @@ class BandedWrite:
         """Commit ``manifest`` (naming every band's tiles) as the store's new version and
         remove the progress record."""
         keep = [e["file"] for e in self.previous["tiles"]] if self.previous else []
-        commit(self.root, manifest, keep, expect_state=_manifest_state(self.root), signing_key=self.signing_key)
+        commit(self.root, manifest, keep, expect_state=self.state, signing_key=self.signing_key)
         try:
             (self.root / PROGRESS).unlink(missing_ok=True)
             fsync_dir(self.root)
