@@ -34,7 +34,6 @@ import json
 import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -85,7 +84,7 @@ def fit(model: Path, region, tolerance: float, store: Path, max_memory: float, e
     store.parent.mkdir(parents=True, exist_ok=True)
     with open(log, "w", encoding="utf-8") as err:
         done = subprocess.run([sys.executable, "-c", _WRAPPER, *command], stdout=subprocess.PIPE, stderr=err,
-                              text=True)
+                              text=True, check=False)  # a failed fit is a row too
     lines = log.read_text(encoding="utf-8", errors="replace").splitlines()
     figures = next(json.loads(line[8:]) for line in lines[::-1] if line.startswith("WRAPPER "))
     summary = None

@@ -214,7 +214,8 @@ def _for_model(source, tolerance_m, region, given):
     # the whole sphere's spectrum and extreme, whatever the region: a region's rings hold
     # their average power, not the region's own (EGM96 over the Himalaya is three times
     # rougher at level 0 than its latitudes' average), and the global prediction is
-    # calibrated on the Himalaya (benchmarks/README.md, "Spectrum-aware level 0")
+    # calibrated on the Himalaya (benchmarks/README.md, "level 0 predicted from the
+    # model's spectrum")
     spectrum = (ModelSpectrum.of(source)
                 if hasattr(source, "degree_power") and not ("h0" in given and "order" in given) else None)
     # the order with the fewest level-0 coefficients at the error target

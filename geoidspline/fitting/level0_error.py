@@ -45,8 +45,16 @@ import numpy as np
 from ..bspline.basis import centred_bspline_samples
 from .interpolation import prefilter_terms
 
-__all__ = ["transfer_error", "wave_directions", "ModelSpectrum", "predicted_level0", "spacing_for_level0", "KAPPA",
-           "ring_latitudes", "grid_longitudes"]
+__all__ = [
+    "KAPPA",
+    "ModelSpectrum",
+    "grid_longitudes",
+    "predicted_level0",
+    "ring_latitudes",
+    "spacing_for_level0",
+    "transfer_error",
+    "wave_directions",
+]
 
 #: Directions averaged over (a Fibonacci lattice of the sphere).
 _DIRECTIONS = 96
@@ -145,7 +153,7 @@ def ring_latitudes(south: float, north: float) -> tuple:
     lat = np.abs(np.linspace(south, north, 5))
     if south < 0.0 < north:
         lat = np.append(lat, 0.0)
-    return tuple(sorted(set(float(min(v, 89.5)) for v in lat)))
+    return tuple(sorted({float(min(v, 89.5)) for v in lat}))
 
 
 @dataclass(frozen=True)
@@ -164,7 +172,7 @@ class ModelSpectrum:
 
     @classmethod
     def of(cls, source, south: float = -90.0, north: float = 90.0, west: float = -180.0,
-           east: float = 180.0) -> "ModelSpectrum":
+           east: float = 180.0) -> ModelSpectrum:
         """The spectrum of ``source`` (anything with ``degree_power(latitudes,
         directions)``) on the rings and longitudes of a region (degrees)."""
         latitudes = ring_latitudes(south, north)
