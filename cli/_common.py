@@ -30,6 +30,7 @@ CONTEXT = {"help_option_names": ["-h", "--help"]}
 #: Library parameter names and the options that set them, for messages.
 OPTION_NAMES = {
     "overwrite=True": "--overwrite",
+    "resume=True": "--resume",
     "sample_spacing_deg": "--sample-spacing",
     "height_in": "--height-in",
     "blend_width_km": "--blend-width",

@@ -502,7 +502,7 @@ def read_manifest_bytes(root: Path) -> bytes:
             raise StoreError(f"{root}: not a directory, not a geoidspline store") from None
         if (root / PROGRESS).exists():
             raise StoreError(f"{root}: an unfinished fit, not a store yet (no {MANIFEST}; {PROGRESS} records the "
-                             "bands committed): continue it with geoid-fit --resume (resume=True)") from None
+                             "bands committed): continue it by fitting again with resume=True") from None
         raise StoreError(
             f"{root}: not a geoidspline store (no {MANIFEST}; a store whose first write did not finish has none)"
         ) from None
