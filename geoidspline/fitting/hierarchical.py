@@ -99,6 +99,15 @@ MAX_ITERATIONS = 1_000
 #: A step needing more than the memory available is not built (:class:`BasisTooLarge`).
 BYTES_PER_UNKNOWN = 22_000
 
+#: Cell centres of a grid (:mod:`geoidspline.fitting.cell_centres`) as sites: their weight
+#: relative to a node's; whether only those found outside the interval join the sites
+#: (once the nodes are kept or can be refined no further), rather than every centre from
+#: the first step; whether those also mark their B-splines for refinement.
+#: Measured in benchmarks/README.md ("Between the nodes").
+CELL_CENTRE_WEIGHT = 1.0
+CELL_CENTRES_ACTIVE_SET = True
+CELL_CENTRE_MARKS = False
+
 #: Ridge relative to the mean diagonal of AᵀA: keeps B-splines no site sees decided.
 RIDGE = 1e-10
 
@@ -146,19 +155,24 @@ def _penalty(basis: HierarchicalBasis, diagonal, weight):
     return sp.block_diag(blocks, format="csc") if blocks else sp.csc_matrix((0, 0))
 
 
-def _system(basis: HierarchicalBasis, points, values, regularization):
-    """The whole problem's matrix (AᵀA + penalty + ridge, full symmetric CSR) and Aᵀv."""
+def _system(basis: HierarchicalBasis, points, values, regularization, extra=None):
+    """The whole problem's matrix (AᵀA + penalty + ridge, full symmetric CSR) and Aᵀv.
+    ``extra``: ``(points, values, weight)`` of sites weighted ``weight`` (per level, as
+    ``points`` and ``values``); the penalty scales with the nodes' diagonal alone."""
     matrix, rhs = normal_matrix(basis, [(p, v) for p, v in zip(points, values)])
     diagonal = matrix.diagonal()
+    if extra is not None:
+        more, more_rhs = normal_matrix(basis, [(p, v) for p, v in zip(extra[0], extra[1])])
+        matrix, rhs = matrix + extra[2] * more, rhs + extra[2] * more_rhs
     system = matrix + _penalty(basis, diagonal, regularization)
     scale = float(diagonal[diagonal > 0].mean()) if np.any(diagonal > 0) else 1.0
     system = system + sp.identity(basis.coefficient_count, format="csc") * (RIDGE * scale)
     return system.tocsr(), rhs
 
 
-def _solve(basis: HierarchicalBasis, points, values, regularization):
+def _solve(basis: HierarchicalBasis, points, values, regularization, extra=None):
     """The whole problem by one sparse LDLᵀ factorisation."""
-    system, rhs = _system(basis, points, values, regularization)
+    system, rhs = _system(basis, points, values, regularization, extra)
     return qdldl.Solver(sp.triu(system, format="csc")).solve(rhs)
 
 
@@ -177,7 +191,7 @@ def _gather(sorted_bins, order, wanted):
 
 
 def solve_basis(basis: HierarchicalBasis, points, values, params: FitParameters, force_tiles=False,
-                progress=None, name="hierarchical fit", start=None, memory_budget=None):
+                progress=None, name="hierarchical fit", start=None, memory_budget=None, extra=None):
     """Coefficients (all levels, in :meth:`HierarchicalBasis.offsets` order) of the
     least-squares fit of ``values`` at ``points`` (one array each per level) over the
     whole basis, and the number of local problems factorised.
@@ -194,7 +208,7 @@ def solve_basis(basis: HierarchicalBasis, points, values, params: FitParameters,
     progress = as_progress(progress)
     if basis.coefficient_count <= WHOLE_MAX_UNKNOWNS and not force_tiles:
         with progress.stage(name, 1, "block") as advance:
-            coefs = _solve(basis, points, values, params.regularization)
+            coefs = _solve(basis, points, values, params.regularization, extra)
             advance(1)
         return coefs, 1
     need = basis.coefficient_count * BYTES_PER_UNKNOWN
@@ -205,7 +219,7 @@ def solve_basis(basis: HierarchicalBasis, points, values, params: FitParameters,
                             f"which need about {need / 1e9:.3g} GB at once; {available / 1e9:.3g} GB are available; "
                             "overlays are fitted level by level in local blocks")
     t0 = time.perf_counter()
-    system, rhs = _system(basis, points, values, params.regularization)
+    system, rhs = _system(basis, points, values, params.regularization, extra)
     t1 = time.perf_counter()
     index_sets = schwarz_blocks(basis, SCHWARZ_BLOCK, SCHWARZ_OVERLAP)
     with progress.stage(name, len(index_sets), "block") as advance:
@@ -235,7 +249,7 @@ def finest_admissible_level(params: FitParameters, nodes: DataNodes) -> int:
 
 def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitParameters, progress=None,
                      force_tiles=False, start=None, on_step=None, interpolant=None,
-                     memory_budget=None) -> FitResult:
+                     memory_budget=None, centres=None) -> FitResult:
     """Fit ``nodes`` (:class:`~geoidspline.fitting.sites.DataNodes`) over ``region`` with
     the hierarchical basis; :func:`geoidspline.fitting.driver.fit_nodes` calls it for
     ``params.refinement == "hierarchical"``. ``coverage`` goes into the result as it is.
@@ -261,6 +275,13 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
     reports = []
     previous = None  # (basis, coefficients) of the last step: conjugate gradients start there
     converged = data_limited = False
+    if centres is not None:
+        centre_dirs = centres.directions[centres.in_region]
+        centre_mid = centres.values[centres.in_region]
+        centre_half = centres.half_width[centres.in_region]
+        fitted_centres = np.zeros(centres.values.size, bool) if CELL_CENTRES_ACTIVE_SET else np.ones(centres.values.size, bool)
+        centre_index = np.flatnonzero(centres.in_region)
+    centre_max = None
     while True:
         t0 = time.perf_counter()
         step = len(reports)
@@ -268,9 +289,15 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
             sites = leaf_sites(nodes, basis, params)
             points, values = [p for p, _ in sites], [nodes.values[i] for _, i in sites]
             x0 = carry_over(*previous, basis) if previous is not None else None
+            extra = None
+            if centres is not None and fitted_centres.any():
+                chosen = centres.subset(fitted_centres)
+                centre_sites = leaf_sites(chosen, basis, params)
+                extra = ([p for p, _ in centre_sites], [chosen.values[i] for _, i in centre_sites],
+                         CELL_CENTRE_WEIGHT)
             coefs, solved = solve_basis(basis, points, values, params, force_tiles, progress,
                                         f"hierarchical step {step} ({basis.coefficient_count:,} unknowns)", x0,
-                                        memory_budget)
+                                        memory_budget, extra)
             previous = (basis, coefs)
         else:  # §5.3.1: the hierarchical quasi-interpolant, no solve
             (coefs, points, values), solved = interpolant.coefficients(basis, progress), 0
@@ -291,12 +318,30 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
                  "%.4g m (%.1f s)", step, top, basis.coefficient_count,
                  "/".join(str(a.size) for a in basis.active), reports[-1].max_error_m, int(above.sum()),
                  params.node_target_m, reports[-1].seconds)
-        if not above.any():
+        refined = strategy.refine(basis, region_dirs[above], max_level=finest) if above.any() else basis
+        grew = False
+        if centres is not None and (refined is basis or not CELL_CENTRES_ACTIVE_SET):
+            # the nodes are kept or can be refined no further: the cell centres outside
+            # the interval join the sites (and mark their B-splines for refinement)
+            outside = np.maximum(np.abs(spline.evaluate_points(centre_dirs) - centre_mid) - centre_half, 0.0)
+            centre_max = float(outside.max()) if outside.size else 0.0
+            out = outside > params.node_target_m
+            log.info("hierarchical step %d: cell centres at most %.4f m outside the interval, %d above %.4g m",
+                     step, centre_max, int(out.sum()), params.node_target_m)
+            grew = bool((out & ~fitted_centres[centre_index]).any())
+            fitted_centres[centre_index[out]] = True
+            if CELL_CENTRE_MARKS and out.any():
+                refined = strategy.refine(basis, np.concatenate([region_dirs[above], centre_dirs[out]]),
+                                          max_level=finest)
+            if not above.any() and not out.any():
+                converged = True
+                break
+        elif not above.any():
             converged = True
             break
-        refined = strategy.refine(basis, region_dirs[above], max_level=finest)
-        if refined is basis:
+        if refined is basis and not grew:
             data_limited = finest < params.max_level
+            converged = not above.any()
             break
         basis = refined
     return FitResult(
