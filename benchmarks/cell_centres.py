@@ -9,9 +9,9 @@ the parameters chosen for the tolerance, in process, with the cell-centre
 pseudo-observations of :mod:`geoidspline.fitting.cell_centres` switched per variant:
 
 - ``nodes``: the nodes only (no pseudo-observations; the fit before issue 21 item 3);
-- ``active``: cell centres outside the interval join the sites (weight 1) once the
-  nodes are kept, and mark their B-splines for refinement, until none is outside;
-- ``active-nomark``: the same without marking (the centres join the sites only);
+- ``active`` (the default of the package): cell centres outside the interval join the
+  sites (weight 1) once the nodes are kept, until none is outside;
+- ``active-mark``: the same, the centres also marking their B-splines for refinement;
 - ``all-W``: every cell centre a site of weight W from the first step (no marks).
 
 The check is **independent of the fit**: the GTX file is read with numpy
@@ -78,14 +78,11 @@ def configure(variant):
 
     hierarchical.CELL_CENTRE_WEIGHT = 1.0
     hierarchical.CELL_CENTRES_ACTIVE_SET = True
-    hierarchical.CELL_CENTRE_MARKS = True
+    hierarchical.CELL_CENTRE_MARKS = variant == "active-mark"
     use_centres = variant != "nodes"
-    if variant == "active-nomark":
-        hierarchical.CELL_CENTRE_MARKS = False
     elif variant.startswith("all-"):
         hierarchical.CELL_CENTRE_WEIGHT = float(variant[4:])
         hierarchical.CELL_CENTRES_ACTIVE_SET = False
-        hierarchical.CELL_CENTRE_MARKS = False
     return use_centres
 
 
@@ -119,7 +116,7 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("tolerances", nargs="+", type=float)
     parser.add_argument("--variant", action="append", default=None,
-                        help="nodes, active, active-nomark, all-W (default: nodes and active)")
+                        help="nodes, active, active-mark, all-W (default: nodes and active)")
     parser.add_argument("--region", nargs=4, type=float, default=ANDES, metavar=("S", "W", "N", "E"))
     parser.add_argument("--no-record", action="store_true")
     args = parser.parse_args(argv)
