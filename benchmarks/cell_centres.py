@@ -80,7 +80,7 @@ def configure(variant):
     hierarchical.CELL_CENTRES_ACTIVE_SET = True
     hierarchical.CELL_CENTRE_MARKS = variant == "active-mark"
     use_centres = variant != "nodes"
-    elif variant.startswith("all-"):
+    if variant.startswith("all-"):
         hierarchical.CELL_CENTRE_WEIGHT = float(variant[4:])
         hierarchical.CELL_CENTRES_ACTIVE_SET = False
     return use_centres

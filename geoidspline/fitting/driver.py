@@ -79,6 +79,8 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
     (:mod:`geoidspline.fitting.hierarchical_interpolation`) gives the hierarchical basis's
     coefficients instead of least squares. ``started``: the ``time.perf_counter()`` the
     fit's seconds count from (work done before this call, e.g. synthesising the sample).
+    ``cell_centres``: the sample is a grid's nodes, whose cell centres keep a hierarchical
+    fit near the grid's interpolants between them (:mod:`geoidspline.fitting.cell_centres`).
     """
     # the hierarchical basis (§5.3) replaces the overlays of a new fit; an update (a
     # strategy given, or residuals on a base) adds overlays to any store

@@ -260,7 +260,12 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
     source's :class:`~geoidspline.fitting.hierarchical_interpolation.HierarchicalQuasiInterpolant`)
     gives each step's coefficients, on its basis (``shell``), instead of least squares.
     ``memory_budget`` (bytes): a step whose whole problem would need more is not built
-    (:class:`BasisTooLarge`).
+    (:class:`BasisTooLarge`). ``centres``: a grid's cell centres
+    (:class:`~geoidspline.fitting.cell_centres.CellCentres`); once the nodes are within
+    the tolerance or can be refined no further, the centres of the region where the
+    spline lies more than the tolerance outside their interval join the sites (weight
+    :data:`CELL_CENTRE_WEIGHT`) and the basis is fitted again (refined again where nodes
+    rise above the tolerance), until no centre is outside or none is added.
     """
     start = time.perf_counter() if start is None else start
     progress = as_progress(progress)
@@ -290,10 +295,16 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
             points, values = [p for p, _ in sites], [nodes.values[i] for _, i in sites]
             x0 = carry_over(*previous, basis) if previous is not None else None
             extra = None
-            if centres is not None and fitted_centres.any():
-                chosen = centres.subset(fitted_centres)
-                centre_sites = leaf_sites(chosen, basis, params)
-                extra = ([p for p, _ in centre_sites], [chosen.values[i] for _, i in centre_sites],
+            if centres is not None:
+                # leaves of a level finer than the nodes take every centre (the nodes alone
+                # leave such B-splines free between them); coarser ones those found outside
+                fine = [basis.spacing(lv) < nodes.spacing_rad for lv in range(basis.levels)]
+                some = leaf_sites(centres.subset(fitted_centres), basis, params)
+                every = leaf_sites(centres, basis, params) if any(fine) else some
+                chosen = [(every if f else some)[lv] for lv, f in enumerate(fine)]
+                subset_values = centres.values[fitted_centres]
+                extra = ([p for p, _ in chosen],
+                         [(centres.values if f else subset_values)[i] for f, (_, i) in zip(fine, chosen)],
                          CELL_CENTRE_WEIGHT)
             coefs, solved = solve_basis(basis, points, values, params, force_tiles, progress,
                                         f"hierarchical step {step} ({basis.coefficient_count:,} unknowns)", x0,
