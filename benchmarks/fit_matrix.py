@@ -153,11 +153,13 @@ def run_row(name, out_dir: Path, python_bin: Path) -> dict:
         cmd[1 + len(source):1 + len(source)] = ["--region", *region]
     timer = shutil.which("time") or "/usr/bin/time"
     started = time.perf_counter()
-    proc = subprocess.run([timer, "-f", "TIME %M %e", *cmd], capture_output=True, text=True)
+    proc = subprocess.run([timer, "-f", "TIME %M %e %U %S", *cmd], capture_output=True, text=True)
     wall = time.perf_counter() - started
-    peak_kb = next((int(line.split()[1]) for line in proc.stderr.splitlines() if line.startswith("TIME ")), None)
+    timed = next((line.split() for line in proc.stderr.splitlines() if line.startswith("TIME ")), None)
+    peak_kb = int(timed[1]) if timed else None
     row = {"row": name, "command": cmd[1:], "exit": proc.returncode, "wall_s": round(wall, 1),
-           "peak_rss_gb": round(peak_kb / 1e6, 3) if peak_kb else None}
+           "peak_rss_gb": round(peak_kb / 1e6, 3) if peak_kb else None,
+           "cpu_s": round(float(timed[3]) + float(timed[4]), 1) if timed and len(timed) > 4 else None}
     if proc.returncode not in (0, 3):
         row["refusal"] = next((line for line in proc.stderr.splitlines() if line.startswith("ERROR")),
                               proc.stderr.strip()[-300:])

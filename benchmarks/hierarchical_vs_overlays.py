@@ -155,6 +155,7 @@ def condition_tables(region_bounds):
             p = (cells[:, None, :] + rng.uniform(0, 1, (cells.shape[0], per, 3))) * basis.spacing(lv)
             filled.append((p.reshape(-1, 3), np.zeros(cells.shape[0] * per)))
         matrix, _ = normal_matrix(basis, filled)
+        matrix = matrix + sp.triu(matrix, 1).T  # the whole symmetric matrix from its upper triangle
         hierarchical.append({"levels": basis.levels, "coefficients": basis.coefficient_count,
                              "condition": condition(unit_diagonal(matrix))})
         print(f"  hierarchical, levels 0-{basis.levels - 1}: {basis.coefficient_count} coefficients, "

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 from hypothesis import HealthCheck, Phase, assume, given, settings
 from hypothesis import strategies as st
 
@@ -30,6 +31,7 @@ from geoidspline.hierarchy.hierarchical import (
     design_matrix,
     down,
     initial_basis,
+    level_expansion,
     marked_functions,
     normal_matrix,
     refine,
@@ -184,7 +186,8 @@ def _check_hierarchy(basis, rng):
     values = rng.normal(size=pts.shape[0])
     matrix, rhs = normal_matrix(basis, [(pts[lvl == lv], values[lvl == lv]) for lv in range(basis.levels)])
     direct = (a.T @ a).toarray()
-    np.testing.assert_allclose(matrix.toarray(), direct, rtol=0, atol=1e-12 * np.abs(direct).max())
+    # the upper triangle, diagonal included (the matrix is symmetric)
+    np.testing.assert_allclose(matrix.toarray(), np.triu(direct), rtol=0, atol=1e-12 * np.abs(direct).max())
     np.testing.assert_allclose(rhs, a.T @ values, rtol=0, atol=1e-12 * np.abs(rhs).max())
     return pts, lvl, a
 
@@ -267,7 +270,8 @@ def test_hierarchical_space_reproduces_polynomials(plane):
 
     pts, lvl = leaf_points(basis, 4**3 + 6, rng)
     matrix, rhs = normal_matrix(basis, [(pts[lvl == lv], poly(pts[lvl == lv])) for lv in range(basis.levels)])
-    b = np.linalg.solve(matrix.toarray(), rhs)
+    upper = matrix.toarray()
+    b = np.linalg.solve(upper + np.triu(upper, 1).T, rhs)
     check, _ = leaf_points(basis, 5, rng)
     s = AmbientSpline(basis.level_splines(b))
     np.testing.assert_allclose(s.evaluate_points(check), poly(check), rtol=0, atol=1e-8 * np.abs(poly(check)).max())
@@ -496,3 +500,67 @@ def test_refinement_is_checked_where_parameters_are(synthetic_gtx, tmp_path):
     run = CliRunner().invoke(fit_main, args + ["--refinement", "hierarchical", "--method", "interpolation"])
     assert run.exit_code == 1 and run.stderr.startswith("ERROR:") and "exact everywhere" in run.stderr
     assert CliRunner().invoke(fit_main, args + ["--refinement", "octree"]).exit_code == 2
+
+
+def test_normal_matrix_in_slices_is_the_one_of_a_whole_table(monkeypatch):
+    """The normal equations are built a slice of the table and a slice of the product's
+    columns at a time (bounded memory): slices of a few B-splines give the same matrix,
+    the table's sums bit for bit, and the right-hand side bit for bit."""
+    import geoidspline.hierarchy.hierarchical as hierarchy
+
+    rng = np.random.default_rng(7)
+    basis = random_hierarchy(plane_domain(8, 8, h0=0.125), 4, 2, rng, per_step=3)
+    pts, lvl = leaf_points(basis, 20, rng)
+    values = rng.normal(size=pts.shape[0])
+    sites = [(pts[lvl == lv], values[lvl == lv]) for lv in range(basis.levels)]
+    whole, whole_rhs = normal_matrix(basis, sites)
+    level = basis.levels - 1
+    x, _ = level_expansion(basis, level)
+    table, table_rhs = hierarchy.level_normal_matrix(*sites[level], basis.spacing(level), basis.order, x)
+    monkeypatch.setattr(hierarchy, "NORMAL_TABLE_BYTES", 8 * 7 ** 3 * 5)  # five B-splines a slice
+    monkeypatch.setattr(hierarchy, "PRODUCT_COLUMNS", 7)
+    sliced, sliced_rhs = normal_matrix(basis, sites)
+    sliced_table, sliced_table_rhs = hierarchy.level_normal_matrix(*sites[level], basis.spacing(level),
+                                                                   basis.order, x)
+    assert x.size > 5 * 10 and basis.coefficient_count > 7 * 10  # many slices
+    np.testing.assert_array_equal(sliced_table.toarray(), table.toarray())
+    np.testing.assert_array_equal(sliced_table_rhs, table_rhs)
+    np.testing.assert_array_equal(sliced_rhs, whole_rhs)
+    np.testing.assert_allclose(sliced.toarray(), whole.toarray(), rtol=0, atol=1e-14 * abs(whole).max())
+    assert sliced.nnz == whole.nnz
+
+
+def test_schwarz_preconditioner_solves_each_block_and_sums():
+    """The packed Cholesky factors applied in one call give Σ_b R_bᵀ S_bb⁻¹ R_b r."""
+    from geoidspline.fitting.hierarchical import SchwarzPreconditioner, SymmetricMatrix
+
+    rng = np.random.default_rng(3)
+    n = 60
+    a = rng.normal(size=(n, n)) * (rng.uniform(size=(n, n)) < 0.2)
+    whole = a @ a.T + n * np.eye(n)
+    system = SymmetricMatrix(sp.csr_matrix(np.triu(whole)))
+    np.testing.assert_allclose(system @ np.arange(n, dtype=float), whole @ np.arange(n), rtol=1e-13)
+    blocks = [np.arange(0, 25), np.arange(20, 45), np.sort(rng.choice(n, 30, replace=False)), np.arange(59, 60)]
+    precondition = SchwarzPreconditioner(system, blocks)
+    r = rng.normal(size=n)
+    expected = np.zeros(n)
+    for idx in blocks:
+        expected[idx] += np.linalg.solve(whole[np.ix_(idx, idx)], r[idx])
+    np.testing.assert_allclose(precondition(r), expected, rtol=1e-11, atol=1e-14)
+
+
+def test_a_block_that_is_not_positive_definite_is_factorised_shifted():
+    """Rounding can leave a principal block semidefinite: its factor is that of the block
+    with a small relative shift of the diagonal (the preconditioner need not be exact)."""
+    from geoidspline.fitting.hierarchical import _cholesky
+
+    block = np.array([[4.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 3.0]])  # rank 2
+    packed = np.empty(6)
+    _cholesky(block, packed)
+    factor = np.zeros((3, 3))
+    factor[np.tril_indices(3)] = packed
+    shifted = factor @ factor.T - block
+    assert np.all(np.isfinite(packed)) and factor[1, 1] > 0
+    np.testing.assert_allclose(shifted - np.diag(np.diag(shifted)), 0, atol=1e-12)
+    assert 0 < shifted[0, 0] <= 1e-3 * 4.0
+    np.testing.assert_allclose(np.diag(shifted), shifted[0, 0], rtol=1e-3)  # one shift for all rows

@@ -105,6 +105,29 @@ def test_gaussian_mean_radius_is_sqrt_of_m_times_n():
     np.testing.assert_allclose(geodesy.gaussian_mean_radius(lat), np.sqrt(M * N), rtol=1e-15)
 
 
+def test_large_batches_equal_the_level_by_level_sum_and_are_nan_outside(store, small_store):
+    """A store's large batch (the compiled path: two-pass sort, one folded table a point)
+    gives at each point the value of the numpy level-by-level evaluator to 1e-12 m, dense
+    (thousands of points a sort bucket) and sparse (a few) alike, and NaN outside the
+    store's coverage or at NaN coordinates, never a number."""
+    from geoidspline.bspline.evaluate import evaluate_levels
+    from geoidspline.hierarchy.ambient import FOLDED_FROM_POINTS
+    from geoidspline.sphere.coordinates import directions
+
+    rng = np.random.default_rng(71)
+    dense_lat, dense_lon = interior_points(40_000, 72, region=(15.0, 25.0, 17.0, 27.0))
+    sparse_lat, sparse_lon = interior_points(4_000, 73)
+    lat = np.concatenate([dense_lat, sparse_lat, rng.uniform(-89.0, 9.0, 500), [np.nan, 20.0]])
+    lon = np.concatenate([dense_lon, sparse_lon, rng.uniform(-180.0, 180.0, 500), [30.0, np.nan]])
+    assert lat.size >= FOLDED_FROM_POINTS
+    got = store.undulation(lat, lon)
+    inside = slice(0, dense_lat.size + sparse_lat.size)
+    want = evaluate_levels(store.spline.levels, directions(lat[inside], lon[inside]), 0)[:, 0]
+    assert np.abs(got[inside] - want).max() <= 1e-12
+    assert np.abs(want).max() > 1.0  # real values, not zeros
+    assert np.isnan(got[inside.stop:]).all()
+
+
 def test_deflection_matches_finite_differences_of_the_store(store):
     """Central differences of store.undulation with step ε (radians of arc) along north
     and east have truncation error ≤ ε²/6 · max|N'''|; max|N'''| is estimated from the

@@ -376,8 +376,8 @@ def test_compiled_directions_agree_with_numpy_trigonometry():
 
 
 def test_dense_latlon_batches_equal_directions_then_points():
-    """A dense regional batch (thousands of points per 1.41° sort bucket: the buckets are
-    re-sorted by counting on their fine cells) gives bitwise the values of evaluate_points
+    """A dense regional batch (thousands of points per 5.6° sort bucket: the buckets are
+    sorted by counting on the low bits of their cells' Morton codes) gives bitwise the values of evaluate_points
     at directions(), on one thread and two."""
     from geoidspline._kernels import _clib
 

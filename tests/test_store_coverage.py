@@ -21,7 +21,7 @@ from geoidspline.fitting.driver import fit_source
 from geoidspline.fitting.parameters import FitParameters
 from geoidspline.sources.base import NodeSample, Provenance
 from geoidspline.sources.grid import GeoidGrid
-from geoidspline.sphere.coverage import INSIDE, NO_DATA, OUTSIDE, Coverage
+from geoidspline.sphere.coverage import INSIDE, NO_DATA, OUTSIDE, Coverage, CoveragePart
 from geoidspline.sphere.region import Region
 from geoidspline.api.regional import update_store
 from geoidspline.store.writer import write_store
@@ -186,6 +186,21 @@ def test_a_model_covers_its_region(tmp_path, toy24):
     rng = np.random.default_rng(1)
     lat, lon = rng.uniform(-20, 0, 500), rng.uniform(100, 130, 500)
     assert store.covers(lat, lon).all() and np.isfinite(store.undulation(lat, lon)).all()
+
+
+def test_a_global_region_without_holes_covers_every_real_coordinate():
+    """No lattice and 360 degrees of longitude: any latitude in [-90, 90] with any
+    non-NaN longitude is covered (the poles too), a NaN coordinate never is; the
+    same answers for a large batch, and a NaN is "outside the region" (it was "no data"
+    for a NaN longitude)."""
+    coverage = Coverage((CoveragePart(Region(-90.0, -180.0, 90.0, 180.0)),))
+    lat = np.array([90.0, -90.0, 0.0, 45.0, np.nan, 10.0, -90.0])
+    lon = np.array([1e5, 12.0, 359.5, -720.0, 0.0, np.nan, np.nan])
+    want = np.array([True, True, True, True, False, False, False])
+    np.testing.assert_array_equal(coverage.covers(lat, lon), want)
+    np.testing.assert_array_equal(coverage.covers(np.tile(lat, 1000), np.tile(lon, 1000)), np.tile(want, 1000))
+    assert coverage.covers(-90.0, 5.0) and not coverage.covers(-90.0, np.nan)
+    np.testing.assert_array_equal(coverage.reasons(lat, lon)[4:], [OUTSIDE] * 3)
 
 
 # -- coverage through updates -----------------------------------------------------------

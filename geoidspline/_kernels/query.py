@@ -32,12 +32,6 @@ PRESENCE_CELL = 0.125  # side of the coarse cells of the per-level presence map
 PRESENCE_SIDE = 20  # covers [-1.25, 1.25) on each axis
 
 
-LL_LAT_BITS = 7  # 2**7 latitude rows and 2**8 longitude columns of 180/128 = 1.41 degrees
-
-
-LL_LON_BITS = 8
-
-
 class Spline(ctypes.Structure):
     """The query tables of one spline, as ``src/query.c``'s ``gs_spline`` (field for field).
 
@@ -211,11 +205,12 @@ def undulation_latlon(spline, latitude, longitude, nblocks, out):
 
     Returns the number of invalid coordinates (a latitude beyond ±90° or infinite, an
     infinite longitude); when there are any, ``out`` is left unset. NaN gives NaN.
-    The points are sorted by their 1.41° latitude/longitude cell (a counting sort in
-    ``nblocks`` blocks), evaluated in that order (neighbours share bricks and cache
-    lines) and the values written back to their places; each value does not depend on
-    the order, the blocks or the thread count, and equals :func:`evaluate_bricks` at the
-    directions :func:`unit_vectors` gives. Transient memory: 20 bytes per point.
+    The points are sorted by the Morton code of their 0.18° latitude/longitude cell (two
+    counting-sort passes: 5.6° buckets in ``nblocks`` blocks, then within each bucket),
+    evaluated in that order (neighbours share bricks and cache lines) and the values
+    written back to their places; each value does not depend on the order, the blocks or
+    the thread count, and equals :func:`evaluate_bricks` at the directions
+    :func:`unit_vectors` gives. Transient memory: 20 bytes per point.
     """
     latitude = c_in(latitude, np.float64)
     longitude = c_in(longitude, np.float64)

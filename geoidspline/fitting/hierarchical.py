@@ -40,6 +40,7 @@ import numpy as np
 import qdldl
 import scipy.sparse as sp
 
+from .._kernels.fitting import cholesky_packed, schwarz_apply
 from .._memory import available_bytes
 from ..bspline.basis import children
 from ..bspline.keys import covered_cell_keys, cube_offsets, isin_sorted, pack_keys, unpack_keys
@@ -93,11 +94,14 @@ SCHWARZ_OVERLAP = 0.0
 SOLVE_FRACTION = 0.01
 MAX_ITERATIONS = 1_000
 
-#: Peak memory of a fit per unknown of its largest step (bytes): the whole problem
-#: (about 300 non-zeros a row), the local factorisations and the normal equations' table
-#: (global EGM96 at 0.1 m: 5.93 GB peak resident for 280,230 unknowns, 21,200 bytes each).
-#: A step needing more than the memory available is not built (:class:`BasisTooLarge`).
-BYTES_PER_UNKNOWN = 22_000
+#: Peak memory of a fit per unknown of its largest step (bytes): the upper triangle of
+#: the whole problem (about 85 non-zeros a row), the cubes' packed Cholesky factors (about
+#: 2.5 local unknowns per unknown, about 3.5 kB), the slices of the normal equations being
+#: assembled, and the data nodes (global EGM96 15' grid at 0.1 m, 2026-12-03: 1.70 GB peak
+#: resident for 281,071 unknowns, 6,040 bytes each; at 0.5 m 1.07 GB for 172,152, 6,200;
+#: benchmarks/README.md, issue 21's memory). A step needing more than the memory
+#: available is not built (:class:`BasisTooLarge`).
+BYTES_PER_UNKNOWN = 6_500
 
 #: Cell centres of a grid (:mod:`geoidspline.fitting.cell_centres`) as sites: their weight
 #: relative to a node's; whether only those found outside the interval join the sites
@@ -155,8 +159,26 @@ def _penalty(basis: HierarchicalBasis, diagonal, weight):
     return sp.block_diag(blocks, format="csc") if blocks else sp.csc_matrix((0, 0))
 
 
+class SymmetricMatrix:
+    """A symmetric matrix held as its upper triangle (CSR, diagonal included): half the
+    memory of the whole; ``@`` multiplies by the whole (two products with the half, the
+    work of one with the whole)."""
+
+    def __init__(self, upper):
+        self.upper = upper.tocsr()
+        self.diagonal = self.upper.diagonal()
+        self.shape = self.upper.shape
+
+    def __matmul__(self, x):
+        return self.upper @ x + self.upper.T @ x - self.diagonal * x
+
+    def principal_lower(self, index):
+        """The lower triangle of the principal block on ``index`` (sorted), dense."""
+        return self.upper[index][:, index].T.toarray()
+
+
 def _system(basis: HierarchicalBasis, points, values, regularization, extra=None):
-    """The whole problem's matrix (AᵀA + penalty + ridge, full symmetric CSR) and Aᵀv.
+    """The whole problem's matrix (AᵀA + penalty + ridge, a :class:`SymmetricMatrix`) and Aᵀv.
     ``extra``: ``(points, values, weight)`` of sites weighted ``weight`` (per level, as
     ``points`` and ``values``); the penalty scales with the nodes' diagonal alone."""
     matrix, rhs = normal_matrix(basis, [(p, v) for p, v in zip(points, values)])
@@ -164,16 +186,16 @@ def _system(basis: HierarchicalBasis, points, values, regularization, extra=None
     if extra is not None:
         more, more_rhs = normal_matrix(basis, [(p, v) for p, v in zip(extra[0], extra[1])])
         matrix, rhs = matrix + extra[2] * more, rhs + extra[2] * more_rhs
-    system = matrix + _penalty(basis, diagonal, regularization)
+    matrix = matrix + sp.triu(_penalty(basis, diagonal, regularization), format="csc")
     scale = float(diagonal[diagonal > 0].mean()) if np.any(diagonal > 0) else 1.0
-    system = system + sp.identity(basis.coefficient_count, format="csc") * (RIDGE * scale)
-    return system.tocsr(), rhs
+    matrix = matrix + sp.identity(basis.coefficient_count, format="csc") * (RIDGE * scale)
+    return SymmetricMatrix(matrix), rhs
 
 
 def _solve(basis: HierarchicalBasis, points, values, regularization, extra=None):
     """The whole problem by one sparse LDLᵀ factorisation."""
     system, rhs = _system(basis, points, values, regularization, extra)
-    return qdldl.Solver(sp.triu(system, format="csc")).solve(rhs)
+    return qdldl.Solver(system.upper.tocsc()).solve(rhs)
 
 
 def _binned(positions, size):
@@ -391,24 +413,37 @@ def schwarz_blocks(basis: HierarchicalBasis, size: float, overlap: float):
 
 class SchwarzPreconditioner:
     """Additive Schwarz: ``z = Σ_b R_bᵀ S_bb⁻¹ R_b r`` over overlapping subdomains, each
-    principal block of the whole matrix factorised once (qdldl; dense LAPACK Cholesky of
-    the nearly full blocks was slower: benchmarks/README.md)."""
+    principal block of the whole matrix factorised once by dense Cholesky, its factor
+    packed (the lower triangle by rows, one array for all blocks) and all blocks applied
+    by one compiled call (:func:`geoidspline._kernels.fitting.schwarz_apply`). The blocks
+    are nearly full, so the packed triangle is the least they can be held in; sparse LDLᵀ
+    factors (qdldl) of the same blocks took 1.5 times the memory (benchmarks/README.md)."""
 
-    def __init__(self, system, index_sets, advance=None):
-        """``system``: the whole matrix, CSR (its rows are sliced)."""
-        self.index_sets = index_sets
-        self.solvers = []
-        for idx in index_sets:
-            local = system[idx][:, idx]
-            self.solvers.append(qdldl.Solver(sp.triu(local, format="csc")))
+    def __init__(self, system: SymmetricMatrix, index_sets, advance=None):
+        sizes = np.array([idx.size for idx in index_sets], dtype=np.int64)
+        self.block_at = np.r_[0, np.cumsum(sizes)]
+        self.index = np.concatenate(index_sets).astype(np.int64) if index_sets else _EMPTY
+        self.factor_at = np.r_[0, np.cumsum(sizes * (sizes + 1) // 2)]
+        self.factors = np.empty(int(self.factor_at[-1]))
+        for b, idx in enumerate(index_sets):
+            _cholesky(system.principal_lower(idx), self.factors[self.factor_at[b]:self.factor_at[b + 1]])
             if advance is not None:
                 advance(1)
 
     def __call__(self, r):
-        z = np.zeros_like(r)
-        for idx, solver in zip(self.index_sets, self.solvers):
-            z[idx] += solver.solve(r[idx])
-        return z
+        return schwarz_apply(self.block_at, self.index, self.factor_at, self.factors, r)
+
+
+def _cholesky(lower, out):
+    """The packed Cholesky factor of a principal block into ``out``. The whole matrix is
+    positive definite, so are its blocks; should rounding make one not quite so, a
+    relative shift of its diagonal is taken (the preconditioner need not be exact)."""
+    scale = float(np.abs(np.diag(lower)).max()) if lower.size else 1.0
+    shift = 0.0
+    while cholesky_packed(lower, shift * scale, out) != 0:
+        if shift >= 1e-3:
+            raise FitError(f"the local problem of {lower.shape[0]} unknowns could not be factorised")
+        shift = 1e-12 if shift == 0.0 else shift * 100.0
 
 
 def conjugate_gradients(system, rhs, precondition, x0, tolerance, max_iterations=MAX_ITERATIONS):

@@ -85,7 +85,8 @@ class AmbientSpline:
         if lat.size >= FOLDED_FROM_POINTS:
             values, invalid = self.index.undulation_latlon(np.ascontiguousarray(lat).ravel(),
                                                            np.ascontiguousarray(lon).ravel())
-            if invalid or np.nanmax(np.abs(lon), initial=0.0) > MAX_ABS_POINT_LONGITUDE_DEG:
+            if invalid or not (np.fmin.reduce(lon, axis=None) >= -MAX_ABS_POINT_LONGITUDE_DEG
+                               and np.fmax.reduce(lon, axis=None) <= MAX_ABS_POINT_LONGITUDE_DEG):
                 check_coordinates(lat, lon)  # raises, naming the first bad value
             return values.reshape(shape)
         lat, lon = check_coordinates(lat, lon)

@@ -61,7 +61,7 @@ from ..sphere.region import Region
 __all__ = [
     "up", "down", "boxes_meet_sphere", "coarsen_cells", "Domain", "HierarchicalBasis", "algorithm1", "algorithm2",
     "initial_basis", "refine", "violations_53", "marked_functions", "HierarchicalRefinement", "design_matrix",
-    "level_expansion", "normal_matrix",
+    "level_expansion", "level_normal_matrix", "normal_matrix",
 ]
 
 _EMPTY = np.empty(0, dtype=np.int64)
@@ -467,10 +467,15 @@ def design_matrix(basis: HierarchicalBasis, points):
                          shape=(points.shape[0], basis.coefficient_count))
 
 
+#: Coarser B-splines whose children :func:`level_expansion` forms at once (125 children
+#: each for cubics, about 50 bytes a child in the temporaries: about 13 MB).
+EXPANSION_PARENTS = 2048
+
+
 def level_expansion(basis: HierarchicalBasis, level: int):
-    """Keys ``X`` of the level-ℓ B-splines touching the leaves ω^ℓ, and the sparse
-    matrix R (len(X) x all coefficients) writing the hierarchical spline on them:
-    on ω^ℓ, ``S = Σ_x (R b)_x B^ℓ_x``.
+    """Keys ``X`` of the level-ℓ B-splines touching the leaves ω^ℓ that carry a part of
+    the hierarchical spline, and the sparse matrix R (len(X) x all coefficients) writing
+    the spline on them: on ω^ℓ, ``S = Σ_x (R b)_x B^ℓ_x``.
 
     On a leaf of level ℓ only the active B-splines of levels ℓ and ℓ - 1 are non-zero
     (finer supports hold no leaf of level ℓ, and requirement 5.3 keeps level ℓ - 2 and
@@ -488,40 +493,152 @@ def level_expansion(basis: HierarchicalBasis, level: int):
         rows.append(pos[hit])
         cols.append(at[level] + np.flatnonzero(hit))
         vals.append(np.ones(int(hit.sum())))
-    if level > 0 and basis.active[level - 1].size:
-        child, parent, weight = children(basis.active[level - 1], n)
+    coarser = basis.active[level - 1] if level > 0 else _EMPTY
+    for first in range(0, coarser.size, EXPANSION_PARENTS):
+        # (n + 1)³ children a parent, most outside the leaves: a slice of parents at a time
+        child, parent, weight = children(coarser[first:first + EXPANSION_PARENTS], n)
         pos = np.searchsorted(x, child)
         hit = (pos < x.size) & (x[np.minimum(pos, x.size - 1)] == child)
         rows.append(pos[hit])
-        cols.append(at[level - 1] + parent[hit])
+        cols.append(at[level - 1] + first + parent[hit])
         vals.append(weight[hit])
     if not rows:
-        return x, sp.csr_matrix((x.size, basis.coefficient_count))
+        return _EMPTY, sp.csr_matrix((0, basis.coefficient_count))
     r = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
                       shape=(x.size, basis.coefficient_count))
-    return x, r
+    # B-splines touching a leaf that carry no part of the spline (the thin basis leaves
+    # about 40 % of them out): dropped, since their normal equations would be multiplied
+    # by zero rows of R
+    carrying = np.diff(r.indptr) > 0
+    return x[carrying], r[carrying]
+
+
+#: Bytes of the dense scratch table of one level's normal equations, filled one slice of
+#: the level's B-splines at a time (32 MB: about 11,700 cubic B-splines), so that the
+#: table follows the slice, not the globe.
+NORMAL_TABLE_BYTES = 32_000_000
+
+#: Columns of the hierarchical basis whose part of ``Rᵀ F R`` one sparse product forms
+#: (its temporaries are those columns' share of the whole product).
+PRODUCT_COLUMNS = 4096
+
+
+def level_normal_matrix(points, values, h, order, keys):
+    """One level's AᵀA (upper triangle, CSC) and Aᵀv over the B-splines ``keys`` (sorted)
+    at ``points``, built one slice of :data:`NORMAL_TABLE_BYTES` at a time from the sites
+    that can reach the slice (by the first axis of their cell, in their order, so every
+    entry is summed as by one table)."""
+    n = keys.size
+    rhs = np.zeros(n)
+    per_slice = max(1, NORMAL_TABLE_BYTES // (8 * (2 * order - 1) ** 3))
+    # the kernel's cell: floor(x * (1 / h))
+    axis = np.floor(points[:, 0] * (1.0 / h)).astype(np.int64)
+    by_axis = np.argsort(axis, kind="stable")
+    axis = axis[by_axis]
+    indptr = np.zeros(n + 1, np.int64)
+    indices, data, at = np.empty(0, np.int32), np.empty(0), 0
+    for first in range(0, n, per_slice):
+        last = min(n, first + per_slice)
+        lo, hi = unpack_keys(keys[[first, last - 1]])[:, 0]
+        # the B-spline i spans the cells i .. i + order - 1 of the first axis
+        a, b = np.searchsorted(axis, [lo, hi + order])
+        chosen = np.sort(by_axis[a:b])
+        ptr_, idx_, val_, _ = normal_equations(points[chosen], values[chosen], h, order, keys, first, last, rhs)
+        if at + idx_.size > indices.size:
+            # room for the rest at this slice's entries per column, and a little more:
+            # growing by a guess, not by concatenating every slice (twice the level's matrix)
+            size = at + idx_.size + int(1.05 * idx_.size / (last - first) * (n - last)) + 1024
+            grown_indices, grown_data = np.empty(size, np.int32), np.empty(size)
+            grown_indices[:at], grown_data[:at] = indices[:at], data[:at]
+            indices, data = grown_indices, grown_data
+            del grown_indices, grown_data
+        indptr[first + 1:last + 1] = ptr_[1:] + at
+        indices[at:at + idx_.size] = idx_
+        data[at:at + idx_.size] = val_
+        at += idx_.size
+    indices, data = (indices[:at], data[:at]) if at >= 0.9 * data.size else (indices[:at].copy(), data[:at].copy())
+    return sp.csc_matrix((data, indices, indptr), shape=(n, n)), rhs
+
+
+def _upper_of_congruence(upper, r, total):
+    """The upper triangle of ``Rᵀ F R`` (F symmetric, ``upper`` its upper triangle, CSC with
+    sorted rows; R CSR with ``total`` columns) as one CSC piece per :data:`PRODUCT_COLUMNS`
+    columns, so that the full product is never formed.
+
+    F couples B-splines only a few key rows apart, so the columns of a slice, which reach
+    the B-splines ``lo..hi`` of the level, see F only on ``lo - reach .. hi + reach``
+    (``reach``: the largest distance of an entry from the diagonal): the product is formed
+    on that band of F."""
+    n = upper.shape[0]
+    starts = upper.indptr[:-1]
+    filled = np.diff(upper.indptr) > 0
+    reach = int((np.arange(n)[filled] - upper.indices[starts[filled]]).max()) if filled.any() else 0
+    r_columns = r.tocsc()
+    pieces = []
+    for j0 in range(0, total, PRODUCT_COLUMNS):
+        j1 = min(total, j0 + PRODUCT_COLUMNS)
+        rj = r_columns[:, j0:j1]
+        if rj.nnz == 0:
+            pieces.append(sp.csc_matrix((total, j1 - j0)))
+            continue
+        b0 = max(0, int(rj.indices.min()) - reach)
+        b1 = min(n, int(rj.indices.max()) + reach + 1)
+        band = upper if (b0, b1) == (0, n) else upper[:, b0:b1][b0:b1]
+        rb = rj[b0:b1]
+        product = band @ rb + band.T @ rb - sp.diags(band.diagonal()) @ rb  # F on the band times R's columns
+        part = (r[b0:b1].T @ product).tocsc()
+        del product
+        rows = part.indices
+        cols = np.repeat(np.arange(j1 - j0), np.diff(part.indptr))
+        keep = rows <= cols + j0
+        pieces.append(sp.csc_matrix((part.data[keep], (rows[keep], cols[keep])), shape=(total, j1 - j0)))
+    return pieces
 
 
 def normal_matrix(basis: HierarchicalBasis, sites):
-    """AᵀA (CSC, symmetric, all levels) and Aᵀv for ``sites``: one ``(points, values)``
-    pair per level, the points inside that level's leaves.
+    """The upper triangle (CSC, diagonal included) of AᵀA over all levels, and Aᵀv, for
+    ``sites``: one ``(points, values)`` pair per level, the points inside that level's leaves.
 
     Each level's AᵀA on the B-splines touching its leaves comes from the single-level
-    kernel (:func:`geoidspline._kernels.fitting.normal_equations`), then ``Rᵀ (AᵀA) R`` with
-    the level's expansion R (:func:`level_expansion`) puts it on the hierarchical basis.
+    kernel (:func:`level_normal_matrix`), then ``Rᵀ (AᵀA) R`` with the level's expansion R
+    (:func:`level_expansion`) puts it on the hierarchical basis, a slice of columns at a
+    time. Only the upper triangle is kept: the matrix is symmetric, and the whole one
+    is twice the memory (:class:`geoidspline.fitting.hierarchical.SymmetricMatrix` multiplies
+    by the whole from it).
     """
     total = basis.coefficient_count
-    matrix = sp.csc_matrix((total, total))
     rhs = np.zeros(total)
+    pieces = []
     for lv, (points, values) in enumerate(sites):
         if points.shape[0] == 0 or basis.leaves[lv].size == 0:
             continue
         x, r = level_expansion(basis, lv)
-        indptr, indices, data, b = normal_equations(
-            np.ascontiguousarray(points), np.ascontiguousarray(values, dtype=float),
-            basis.spacing(lv), basis.order, x)
-        upper = sp.csc_matrix((data, indices, indptr), shape=(x.size, x.size))
-        full = upper + sp.triu(upper, 1, format="csc").T
-        matrix = matrix + (r.T @ (full @ r)).tocsc()
+        upper, b = level_normal_matrix(np.ascontiguousarray(points, dtype=float),
+                                       np.ascontiguousarray(values, dtype=float), basis.spacing(lv), basis.order, x)
         rhs += r.T @ b
-    return matrix, rhs
+        level_pieces = _upper_of_congruence(upper, r, total)
+        del upper
+        if not pieces:
+            pieces = level_pieces
+            continue
+        for i, piece in enumerate(level_pieces):  # one piece at a time: no second whole matrix
+            pieces[i] = pieces[i] + piece
+            level_pieces[i] = None
+    if not pieces:
+        return sp.csc_matrix((total, total)), rhs
+    # the pieces side by side, each freed once copied: no second whole matrix
+    count = sum(piece.nnz for piece in pieces)
+    indptr = np.zeros(total + 1, np.int64)
+    indices = np.empty(count, np.int32)
+    data = np.empty(count)
+    column = at = 0
+    for i, piece in enumerate(pieces):
+        piece.sort_indices()
+        width = piece.shape[1]
+        indptr[column + 1:column + width + 1] = piece.indptr[1:] + at
+        indices[at:at + piece.nnz] = piece.indices
+        data[at:at + piece.nnz] = piece.data
+        column, at = column + width, at + piece.nnz
+        pieces[i] = None
+    return sp.csc_matrix((data, indices, indptr), shape=(total, total)), rhs
+

@@ -18,6 +18,11 @@ from .region import MAX_ABS_POINT_LONGITUDE_DEG
 COMPILED_FROM_POINTS = 2048
 
 
+def _within(values, bound) -> bool:
+    """Whether every non-NaN value is within [-bound, bound] (False when all are NaN)."""
+    return bool(np.fmin.reduce(values, axis=None) >= -bound and np.fmax.reduce(values, axis=None) <= bound)
+
+
 def check_coordinates(latitude, longitude):
     """Broadcast latitude/longitude (degrees) to float arrays and check their range.
 
@@ -29,6 +34,8 @@ def check_coordinates(latitude, longitude):
     latitude, longitude = np.broadcast_arrays(
         np.asarray(latitude, dtype=float), np.asarray(longitude, dtype=float)
     )
+    if latitude.size and _within(latitude, 90.0) and _within(longitude, MAX_ABS_POINT_LONGITUDE_DEG):
+        return latitude, longitude  # the common case: four reductions, no temporary arrays
     with np.errstate(invalid="ignore"):
         bad_lat = np.abs(latitude) > 90.0
     if np.any(bad_lat):

@@ -160,6 +160,8 @@ class CoveragePart:
     source: str | None = None
 
     def covers(self, latitude, longitude):
+        if self.lattice is None and self.region.longitude_span >= 360.0:
+            return self.region.contains(latitude, longitude)  # longitudes do not matter: no pole rule
         latitude, longitude = self._pole_inside(latitude, longitude)
         if self.lattice is not None and np.size(latitude) >= COMPILED_FROM_POINTS:
             return self.lattice.cells_have_data(latitude, longitude, region=self.region)
@@ -269,6 +271,7 @@ class Coverage:
         in_region = np.zeros(lat.shape, dtype=bool)
         for part in self.parts:
             in_region |= part.region.contains(*part._pole_inside(lat, lon))
+        in_region &= ~np.isnan(lon)  # a region spanning 360 degrees does not look at longitudes
         out = np.where(covered, INSIDE, np.where(in_region, NO_DATA, OUTSIDE)).astype(object)
         return str(out[()]) if out.ndim == 0 else out
 

@@ -86,10 +86,10 @@ class Region:
         """Boolean mask (or bool) of the points inside the region, edges included."""
         latitude = np.asarray(latitude, dtype=float)
         longitude = np.asarray(longitude, dtype=float)
-        with np.errstate(invalid="ignore"):  # an infinite longitude: NaN offset, not inside
-            offset = (longitude - self.west) % 360.0
         inside = (latitude >= self.south) & (latitude <= self.north)
-        if self.longitude_span < 360.0:
+        if self.longitude_span < 360.0:  # (only then: the modulo is most of a large batch's cost)
+            with np.errstate(invalid="ignore"):  # an infinite longitude: NaN offset, not inside
+                offset = (longitude - self.west) % 360.0
             inside &= offset <= self.longitude_span
         return inside
 

@@ -25,11 +25,14 @@ GS_EXPORT void gs_cells_meet_sphere(const int64_t *cells, int64_t m, double h, d
     }
 }
 
-/* Accumulates AᵀA into table (n, (2 order - 1)³), zeroed by the caller, indexed by the
- * relative position of the second B-spline, and Aᵀb into rhs (n, zeroed). Sites in order,
- * so every entry is summed in the order of the sites. Returns 0, or -1 when out of memory. */
+/* Accumulates AᵀA into table (last - first, (2 order - 1)³), zeroed by the caller, indexed
+ * by the relative position of the second B-spline, for the columns (second B-splines)
+ * first <= c2 < last of keys (n), and Aᵀb into rhs (n, zeroed) for the same columns: one
+ * call per slice of the columns bounds the table. Sites in order, so every entry is summed
+ * in the order of the sites. Returns 0, or -1 when out of memory. */
 GS_EXPORT int64_t gs_normal_table(const double *points, const double *values, int64_t m, double h, int64_t order,
-                                  const int64_t *keys, int64_t n, double *table, double *rhs)
+                                  const int64_t *keys, int64_t n, int64_t first, int64_t last, double *table,
+                                  double *rhs)
 {
     int64_t span = 2 * order - 1, width = span * span * span, block = order * order * order;
     int64_t centre = ((order - 1) * span + (order - 1)) * span + (order - 1);
@@ -70,8 +73,10 @@ GS_EXPORT int64_t gs_normal_table(const double *points, const double *values, in
         double value = values[s];
         for (int64_t e2 = 0; e2 < found; ++e2) {
             int64_t c2 = cols[e2];
+            if (c2 < first || c2 >= last)
+                continue;
             double v2 = vals[e2];
-            double *row = table + c2 * width + (centre - lin[e2]);
+            double *row = table + (c2 - first) * width + (centre - lin[e2]);
             rhs[c2] += v2 * value;
             for (int64_t e1 = 0; e1 <= e2; ++e1)
                 row[lin[e1]] += vals[e1] * v2;
@@ -81,16 +86,17 @@ GS_EXPORT int64_t gs_normal_table(const double *points, const double *values, in
     return 0;
 }
 
-/* Compresses the table into CSC (indptr n + 1, indices and data of as many entries as
- * the table has non-zero values): column c holds rows c1 <= c; offsets in lexicographic
- * order are increasing key deltas, hence increasing row positions. */
-GS_EXPORT void gs_normal_compress(const double *table, const int64_t *keys, int64_t n, int64_t order,
-                                  int64_t *indptr, int64_t *indices, double *data)
+/* Compresses the table of the columns first <= c < last into CSC (indptr last - first + 1,
+ * indices into keys (n) and data of as many entries as the table has non-zero values):
+ * column c holds rows c1 <= c; offsets in lexicographic order are increasing key deltas,
+ * hence increasing row positions. */
+GS_EXPORT void gs_normal_compress(const double *table, const int64_t *keys, int64_t n, int64_t first, int64_t last,
+                                  int64_t order, int64_t *indptr, int32_t *indices, double *data)
 {
     int64_t span = 2 * order - 1, width = span * span * span, at = 0;
     indptr[0] = 0;
-    for (int64_t c = 0; c < n; ++c) {
-        const double *row = table + c * width;
+    for (int64_t c = first; c < last; ++c) {
+        const double *row = table + (c - first) * width;
         for (int64_t off = 0; off < width; ++off) {
             double v = row[off];
             if (v != 0.0) {
@@ -99,11 +105,86 @@ GS_EXPORT void gs_normal_compress(const double *table, const int64_t *keys, int6
                 int64_t dp = off / (span * span) - (order - 1);
                 int64_t target = keys[c] + dp * (((int64_t)1) << (2 * GS_KEY_BITS)) + dq * (((int64_t)1) << GS_KEY_BITS)
                                  + dr;
-                indices[at] = gs_lower_bound(keys, n, target);
+                indices[at] = (int32_t)gs_lower_bound(keys, n, target);
                 data[at] = v;
                 ++at;
             }
         }
-        indptr[c + 1] = at;
+        indptr[c - first + 1] = at;
     }
+}
+
+/* Additive Schwarz preconditioner z = Σ_b R_bᵀ (L_b L_bᵀ)⁻¹ R_b r (z zeroed by the caller):
+ * block b holds the indices index[block_at[b] .. block_at[b + 1]) (m of them) and its
+ * Cholesky factor L_b packed by rows (row i: L[i][0..i]) at factors[factor_at[b] ..],
+ * m (m + 1) / 2 values; work holds the largest m. */
+GS_EXPORT void gs_schwarz_apply(int64_t blocks, const int64_t *block_at, const int64_t *index,
+                                const int64_t *factor_at, const double *factors, const double *r, double *z,
+                                double *work)
+{
+    for (int64_t b = 0; b < blocks; ++b) {
+        const int64_t *idx = index + block_at[b];
+        int64_t m = block_at[b + 1] - block_at[b];
+        const double *l = factors + factor_at[b];
+        /* L y = r: row i of L is contiguous */
+        for (int64_t i = 0; i < m; ++i) {
+            const double *row = l + i * (i + 1) / 2;
+            double s0 = 0.0, s1 = 0.0, s2 = 0.0, s3 = 0.0; /* as in gs_cholesky_packed */
+            int64_t k = 0;
+            for (; k + 4 <= i; k += 4) {
+                s0 += row[k] * work[k];
+                s1 += row[k + 1] * work[k + 1];
+                s2 += row[k + 2] * work[k + 2];
+                s3 += row[k + 3] * work[k + 3];
+            }
+            for (; k < i; ++k)
+                s0 += row[k] * work[k];
+            work[i] = (r[idx[i]] - ((s0 + s1) + (s2 + s3))) / row[i];
+        }
+        /* Lᵀ z = y, by rows of L from the last: z_i final, then taken out of the rows above */
+        for (int64_t i = m - 1; i >= 0; --i) {
+            const double *row = l + i * (i + 1) / 2;
+            double zi = work[i] / row[i];
+            work[i] = zi;
+            for (int64_t k = 0; k < i; ++k)
+                work[k] -= row[k] * zi;
+        }
+        for (int64_t i = 0; i < m; ++i)
+            z[idx[i]] += work[i];
+    }
+}
+
+/* Cholesky factor L (packed by rows: row i is L[i][0..i], at i (i + 1) / 2) of the
+ * symmetric positive definite m x m matrix whose lower triangle is that of lower (row-major;
+ * the upper triangle is not read), plus shift on the diagonal. One thread: the blocks of a
+ * preconditioner are small and many. Returns 0, or i + 1 when the pivot of row i is not
+ * positive. */
+GS_EXPORT int64_t gs_cholesky_packed(const double *lower, int64_t m, double shift, double *packed)
+{
+    for (int64_t i = 0; i < m; ++i) {
+        double *li = packed + i * (i + 1) / 2;
+        for (int64_t j = 0; j <= i; ++j) {
+            const double *lj = packed + j * (j + 1) / 2;
+            /* four partial sums: independent chains the compiler can keep in flight */
+            double s0 = 0.0, s1 = 0.0, s2 = 0.0, s3 = 0.0;
+            int64_t k = 0;
+            for (; k + 4 <= j; k += 4) {
+                s0 += li[k] * lj[k];
+                s1 += li[k + 1] * lj[k + 1];
+                s2 += li[k + 2] * lj[k + 2];
+                s3 += li[k + 3] * lj[k + 3];
+            }
+            for (; k < j; ++k)
+                s0 += li[k] * lj[k];
+            double s = lower[i * m + j] + (i == j ? shift : 0.0) - ((s0 + s1) + (s2 + s3));
+            if (j < i) {
+                li[j] = s / lj[j];
+            } else {
+                if (!(s > 0.0))
+                    return i + 1;
+                li[i] = sqrt(s);
+            }
+        }
+    }
+    return 0;
 }

@@ -404,10 +404,10 @@ GS_EXPORT void gs_query_order(const double *points, int64_t m, int64_t *key, int
 
 /* ---- latitude/longitude batches --------------------------------------------------- */
 
-#define LL_LAT_BITS 7 /* the sort grid: 2**7 rows and 2**8 columns of 1.41 degrees */
-#define LL_LON_BITS 8
-#define LL_BUCKETS (1 << (LL_LAT_BITS + LL_LON_BITS)) /* one more for NaN */
-#define LL_FINE_BITS 3 /* inside a bucket, points are sorted on a grid 2**3 times finer (0.18 degrees) */
+#define LL_LAT_BITS 10 /* the sort grid: 2**10 rows and 2**11 columns of 0.18 degrees */
+#define LL_LON_BITS 11
+#define LL_LOW_BITS 10 /* the sort's second pass: the low bits of the Morton code */
+#define LL_BUCKETS (1 << (LL_LAT_BITS + LL_LON_BITS - LL_LOW_BITS)) /* of the first pass; one more for NaN */
 
 GS_INLINE uint32_t spread2(uint32_t v)
 {
@@ -419,13 +419,13 @@ GS_INLINE uint32_t spread2(uint32_t v)
     return v;
 }
 
-/* Morton code of the point's cell on the fine latitude/longitude sort grid; its bucket
- * (the 1.41 degree cell) is code >> (2 LL_FINE_BITS). NaN: bucket LL_BUCKETS. */
+/* Morton code of the point's cell on the latitude/longitude sort grid; its bucket of the
+ * sort's first pass (a 5.6 degree cell) is code >> LL_LOW_BITS. NaN: bucket LL_BUCKETS. */
 GS_INLINE uint32_t latlon_code(double la, double lo)
 {
-    const int lat_bits = LL_LAT_BITS + LL_FINE_BITS, lon_bits = LL_LON_BITS + LL_FINE_BITS;
+    const int lat_bits = LL_LAT_BITS, lon_bits = LL_LON_BITS;
     if (la != la || lo != lo)
-        return (uint32_t)LL_BUCKETS << (2 * LL_FINE_BITS);
+        return (uint32_t)LL_BUCKETS << LL_LOW_BITS;
     double fi = (la + 90.0) * ((1 << lat_bits) / 180.0);
     uint32_t i = fi < 0.0 ? 0 : (fi >= (1 << lat_bits) ? (1 << lat_bits) - 1 : (uint32_t)fi);
     double w = lo + 180.0;
@@ -520,8 +520,9 @@ typedef struct {
     uint32_t *code;
     int64_t *counts, *invalid; /* (nblocks, LL_BUCKETS + 1), (nblocks) */
     int64_t *bucket_start;     /* LL_BUCKETS + 2 */
-    uint64_t *sorted; /* the points in the order of their cells (code, position) */
-    double *ordered;       /* their values, in that order */
+    uint64_t *by_bucket;       /* the points in the order of their buckets (code, position) */
+    uint64_t *sorted;          /* and in the order of their codes */
+    double *ordered;           /* their values in that order (by_bucket's memory, free by then) */
 } latlon_job;
 
 static void latlon_count(void *ctx, int64_t blk)
@@ -535,7 +536,7 @@ static void latlon_count(void *ctx, int64_t blk)
             bad += 1;
         uint32_t code = latlon_code(la, lo_);
         J->code[s] = code;
-        counts[code >> (2 * LL_FINE_BITS)] += 1;
+        counts[code >> LL_LOW_BITS] += 1;
     }
     J->invalid[blk] = bad;
 }
@@ -547,31 +548,30 @@ static void latlon_scatter(void *ctx, int64_t blk)
     int64_t lo = blk * J->size, hi = lo + J->size < J->m ? lo + J->size : J->m;
     for (int64_t s = lo; s < hi; ++s) {
         uint32_t code = J->code[s];
-        J->sorted[counts[code >> (2 * LL_FINE_BITS)]++] = ((uint64_t)code << AT_BITS) | (uint64_t)s;
+        J->by_bucket[counts[code >> LL_LOW_BITS]++] = ((uint64_t)code << AT_BITS) | (uint64_t)s;
     }
 }
 
-#define SORT_TASK_BUCKETS 256
+#define SORT_TASK_BUCKETS 16
 
-/* Each bucket's points sorted by their fine code, ties by position (keys compare as
- * (code, position); the scatter leaves a bucket in increasing position): insertion sort for the few tens of points a bucket of a
- * global million-point batch holds, a stable counting sort on the fine bits for larger
- * ones. Nearby points then follow each other, so they read the same coefficients. */
+/* The sort's second pass: each bucket's points from by_bucket into sorted by their low
+ * code bits, stably (a bucket holds increasing positions), so the order is that of
+ * (code, position): insertion sort for small buckets, a counting sort otherwise. */
 static void latlon_refine(void *ctx, int64_t task)
 {
     latlon_job *J = ctx;
     int64_t b_lo = task * SORT_TASK_BUCKETS, b_hi = b_lo + SORT_TASK_BUCKETS;
-    if (b_hi > LL_BUCKETS)
-        b_hi = LL_BUCKETS; /* NaN's bucket stays as it is */
-    const uint64_t fine_mask = (1u << (2 * LL_FINE_BITS)) - 1;
-    uint64_t *scratch = NULL;
-    int64_t scratch_size = 0;
+    if (b_hi > LL_BUCKETS + 1)
+        b_hi = LL_BUCKETS + 1; /* NaN's bucket: its codes are all equal */
+    const uint64_t low_mask = (1u << LL_LOW_BITS) - 1;
+    int64_t counts[(1 << LL_LOW_BITS) + 1];
     for (int64_t b = b_lo; b < b_hi; ++b) {
+        const uint64_t *in = J->by_bucket + J->bucket_start[b];
         uint64_t *a = J->sorted + J->bucket_start[b];
         int64_t n = J->bucket_start[b + 1] - J->bucket_start[b];
-        if (n <= 48) {
-            for (int64_t i = 1; i < n; ++i) {
-                uint64_t t = a[i];
+        if (n <= 32 || b == LL_BUCKETS) {
+            for (int64_t i = 0; i < n; ++i) {
+                uint64_t t = in[i];
                 int64_t j = i;
                 for (; j >= 1 && a[j - 1] > t; --j)
                     a[j] = a[j - 1];
@@ -579,28 +579,18 @@ static void latlon_refine(void *ctx, int64_t task)
             }
             continue;
         }
-        if (n > scratch_size) {
-            free(scratch);
-            scratch_size = 2 * n;
-            scratch = malloc(sizeof(uint64_t) * (size_t)scratch_size);
-            if (!scratch) { /* no memory: the bucket stays coarse, values are the same */
-                scratch_size = 0;
-                continue;
-            }
-        }
-        int64_t counts[(1 << (2 * LL_FINE_BITS)) + 1];
         memset(counts, 0, sizeof counts);
         for (int64_t i = 0; i < n; ++i)
-            counts[(KEY_CODE(a[i]) & fine_mask) + 1] += 1;
-        for (uint64_t k = 1; k <= fine_mask + 1; ++k)
+            counts[(KEY_CODE(in[i]) & low_mask) + 1] += 1;
+        for (uint64_t k = 1; k <= low_mask; ++k)
             counts[k] += counts[k - 1];
         for (int64_t i = 0; i < n; ++i)
-            scratch[counts[KEY_CODE(a[i]) & fine_mask]++] = a[i];
-        memcpy(a, scratch, sizeof(uint64_t) * (size_t)n);
+            a[counts[KEY_CODE(in[i]) & low_mask]++] = in[i];
     }
-    free(scratch);
 }
 
+/* Values at the points sorted[lo..hi) into ordered[lo..hi): nearby points follow each
+ * other, so they read the same coefficients. */
 GS_INLINE void latlon_range(const latlon_job *J, const int order, int64_t lo, int64_t hi)
 {
     const gs_spline *S = J->S;
@@ -623,6 +613,14 @@ GS_INLINE void latlon_range(const latlon_job *J, const int order, int64_t lo, in
     }
 }
 
+static void latlon_back(void *ctx, int64_t blk)
+{
+    latlon_job *J = ctx;
+    int64_t lo = blk * J->size, hi = lo + J->size < J->m ? lo + J->size : J->m;
+    for (int64_t p = lo; p < hi; ++p)
+        J->out[KEY_AT(J->sorted[p])] = J->ordered[p];
+}
+
 GS_HOT static void latlon_evaluate(void *ctx, int64_t task)
 {
     const latlon_job *J = ctx;
@@ -636,26 +634,19 @@ GS_HOT static void latlon_evaluate(void *ctx, int64_t task)
         latlon_range(J, order, lo, hi);
 }
 
-static void latlon_back(void *ctx, int64_t blk)
-{
-    latlon_job *J = ctx;
-    int64_t lo = blk * J->size, hi = lo + J->size < J->m ? lo + J->size : J->m;
-    for (int64_t p = lo; p < hi; ++p)
-        J->out[KEY_AT(J->sorted[p])] = J->ordered[p];
-}
-
 /* Spline values at the directions of latitude/longitude (degrees) into out. Returns the
  * number of invalid coordinates (a latitude beyond +-90 or infinite, an infinite
  * longitude; out is then left unset), or -1 when memory ran out. NaN gives NaN.
  *
- * 1. per block of points (nblocks in parallel): the Morton code of the point's 1.41 degree
- *    cell and a histogram of the codes per block;
- * 2. exclusive prefix sums over (code, block): a stable order by cell;
+ * The points are sorted by the Morton code of their 0.18 degree cell in two passes:
+ * 1. per block of points (nblocks in parallel): the codes and a histogram of their
+ *    high bits (the 5.6 degree bucket) per block;
+ * 2. exclusive prefix sums over (bucket, block): a stable order by bucket;
  * 3. per block: each point's (code, position) scattered in that order; then each bucket
- *    sorted by the fine code (latlon_refine);
- * 4. per chunk of the ordered points: direction and value, neighbours sharing bricks;
- * 5. per block: each value written to the point's own position (writing it from step 4
- *    made numba's loop 1.6 times slower).
+ *    sorted by the low bits of the code (latlon_refine);
+ * 4. per chunk of the sorted points: direction and value, in that order;
+ * 5. per block: each value written to its point's place (writing it from step 4 is
+ *    slower: scattered stores in the hot loop).
  * A point's value does not depend on the order, blocks or threads, and equals
  * gs_evaluate_bricks at the direction gs_unit_vectors gives. */
 GS_EXPORT int64_t gs_undulation_latlon(const gs_spline *S, const double *latitude, const double *longitude, int64_t m,
@@ -667,9 +658,9 @@ GS_EXPORT int64_t gs_undulation_latlon(const gs_spline *S, const double *latitud
     J.bucket_start = malloc(sizeof(int64_t) * (LL_BUCKETS + 2));
     J.counts = calloc((size_t)nblocks * (LL_BUCKETS + 1), sizeof(int64_t));
     J.invalid = calloc((size_t)nblocks, sizeof(int64_t));
+    J.by_bucket = malloc(sizeof(uint64_t) * (size_t)(m ? m : 1));
     J.sorted = malloc(sizeof(uint64_t) * (size_t)(m ? m : 1));
-    J.ordered = malloc(sizeof(double) * (size_t)(m ? m : 1));
-    if (!J.code || !J.bucket_start || !J.counts || !J.invalid || !J.sorted || !J.ordered)
+    if (!J.code || !J.bucket_start || !J.counts || !J.invalid || !J.by_bucket || !J.sorted)
         goto done;
     gs_parallel_for((int)nthreads, nblocks, latlon_count, &J);
     result = 0;
@@ -688,7 +679,8 @@ GS_EXPORT int64_t gs_undulation_latlon(const gs_spline *S, const double *latitud
     }
     J.bucket_start[LL_BUCKETS + 1] = total;
     gs_parallel_for((int)nthreads, nblocks, latlon_scatter, &J);
-    gs_parallel_for((int)nthreads, (LL_BUCKETS + SORT_TASK_BUCKETS - 1) / SORT_TASK_BUCKETS, latlon_refine, &J);
+    gs_parallel_for((int)nthreads, (LL_BUCKETS + SORT_TASK_BUCKETS) / SORT_TASK_BUCKETS, latlon_refine, &J);
+    J.ordered = (double *)J.by_bucket; /* 8 bytes a point, no longer needed */
     gs_parallel_for((int)nthreads, (m + CHUNK - 1) / CHUNK, latlon_evaluate, &J);
     gs_parallel_for((int)nthreads, nblocks, latlon_back, &J);
 done:
@@ -696,8 +688,8 @@ done:
     free(J.bucket_start);
     free(J.counts);
     free(J.invalid);
+    free(J.by_bucket);
     free(J.sorted);
-    free(J.ordered);
     return result;
 }
 
