@@ -304,11 +304,10 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
     converged = data_limited = False
     if centres is not None:
         centre_dirs = centres.directions[centres.in_region]
-        centre_mid = centres.values[centres.in_region]
-        centre_half = centres.half_width[centres.in_region]
-        fitted_centres = np.zeros(centres.values.size, bool) if CELL_CENTRES_ACTIVE_SET else np.ones(centres.values.size, bool)
+        # the centres fitted as sites: an active set that only grows, or all of them
+        fitted_centres = np.full(centres.values.size, not CELL_CENTRES_ACTIVE_SET)
         centre_index = np.flatnonzero(centres.in_region)
-    centre_max = None
+    kept = None
     while True:
         t0 = time.perf_counter()
         step = len(reports)
@@ -351,16 +350,18 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
                  "%.4g m (%.1f s)", step, top, basis.coefficient_count,
                  "/".join(str(a.size) for a in basis.active), reports[-1].max_error_m, int(above.sum()),
                  params.node_target_m, reports[-1].seconds)
+        if centres is not None and not above.any():
+            kept = (spline, errors, basis, len(reports))  # the last spline keeping every node
         refined = strategy.refine(basis, region_dirs[above], max_level=finest) if above.any() else basis
         grew = False
         if centres is not None and (refined is basis or not CELL_CENTRES_ACTIVE_SET):
             # the nodes are kept or can be refined no further: the cell centres outside
-            # the interval join the sites (and mark their B-splines for refinement)
-            outside = np.maximum(np.abs(spline.evaluate_points(centre_dirs) - centre_mid) - centre_half, 0.0)
-            centre_max = float(outside.max()) if outside.size else 0.0
+            # the interval join the sites (marking their B-splines only with CELL_CENTRE_MARKS:
+            # finer B-splines there swing between the nodes elsewhere)
+            outside = centres.outside(spline.evaluate_points(centre_dirs), centres.in_region)
             out = outside > params.node_target_m
             log.info("hierarchical step %d: cell centres at most %.4f m outside the interval, %d above %.4g m",
-                     step, centre_max, int(out.sum()), params.node_target_m)
+                     step, float(outside.max(initial=0.0)), int(out.sum()), params.node_target_m)
             grew = bool((out & ~fitted_centres[centre_index]).any())
             fitted_centres[centre_index[out]] = True
             if CELL_CENTRE_MARKS and out.any():
@@ -377,6 +378,14 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
             converged = not above.any()
             break
         basis = refined
+    if centres is not None and above.any() and kept is not None:
+        # the centres cost the nodes their tolerance and no refinement gives it back: the
+        # nodes' promise comes first, so the last spline that kept it is the fit
+        log.info("hierarchical fit: %d nodes above %.4g m after the cell centres' steps; the fit of step %d "
+                 "(every node kept) is the result", int(above.sum()), params.node_target_m, kept[3] - 1)
+        spline, errors, basis, steps = kept
+        reports = reports[:steps]
+        converged = True
     return FitResult(
         spline=spline, parameters=params, region=region, levels=reports,
         node_count=int(errors.size), node_max_error_m=float(np.abs(errors).max()),
