@@ -2,6 +2,12 @@
 ``geoidspline.fitting.choose.LEVEL0_ERROR``.
 
     python benchmarks/level0_convergence.py ORDER:H0 [ORDER:H0 ...]
+    python benchmarks/level0_convergence.py --calibrate
+
+``--calibrate`` prints ``geoidspline.fitting.level0_error.KAPPA`` from that table
+(``choose.LEVEL0_ERROR``) and EGM96's own spectrum: per measured point, the error ratio
+to the upper half of degrees and the measured global max over the predicted RMS and
+√(2 ln M).
 
 EGM96 (F477 + CORRCOEF, from the shared data beside the repository), level 0 alone
 (``max_level=0``, ``method="interpolation"``) over 25..35N 80..95E (the Himalaya, the
@@ -12,6 +18,7 @@ steepest geoid). One JSON line per fit: level-0 coefficients in the region, the 
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -24,11 +31,35 @@ from geoidspline.fitting.parameters import FitParameters
 from geoidspline.sources.resolve import open_source
 from geoidspline.sphere.region import Region
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "egm96"
+# the shared data beside the repository, or $GEOIDSPLINE_TEST_DATA (as the tests find it)
+DATA = Path(os.environ.get("GEOIDSPLINE_TEST_DATA") or Path(__file__).resolve().parents[2] / "shared" / "data") / "egm96"
 REGION = Region.from_bounds(25, 80, 35, 95)
 
 
+def calibrate():
+    import math
+
+    from geoidspline.fitting import choose, level0_error
+
+    source = open_source(DATA / "egm96_to360.ascii.gz", DATA / "CORRCOEF.gz")
+    spectrum = level0_error.ModelSpectrum.of(source)
+    upper = spectrum.upper_half_rms_m()
+    table = {}
+    for order, points in choose.LEVEL0_ERROR.items():
+        rows = []
+        for h_n, regional_max in points:
+            h = h_n / source.max_degree
+            rms, n_eff = level0_error._rms_and_degree(spectrum, h, order, level0_error.prefilter_terms(order))
+            global_max = regional_max * choose.GLOBAL_OVER_REGIONAL
+            kappa = global_max / (rms * level0_error.extreme_factor(4 * math.pi, n_eff))
+            rows.append((float(f"{rms / upper:.6f}"), round(kappa, 4)))
+        table[order] = tuple(rows)
+    print(json.dumps(table))
+
+
 def main(specs):
+    if specs == ["--calibrate"]:
+        return calibrate()
     source = open_source(DATA / "egm96_to360.ascii.gz", DATA / "CORRCOEF.gz")
     check = check_points(source, REGION, count=5000, seed=3)
     for spec in specs:

@@ -21,7 +21,7 @@ _CHOSEN = {"method": "method", "refinement": "refinement", "order": "order", "h0
 #: Options of a new fit that a regional update cannot honour: it refits with the store's
 #: own parameters, so that the result is one spline.
 _FIT_ONLY = ("h0", "max_level", "order", "method", "refinement", "sample_spacing", "overwrite", "scheduler",
-             "max_memory")
+             "max_memory", "resume")
 
 
 @command("fit")
@@ -73,6 +73,9 @@ _FIT_ONLY = ("h0", "max_level", "order", "method", "refinement", "sample_spacing
 @click.option("--accept-quasi-geoid", is_flag=True,
               help="Fit a quasi-geoid SOURCE (height anomalies): the store then says it holds a quasi-geoid.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing store at --store.")
+@click.option("--resume", is_flag=True,
+              help="Continue the interrupted fit at --store from its last committed band (a model's whole globe "
+                   "is fitted and committed band by band); without one there, start it.")
 @click.option("--sign", "sign", type=click.Path(dir_okay=False), default=None, metavar="KEYFILE",
               help="Sign the store's manifest with this Ed25519 private key (PEM; see geoid-info --generate-key).")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
@@ -81,7 +84,7 @@ _FIT_ONLY = ("h0", "max_level", "order", "method", "refinement", "sample_spacing
 @click.pass_context
 def main(ctx, source, store_path, update, blend_width, region, tolerance, h0, max_level, order, max_memory, workers,
          scheduler, correction, preset, sample_spacing, method, refinement, band, variable, tide_system, accept_datum,
-         accept_quasi_geoid, overwrite, sign, as_json, quiet, verbose):
+         accept_quasi_geoid, overwrite, resume, sign, as_json, quiet, verbose):
     """Fit SOURCE into ambient B-spline tiles stored at --store.
 
     SOURCE is a grid file (.gtx, .nc, WW15MGH.DAC, .pgm), a catalogue name such as
@@ -123,7 +126,7 @@ def main(ctx, source, store_path, update, blend_width, region, tolerance, h0, ma
     run = run_fit(source, out, region=region, overwrite=overwrite, workers=workers, scheduler=scheduler,
                   correction=correction, preset=preset, progress=for_terminal(quiet, verbose), tolerance_m=tolerance,
                   band=band, variable=variable, tide_system=tide_system, accept_datum=accept_datum,
-                  accept_quasi_geoid=accept_quasi_geoid, sign=sign, max_memory_gb=max_memory, **given)
+                  accept_quasi_geoid=accept_quasi_geoid, sign=sign, max_memory_gb=max_memory, resume=resume, **given)
     result, info, choice, params, src, fit_region = (run.result, run.info, run.choice, run.parameters, run.source,
                                                      run.region)
     promise = run.promise

@@ -81,10 +81,19 @@ def test_the_order_is_the_one_with_fewer_coefficients():
 
 
 def test_beyond_the_memory_cap_level_0_is_capped_and_overlays_go_deeper():
-    choice = choose_parameters(model(360), 1e-5)
-    assert level0_estimate(choice.parameters) <= choose.MAX_LEVEL0_COEFFICIENTS * 1.01
+    half = Region.from_bounds(0, -180, 90, 180)  # not the whole globe: fitted in one piece
+    choice = choose_parameters(model(360), 1e-5, half)
+    assert level0_estimate(choice.parameters, half) <= choose.MAX_LEVEL0_COEFFICIENTS * 1.01
     assert choice.parameters.max_level == 2
     assert "capped" in choice.reasons["h0"]
+
+
+def test_the_whole_globe_is_not_capped_it_is_fitted_band_by_band():
+    capped = choose_parameters(model(360), 1e-5, Region.from_bounds(0, -180, 90, 180)).parameters
+    choice = choose_parameters(model(360), 1e-5)
+    p = choice.parameters
+    assert p.h0 < capped.h0 and p.max_level == 1 and "capped" not in choice.reasons["h0"]
+    assert level0_estimate(p) > choose.MAX_LEVEL0_COEFFICIENTS
 
 
 def test_given_options_are_used_as_given_and_the_rest_chosen_around_them():

@@ -12,7 +12,7 @@ import numpy as np
 from ._clib import F64, I64, PTR, c_in, c_out, function, ptr, threads
 
 _filter_axis = function("gs_filter_axis", PTR, PTR, I64, PTR, I64, I64, PTR, I64, PTR, I64)
-_lattice_lookup = function("gs_lattice_lookup", PTR, I64, F64, F64, F64, F64, PTR, PTR, I64, PTR, I64)
+_lattice_lookup = function("gs_lattice_lookup", PTR, I64, F64, F64, I64, F64, F64, PTR, PTR, I64, PTR, I64)
 _key_directions = function("gs_key_directions", PTR, I64, I64, I64, F64, F64, PTR, PTR, I64)
 
 
@@ -31,19 +31,21 @@ def filter_axis(in_keys, in_values, out_keys, step, taps, out):
                  taps.size, ptr(out), threads())
 
 
-def lattice_lookup(grid, lat0, dlat, lon0, dlon, latitude, longitude, out):
+def lattice_lookup(grid, lat0, dlat, lon0, dlon, latitude, longitude, out, first_row=0):
     """6x6-point Lagrange interpolation on a padded latitude/longitude lattice.
 
-    ``grid[i, j]`` holds the value at latitude ``lat0 + i dlat`` and longitude
-    ``lon0 + j dlon`` (degrees); the caller pads it so that every point has its 6x6
-    neighbourhood inside (reflected across the poles, wrapped in longitude).
+    ``grid[i, j]`` holds the value at latitude ``lat0 + (first_row + i) dlat`` and longitude
+    ``lon0 + j dlon`` (degrees): ``grid`` may hold a band of the rows of a lattice whose
+    row 0 is at ``lat0``, and a point's weights are those of the whole lattice (its row
+    position is shifted by the integer ``first_row``, exactly). The caller pads it so that
+    every point has its 6x6 neighbourhood inside (reflected across the poles, wrapped in longitude).
     Longitudes are taken modulo 360 into [lon0 + 2 dlon, lon0 + 2 dlon + 360).
     """
     grid = c_in(grid, np.float64)
     latitude, longitude = c_in(latitude, np.float64), c_in(longitude, np.float64)
     c_out(out, np.float64)
-    _lattice_lookup(ptr(grid), grid.shape[1], lat0, dlat, lon0, dlon, ptr(latitude), ptr(longitude), latitude.size,
-                    ptr(out), threads())
+    _lattice_lookup(ptr(grid), grid.shape[1], lat0, dlat, int(first_row), lon0, dlon, ptr(latitude), ptr(longitude),
+                    latitude.size, ptr(out), threads())
 
 
 def key_directions(keys, key_offset, key_bits, position_offset, h, latitude, longitude):

@@ -91,8 +91,14 @@ def open_store(path, *, lazy: bool = True, verify: bool = True, key=None) -> Til
 
 def build_store(source, path, region: Region | None = None, params: FitParameters | None = None,
                 progress=None, overwrite=False, check_count=20_000,
-                executor: Executor | None = None, extra: dict | None = None, sign=None) -> tuple[FitResult, dict]:
+                executor: Executor | None = None, extra: dict | None = None, sign=None,
+                resume: bool = False) -> tuple[FitResult, dict]:
     """Fit ``source`` over ``region``, measure it and write the store at ``path``.
+
+    A model's whole globe by quasi-interpolation and overlays is fitted band by band
+    (:mod:`geoidspline.api.banded`): each band committed as it is done, so that
+    ``resume=True`` continues an interrupted fit from its last committed band, and the
+    bands farmed out to the executor's dask cluster when it has one.
 
     ``progress``: a :class:`~geoidspline.fitting.progress.Progress` (every stage) or a
     callable given the number of blocks just solved. ``extra``: more entries of the
@@ -108,9 +114,16 @@ def build_store(source, path, region: Region | None = None, params: FitParameter
     from ..store.reader import TileStore
     from ..store.writer import write_store
 
+    from ..fitting.bands import uses_bands
+
     region = region or GLOBAL
     params = params or FitParameters()
     progress = as_progress(progress)
+    if uses_bands(params, region):
+        from .banded import build_banded_store
+
+        return build_banded_store(source, path, region, params, progress=progress, overwrite=overwrite,
+                                  resume=resume, check_count=check_count, executor=executor, extra=extra, sign=sign)
     if sign is not None:
         from ..store.signing import load_private_key
 
@@ -187,7 +200,7 @@ def run_fit(source, store, *, region=None, overwrite: bool = False, workers: int
             correction=None, preset: str | None = None, progress=None, choose: bool = True, sign=None,
             band: int | None = None, variable: str | None = None, tide_system: str | None = None,
             accept_datum: bool = False, accept_quasi_geoid: bool = False, max_memory_gb: float | None = None,
-            **parameters) -> FitRun:
+            resume: bool = False, **parameters) -> FitRun:
     """:func:`fit`, returning the whole account of it (:class:`FitRun`) instead of the store."""
     from ..fitting.executors import Executor
     from ..fitting.parameters import FitParameters
@@ -220,7 +233,7 @@ def run_fit(source, store, *, region=None, overwrite: bool = False, workers: int
     log.info("source %s (%s), region %s", source.provenance.source, source.provenance.model, fit_region.as_tuple())
     started = time.perf_counter()
     result, info = build_store(source, store, fit_region, params, progress=progress, overwrite=overwrite,
-                               executor=executor, extra=extra, sign=sign)
+                               executor=executor, extra=extra, sign=sign, resume=resume)
     return FitRun(source, fit_region, result, info, choice, time.perf_counter() - started, notes)
 
 
@@ -228,7 +241,7 @@ def fit(source, store, *, region=None, overwrite: bool = False, workers: int = 1
         correction=None, preset: str | None = None, progress=None, choose: bool = True, sign=None,
         band: int | None = None, variable: str | None = None, tide_system: str | None = None,
         accept_datum: bool = False, accept_quasi_geoid: bool = False, max_memory_gb: float | None = None,
-        **parameters) -> TileStore:
+        resume: bool = False, **parameters) -> TileStore:
     """Fit a geoid source into a new tile store at ``store`` and open it; the same store,
     coefficient for coefficient, as ``geoid-fit`` with the same arguments.
 
@@ -255,11 +268,14 @@ def fit(source, store, *, region=None, overwrite: bool = False, workers: int = 1
     ``max_memory_gb``: the memory the fit plans against (default: a share of the
     machine's, :data:`geoidspline._memory.MEMORY_FRACTION`); a fit that needs more is
     refused before any work, naming the figure.
+    ``resume``: continue the unfinished fit of the same source and options at ``store``
+    (a model's whole globe is fitted and committed band by band,
+    :mod:`geoidspline.api.banded`); without one there, a new fit.
     """
     run_fit(source, store, region=region, overwrite=overwrite, workers=workers, scheduler=scheduler,
             correction=correction, preset=preset, progress=progress, choose=choose, sign=sign, band=band,
             variable=variable, tide_system=tide_system, accept_datum=accept_datum,
-            accept_quasi_geoid=accept_quasi_geoid, max_memory_gb=max_memory_gb, **parameters)
+            accept_quasi_geoid=accept_quasi_geoid, max_memory_gb=max_memory_gb, resume=resume, **parameters)
     return open_store(store)
 
 

@@ -44,8 +44,6 @@ def check_points(source, region: Region, count: int = 20_000, seed: int = 0, pro
     A model is exact everywhere: ``count`` random points uniform in area over the region,
     synthesised in chunks reported to ``progress`` as the stage "check points".
     """
-    from .progress import as_progress
-
     if hasattr(source, "latitude_spacing"):  # a GeoidGrid
         sample = source.nodes(region)
         lat = sample.latitude[:-1] + 0.5 * np.diff(sample.latitude)
@@ -61,15 +59,36 @@ def check_points(source, region: Region, count: int = 20_000, seed: int = 0, pro
             "bicubic (Catmull-Rom) interpolation of the source grid at the centres of its cells",
             interval=(np.minimum(truth, bilinear), np.maximum(truth, bilinear)),
         )
+    lat, lon = random_positions(region, count, seed)
+    truth = exact_values(source, lat, lon, progress)
+    return CheckPoints(lat, lon, truth, random_description(count, seed))
+
+
+def random_positions(region: Region, count: int, seed: int = 0):
+    """(latitude, longitude) degrees of a model's ``count`` check points: uniform in area
+    over ``region``, the same for the same seed (a fit made band by band measures each
+    band's share of them)."""
     rng = np.random.default_rng(seed)
     z_lo, z_hi = math.sin(math.radians(region.south)), math.sin(math.radians(region.north))
     lat = np.degrees(np.arcsin(rng.uniform(z_lo, z_hi, count)))
     lon = region.west + rng.uniform(0.0, region.longitude_span, count)
-    truth = np.empty(count)
-    with as_progress(progress).stage("check points", math.ceil(count / CHECK_CHUNK), "chunk") as advance:
-        for start in range(0, count, CHECK_CHUNK):
-            stop = min(count, start + CHECK_CHUNK)
-            truth[start:stop] = source.undulation(lat[start:stop], lon[start:stop])
+    return lat, lon
+
+
+def random_description(count: int, seed: int = 0) -> str:
+    """What a model's check points are, in the manifest's words."""
+    return f"exact synthesis at {count} random points uniform in area (seed {seed})"
+
+
+def exact_values(source, latitude, longitude, progress=None) -> np.ndarray:
+    """The model's undulation (metres) at points, synthesised in chunks of
+    :data:`CHECK_CHUNK` reported to ``progress`` as the stage "check points"."""
+    from .progress import as_progress
+
+    truth = np.empty(np.size(latitude))
+    with as_progress(progress).stage("check points", math.ceil(truth.size / CHECK_CHUNK), "chunk") as advance:
+        for start in range(0, truth.size, CHECK_CHUNK):
+            stop = min(truth.size, start + CHECK_CHUNK)
+            truth[start:stop] = source.undulation(latitude[start:stop], longitude[start:stop])
             advance(1)
-    return CheckPoints(lat, lon, truth,
-                       f"exact synthesis at {count} random points uniform in area (seed {seed})")
+    return truth

@@ -6,14 +6,19 @@ sample spacing, and says why for each. Every choice rests on a measured fit
 (:data:`MEASURED`, rows of ``benchmarks/results/fits.jsonl`` and
 ``benchmarks/results/choose.jsonl``) and on two laws:
 
-- convergence: a model of degree N has the same relative resolution at the same
-  ``h * N`` (its shortest wavelength is 2π/N on the unit sphere), so level 0's max
-  error is read off a measured curve of ``h * N`` (:data:`LEVEL0_ERROR`, log-log
-  interpolation between measured points). Measured, it falls faster than the
+- convergence: level 0's max error at a spacing and order is predicted from the
+  model's own degree variances on latitude rings (:mod:`.level0_error`: the
+  prefilter's and the B-spline's transfer function weighted by the spectrum, the max
+  from the RMS by a factor measured on EGM96), so a model whose spectrum differs from
+  EGM96's (EGM2008 to degree 2190, a truncated model) gets its own spacing. A source
+  that does not give its spectrum (``degree_power``) is taken to be EGM96-like: a
+  model of degree N has the same relative resolution at the same ``h * N`` (its
+  shortest wavelength is 2π/N on the unit sphere), and level 0's max error is read off
+  EGM96's measured curve of ``h * N`` (:data:`LEVEL0_ERROR`, log-log interpolation,
+  below its finest point extended by h^n). Measured, the error falls faster than the
   asymptotic h^n (about h^8-h^9 for order 6 at h N = 1.4-2.3: the spline is near the
-  model's resolution there), so the curve is used and not the power law; below its
-  finest point it is extended by h^n (the asymptotic rate, the slower one), and h0 is
-  never chosen coarser than its coarsest point;
+  model's resolution there), which the spectral prediction reproduces. h0 is never
+  chosen coarser than the curve's coarsest point;
 - size: the B-splines touching the cells that meet the sphere number
   ``density * area / h**2`` (area in steradians); ``density`` grows with the order
   (the support is thicker radially) and is measured.
@@ -34,6 +39,8 @@ import numpy as np
 from ..errors import FitError
 from ..options import check_number, check_numbers
 from ..sphere.region import GLOBAL, Region
+from .bands import uses_bands
+from .level0_error import ModelSpectrum, predicted_level0, spacing_for_level0
 from .parameters import MIN_H_PER_DATA_SPACING, FitParameters
 
 __all__ = ["MEASURED", "ConvergencePoint", "Choice", "choose_parameters", "CHOSEN_FIELDS"]
@@ -107,7 +114,8 @@ GLOBAL_OVER_REGIONAL = 0.0026 / 0.002171
 LEVEL0_OVER_TOLERANCE = 0.8 * 0.0026 / 0.0015
 
 #: Level-0 coefficients above which h0 is not made finer (about 0.7 GB of peak memory
-#: per million in the measured fits: 3.8 GB for 5.6 M); overlays take the rest.
+#: per million in the measured fits: 3.8 GB for 5.6 M); overlays take the rest. A whole
+#: globe, fitted band by band, is not capped: its bands are sized by the memory.
 MAX_LEVEL0_COEFFICIENTS = 12_000_000
 
 #: Node lattice of a model: 5' (the measured fits) or 30/N degrees when finer (the
@@ -203,13 +211,22 @@ def _for_model(source, tolerance_m, region, given):
                               "points of the exact synthesis, in the store read back")
     level0_target = LEVEL0_OVER_TOLERANCE * tolerance_m
     area = region_area(region)
+    # the whole sphere's spectrum and extreme, whatever the region: a region's rings hold
+    # their average power, not the region's own (EGM96 over the Himalaya is three times
+    # rougher at level 0 than its latitudes' average), and the global prediction is
+    # calibrated on the Himalaya (benchmarks/README.md, "level 0 predicted from the
+    # model's spectrum")
+    spectrum = (ModelSpectrum.of(source)
+                if hasattr(source, "degree_power") and not ("h0" in given and "order" in given) else None)
     # the order with the fewest level-0 coefficients at the error target
     candidates = {}
     for order in ([given["order"]] if "order" in given else sorted(MEASURED)):
         if order not in MEASURED and not given.get("h0"):
             raise FitError(f"no measured convergence for order {order} to choose h0 from: give h0 (--h0) too, "
                            f"or an order of {sorted(MEASURED)}")
-        h0 = given.get("h0") or _level0_spacing(order, degree, level0_target)
+        h0 = given.get("h0") or (
+            spacing_for_level0(spectrum, order, level0_target, 4.0 * math.pi, _max_h_times_degree(order) / degree)
+            if spectrum is not None else _level0_spacing(order, degree, level0_target))
         # an order not measured comes with its h0 given: no count to compare (nor needed)
         count = MEASURED[order].density * area / h0**2 if order in MEASURED else math.nan
         candidates[order] = (h0, count)
@@ -218,17 +235,27 @@ def _for_model(source, tolerance_m, region, given):
     if "order" not in given:
         others = ", ".join(f"order {o}: {c:,.0f}" for o, (_, c) in sorted(candidates.items()) if o != order)
         reasons["order"] = (f"{order}: fewest level-0 coefficients for {level0_target * 1e3:.2g} mm "
-                            f"(about {count:,.0f}; {others}) by the measured convergence")
+                            f"(about {count:,.0f}; {others}) by "
+                            + ("the model's spectrum" if spectrum is not None else "the measured convergence"))
     values["order"] = order
     capped = False
+    # a whole globe is fitted band by band (fitting.bands), its bands made as small as
+    # the memory allows (fitting.memory.banded_parameters): no cap on the globe's level 0
+    banded = uses_bands(FitParameters(method="interpolation", refinement="overlays"), region)
     if "h0" not in given:
         ref = MEASURED[order]
         exact = h0
-        if count > MAX_LEVEL0_COEFFICIENTS:
+        if count > MAX_LEVEL0_COEFFICIENTS and not banded:
             h0 = math.sqrt(ref.density * area / MAX_LEVEL0_COEFFICIENTS)
             capped = True
         h0 = min(_round_down(h0), 0.1)
-        law = "the measured level-0 error against h N (EGM96, fitting.choose.LEVEL0_ERROR)"
+        if spectrum is not None:
+            predicted_max, predicted_rms = predicted_level0(spectrum, h0, order, 4.0 * math.pi)
+            law = (f"the model's degree variances (fitting.level0_error, max/RMS calibrated on the measured "
+                   f"EGM96 curve): predicted level-0 max {predicted_max * 1e3:.3g} mm over the sphere, RMS "
+                   f"{predicted_rms * 1e3:.3g} mm on the worst ring at h0 {h0:g}")
+        else:
+            law = "the measured level-0 error against h N (EGM96, fitting.choose.LEVEL0_ERROR)"
         if capped:
             reasons["h0"] = (f"{h0:g}: capped at {MAX_LEVEL0_COEFFICIENTS:,} level-0 coefficients (memory); "
                              f"{exact:.3g} would reach {level0_target * 1e3:.2g} mm by {law}; overlays take the rest")

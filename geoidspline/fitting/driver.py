@@ -211,7 +211,8 @@ def fit_level(nodes, levels, level, h, keys, site_cells, params: FitParameters, 
         ray_mask &= node_mask
     offsets = params.radial_offsets if radial_offsets is None else radial_offsets
     points, node_of_site = sites_for_level(nodes, ray_mask, h, params.order, keys, offsets, site_cells)
-    values = nodes.values[node_of_site] - AmbientSpline(levels).evaluate_points(points) if levels \
+    # the same bits for a site whatever else is fitted with it (a band's fit, the globe's)
+    values = nodes.values[node_of_site] - AmbientSpline(levels).evaluate_points(points, any_batch=True) if levels \
         else nodes.values[node_of_site].copy()
     problems = list(local_problems(level, h, params, keys, points, values, force_tiles, overlay=overlay))
     name = name or f"level {level}"
@@ -367,7 +368,8 @@ ERROR_CHUNK = 1_000_000
 
 def subtract_level(errors, level: LevelSpline, directions, progress, name):
     """``errors -= level`` at ``directions``, in chunks of :data:`ERROR_CHUNK` reported as
-    a stage (the same values as one call: every chunk takes the same compiled path)."""
+    a stage (the same values as one call, and as any other set of nodes: every chunk
+    takes the compiled path)."""
     spline = AmbientSpline([level])
     bounds = list(range(0, errors.size, ERROR_CHUNK))[1:] + [errors.size]
     if len(bounds) > 1 and bounds[-1] - bounds[-2] < ERROR_CHUNK:
@@ -375,7 +377,7 @@ def subtract_level(errors, level: LevelSpline, directions, progress, name):
     with progress.stage(name, len(bounds), "chunk") as advance:
         start = 0
         for stop in bounds:
-            errors[start:stop] -= spline.evaluate_points(directions[start:stop])
+            errors[start:stop] -= spline.evaluate_points(directions[start:stop], any_batch=True)
             start = stop
             advance(1)
 

@@ -226,3 +226,52 @@ def _solve_dask(problems, workers, scheduler, progress):
             if not exhausted and len(position) <= window // 2:
                 finished.update(submit(window - len(position)))
         return results
+
+
+def run_tasks(function, items, executor: Executor, shared=None):
+    """``function(shared, item)`` for every item, yielding ``(item, result)`` as each
+    finishes: here, one after the other, when ``executor`` has no scheduler (its
+    ``workers`` then solve the blocks inside each task); on its dask cluster otherwise,
+    at most one task per worker thread in flight (a task is a band of a fit: its
+    working set, not a share of it). ``shared`` (the source, say) is sent to the
+    cluster once. Every way runs the same code on the same inputs: the same results
+    bit for bit.
+    """
+    items = list(items)
+    if executor.scheduler is None:
+        for item in items:
+            yield item, function(shared, item)
+        return
+    dask, Client, LocalCluster, as_completed = _import_dask()
+    with contextlib.ExitStack() as stack:
+        stack.enter_context(_quiet_dask_logs())
+        if executor.scheduler == "local":
+            cluster = stack.enter_context(LocalCluster(
+                n_workers=executor.workers, threads_per_worker=1, processes=True, env=dict(_WORKER_ENV),
+                dashboard_address=":0", scheduler_kwargs={"dashboard": False},
+            ))
+            client = stack.enter_context(Client(cluster))
+        else:
+            try:
+                client = Client(executor.scheduler)
+            except (OSError, TimeoutError) as exc:
+                raise FitError(f"cannot connect to the dask scheduler at {executor.scheduler}: {exc}") from exc
+            stack.enter_context(client)
+        stack.enter_context(dask.config.set({"distributed.admin.large-graph-warning-threshold": "1 TiB"}))
+        shared_future = client.scatter(shared, broadcast=True) if shared is not None else None
+        window = max(1, sum(client.nthreads().values()))
+        pending = iter(items)
+        which = {}
+
+        def submit(count):
+            futures = []
+            for item in itertools.islice(pending, count):
+                future = client.submit(function, shared_future, item, pure=False)
+                which[future.key] = item
+                futures.append(future)
+            return futures
+
+        finished = as_completed(submit(window), with_results=True)
+        for future, result in finished:
+            yield which.pop(future.key), result
+            finished.update(submit(1))

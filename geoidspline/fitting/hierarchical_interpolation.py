@@ -56,7 +56,7 @@ from ..errors import FitError
 from ..hierarchy.ambient import AmbientSpline
 from ..hierarchy.hierarchical import HierarchicalBasis
 from ..sphere.coordinates import latlon_of
-from .interpolation import LatticeLookup, lattice_spacing, sample_band
+from .interpolation import lattice_spacing, sample_band
 from .progress import as_progress
 
 __all__ = ["dual_functional", "functional_cells", "functional_norms", "quasi_interpolate",
@@ -389,5 +389,5 @@ def hierarchical_interpolant(source, cells, params, spacing_deg=None, progress=N
     ``functional`` the local functional (:data:`FUNCTIONAL`).
     """
     spacing_deg = lattice_spacing(source, params.h0, spacing_deg)
-    grid, lat0, step, band = sample_band(source, *cells_latitude_range(cells, params.h0), spacing_deg, progress)
-    return band, HierarchicalQuasiInterpolant(LatticeLookup(grid, lat0, step), shell, functional)
+    lookup, band = sample_band(source, *cells_latitude_range(cells, params.h0), spacing_deg, progress)
+    return band, HierarchicalQuasiInterpolant(lookup, shell, functional)

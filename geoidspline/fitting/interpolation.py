@@ -130,10 +130,11 @@ LOOKUP_CHUNK = 2_000_000
 def sample_band(source, latitude_south: float, latitude_north: float, spacing_deg: float, progress=None):
     """The source on a full-circle latitude band, padded for the Lagrange lookups.
 
-    Returns ``(grid, lat0, step, NodeSample)``: ``grid[i, j]`` is N at latitude
-    ``lat0 + i step`` and longitude ``-180 + (j - 3) step`` (degrees); rows beyond a pole
-    are the rows inside it half a turn away; columns wrap. The NodeSample holds the
-    unpadded lattice (the band's nodes).
+    Returns ``(LatticeLookup, NodeSample)``: the lookup's ``grid[i, j]`` is N at latitude
+    ``lat0 + (first_row + i) step`` and longitude ``-180 + (j - 3) step`` (degrees),
+    ``lat0 = -90 - 3 step`` the first padded row of the whole lattice, so that a band's
+    lookups have the whole lattice's bits; rows beyond a pole are the rows inside it half
+    a turn away; columns wrap. The NodeSample holds the unpadded lattice (the band's nodes).
     """
     step = source.lattice_step(spacing_deg)
     columns = round(360.0 / step)
@@ -152,32 +153,37 @@ def sample_band(source, latitude_south: float, latitude_north: float, spacing_de
     above = (np.roll(values[-2:-2 - _PAD:-1], -half_turn, axis=1) if lat[-1] >= 90.0 - 1e-9
              else np.repeat(values[-1:], _PAD, axis=0))
     grid = np.concatenate([below, values, above], axis=0)
-    lat0 = float(lat[0]) - _PAD * step
     grid = np.concatenate([grid[:, -_PAD:], grid, grid[:, :_PAD]], axis=1)
-    return np.ascontiguousarray(grid), lat0, step, NodeSample(lat, sample.longitude, sample.undulation)
+    first_row = round((float(lat[0]) + 90.0) / step)  # the band's first row on the whole lattice
+    lookup = LatticeLookup(np.ascontiguousarray(grid), -90.0 - _PAD * step, step, first_row)
+    return lookup, NodeSample(lat, sample.longitude, sample.undulation)
 
 
 @dataclass(frozen=True)
 class LatticeLookup:
     """``N`` (metres) by 6 x 6-point Lagrange lookups on the padded latitude band of an
-    exact synthesis that :func:`sample_band` returns (``grid``, ``lat0``, ``step``): the
-    one place that knows the band's layout (longitudes from -180 - ``_PAD`` steps)."""
+    exact synthesis that :func:`sample_band` returns: ``grid`` row ``i`` at latitude
+    ``lat0 + (first_row + i) step``, ``lat0`` the whole lattice's first padded row, so
+    that every band gives a point the same bits; the one place that knows the band's
+    layout (longitudes from -180 - ``_PAD`` steps)."""
 
     grid: np.ndarray
     lat0: float
     step: float
+    first_row: int = 0
 
     def at(self, latitude, longitude, out):
         """``out[:] = N`` at contiguous ``latitude``, ``longitude`` (degrees)."""
         kern.lattice_lookup(self.grid, self.lat0, self.step, -180.0 - _PAD * self.step, self.step,
-                            latitude, longitude, out)
+                            latitude, longitude, out, self.first_row)
 
     def __call__(self, points):
         """``G(x) = N(x / |x|)`` at points (M, 3) of the shell; a point outside the band is
         an error (its lookup would read the padding)."""
         latitude, longitude = latlon_of(np.asarray(points, dtype=float).reshape(-1, 3))
         out = np.empty(latitude.size)
-        low, high = self.lat0 + 2 * self.step, self.lat0 + (self.grid.shape[0] - 4) * self.step
+        south = self.lat0 + self.first_row * self.step
+        low, high = south + 2 * self.step, south + (self.grid.shape[0] - 4) * self.step
         if latitude.size and (latitude.min() < low - 1e-9 or latitude.max() > high + 1e-9):
             raise FitError(f"latitudes {latitude.min():.4f}..{latitude.max():.4f} outside the synthesised band")
         self.at(np.ascontiguousarray(latitude), np.ascontiguousarray(longitude), out)
@@ -220,9 +226,8 @@ def interpolate_level(source, keys, h: float, order: int, spacing_deg: float,
     lon = np.empty(lattice.size)
     # B-spline k lives on cells k .. k + order - 1: its centre is at (k + order/2) h
     kern.key_directions(lattice, KEY_OFFSET, KEY_BITS, order / 2.0, h, lat, lon)
-    grid, lat0, step, band = sample_band(source, float(lat.min()), float(lat.max()), spacing_deg, progress)
+    lookup, band = sample_band(source, float(lat.min()), float(lat.max()), spacing_deg, progress)
     t_synth = time.perf_counter()
-    lookup = LatticeLookup(grid, lat0, step)
     values = np.empty(lattice.size)
     # each point's lookup is independent: chunks give the values of one call
     bounds = list(range(0, lattice.size, LOOKUP_CHUNK)) + [lattice.size]
@@ -230,7 +235,8 @@ def interpolate_level(source, keys, h: float, order: int, spacing_deg: float,
         for a, b in zip(bounds[:-1], bounds[1:]):
             lookup.at(lat[a:b], lon[a:b], values[a:b])
             advance(1)
-    del lat, lon, grid, lookup
+    lookup_step = lookup.step
+    del lat, lon, lookup
     with progress.stage("prefilter", len(steps), "axis") as advance:
         for axis, step_key in enumerate(steps):
             in_keys = sets[3 - axis]
@@ -242,7 +248,7 @@ def interpolate_level(source, keys, h: float, order: int, spacing_deg: float,
     log.info(
         "quasi-interpolation at h=%.6g: %d coefficients from %d lattice points (%d taps an axis), "
         "band %.3f..%.3f deg at %.4g deg, %.1f s (synthesis and lookups %.1f s)",
-        h, keys.size, lattice.size, taps.size, band.latitude[0], band.latitude[-1], step,
+        h, keys.size, lattice.size, taps.size, band.latitude[0], band.latitude[-1], lookup_step,
         time.perf_counter() - start, t_synth - start,
     )
     return values, band, int(lattice.size)

@@ -23,6 +23,11 @@ from .parameters import FitParameters
 #: 2.49 GB peak, 0.44-0.45 kB each (issue 21's matrix, 2026-12-02).
 INTERPOLATION_BYTES_PER_COEFFICIENT = 450
 
+#: Peak bytes per lattice node of a quasi-interpolated model fit (the lattice, the nodes'
+#: directions, values and errors, the sites of the overlays): the same fit, 9,331,200
+#: 5' nodes in 2.49 GB, 267 each. The larger of the two figures plans a band.
+INTERPOLATION_BYTES_PER_NODE = 270
+
 #: Bytes per data node held through a least-squares fit: its direction (3 floats), value,
 #: error, region mask and the rays of the coarsest levels (a few per node).
 BYTES_PER_NODE = 200
@@ -57,11 +62,26 @@ def region_nodes(source, region: Region) -> float:
 
 
 def plan(source, region: Region, params: FitParameters) -> MemoryPlan:
-    """The least memory (bytes) a fit of ``source`` over ``region`` with ``params`` needs."""
+    """The least memory (bytes) a fit of ``source`` over ``region`` with ``params`` needs
+    (a fit made band by band, :mod:`geoidspline.fitting.bands`: its largest band's)."""
+    from .bands import band_indices, band_latitudes, band_margin_deg, uses_bands
     from .choose import region_area
+    from .interpolation import lattice_spacing
     from .hierarchical import BYTES_PER_UNKNOWN, WHOLE_MAX_UNKNOWNS
 
     level0 = coefficient_density(params.order) * region_area(region) / params.h0 ** 2
+    if uses_bands(params, region):
+        margin = band_margin_deg(params)
+        reaches = [Region(max(-90.0, s - margin), -180.0, min(90.0, n + margin), 180.0)
+                   for s, n in (band_latitudes(b, params.tile_size) for b in band_indices(params))]
+        band0 = coefficient_density(params.order) * max(region_area(r) for r in reaches) / params.h0 ** 2
+        # rows by full circles of the latitude/longitude lattice
+        spacing = lattice_spacing(source, params.h0, params.sample_spacing_deg)
+        nodes = max((r.north - r.south) / spacing + 1.0 for r in reaches) * 360.0 / spacing
+        need = max(band0 * INTERPOLATION_BYTES_PER_COEFFICIENT, nodes * INTERPOLATION_BYTES_PER_NODE)
+        return MemoryPlan(need, f"the largest band's about {band0:,.0f} level-0 coefficients by quasi-interpolation "
+                                f"and {nodes:,.0f} lattice nodes (of {level0:,.0f} coefficients; tile_size "
+                                f"{params.tile_size:g}: a smaller one makes smaller bands)")
     if params.method == "interpolation":
         return MemoryPlan(level0 * INTERPOLATION_BYTES_PER_COEFFICIENT,
                           f"about {level0:,.0f} level-0 coefficients by quasi-interpolation")
@@ -83,3 +103,25 @@ def check_plan(source, region: Region, params: FitParameters, budget: float | No
                        f"{budget / 1e9:.3g} GB are allowed: give max_memory_gb {math.ceil(need.bytes / 1e8) / 10:g}"
                        " if the machine has it, or a smaller region, or a coarser tolerance")
     return need
+
+
+#: The smallest tile side (unit sphere) :func:`banded_parameters` makes bands of.
+SMALLEST_BAND_TILE = 0.025
+
+
+def banded_parameters(source, region: Region, params: FitParameters, budget: float | None) -> FitParameters:
+    """``params`` with the tile size (a band's height, :mod:`geoidspline.fitting.bands`)
+    halved until the largest band's :func:`plan` fits ``budget`` (bytes), down to
+    :data:`SMALLEST_BAND_TILE`; unchanged when it fits already, or the fit is not made
+    by bands. The store's tiles are then that size (the layout follows the memory
+    given, and is recorded with the parameters)."""
+    import dataclasses
+
+    from .bands import uses_bands
+
+    if budget is None or not uses_bands(params, region):
+        return params
+    while plan(source, region, params).bytes > budget and params.tile_size / 2.0 >= max(SMALLEST_BAND_TILE,
+                                                                                         params.h0):
+        params = dataclasses.replace(params, tile_size=params.tile_size / 2.0)
+    return params

@@ -36,7 +36,8 @@ class DataNodes:
     def from_sample(cls, sample, region: Region):
         lat2, lon2 = np.meshgrid(sample.latitude, sample.longitude, indexing="ij")
         row2, col2 = np.meshgrid(
-            np.arange(sample.latitude.size), np.arange(sample.longitude.size), indexing="ij"
+            getattr(sample, "first_row", 0) + np.arange(sample.latitude.size), np.arange(sample.longitude.size),
+            indexing="ij",
         )
         values = np.asarray(sample.undulation, dtype=float).ravel()
         keep = np.isfinite(values)

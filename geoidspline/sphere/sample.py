@@ -20,8 +20,11 @@ class NodeSample:
     ``latitude`` (degrees, ascending, shape (nlat,)), ``longitude`` (degrees, ascending,
     shape (nlon,), possibly beyond ±180 for a region crossing the antimeridian) and
     ``undulation`` (metres, shape (nlat, nlon)). NaN marks a node without data.
+    ``first_row``: the index of the first row on a larger lattice the sample is a band of
+    (a fit thins nodes by rows of that lattice, so a band thins as the whole would).
     """
 
     latitude: np.ndarray
     longitude: np.ndarray
     undulation: np.ndarray
+    first_row: int = 0

@@ -286,6 +286,11 @@ def decode_tile(data):
     return header, out
 
 
+def stored_values(values, step):
+    """Coefficients (metres) as a format-2 store with ``step`` holds them, bitwise."""
+    return quantise(values, step).astype(np.int32) * step
+
+
 def quantised_spline(spline, step):
     """The :class:`~geoidspline.hierarchy.ambient.AmbientSpline` a format-2 store with
     ``step`` holds for ``spline``: every coefficient rounded to a multiple of ``step``
@@ -293,6 +298,5 @@ def quantised_spline(spline, step):
     from ..bspline.level import LevelSpline
     from ..hierarchy.ambient import AmbientSpline
 
-    return AmbientSpline([LevelSpline(lv.level, lv.h, lv.order, lv.keys,
-                                      quantise(lv.coefficients, step).astype(np.int32) * step)
+    return AmbientSpline([LevelSpline(lv.level, lv.h, lv.order, lv.keys, stored_values(lv.coefficients, step))
                           for lv in spline.levels])

@@ -72,6 +72,16 @@ TILE_DIR = "tiles"
 LOCK = ".lock"
 
 
+#: A fit written band by band records the bands it has committed here until its manifest
+#: is written (:class:`geoidspline.store.writer.BandedWrite`); a store directory holding it
+#: is an unfinished fit, which ``--resume`` continues.
+PROGRESS = "fit-progress.json"
+
+
+#: The temporary name :func:`geoidspline._files.atomic_path` writes the progress record under.
+PROGRESS_TMP_NAME = re.compile(r"\.fit-progress\.json\.[A-Za-z0-9_]+\.tmp")
+
+
 #: Written first into a new store directory: the directory is a store (or one being written).
 MARKER = ".geoidspline-store"
 
@@ -108,7 +118,8 @@ def tile_name(tile, version, format_version=FORMAT_VERSION):
 
 def is_store_file(relative: str) -> bool:
     """Whether a path relative to a store directory is one of the names the format owns."""
-    if relative in (MANIFEST, MANIFEST_TMP, LOCK, MARKER) or SIGNATURE_NAME.fullmatch(relative):
+    if relative in (MANIFEST, MANIFEST_TMP, LOCK, MARKER, PROGRESS) or SIGNATURE_NAME.fullmatch(relative) \
+            or PROGRESS_TMP_NAME.fullmatch(relative):
         return True
     head, _, name = relative.partition("/")
     return head == TILE_DIR and "/" not in name and bool(TILE_NAME.fullmatch(name) or TILE_TMP_NAME.fullmatch(name))
@@ -489,6 +500,9 @@ def read_manifest_bytes(root: Path) -> bytes:
             raise StoreError(f"{root}: no such store") from None
         if not root.is_dir():
             raise StoreError(f"{root}: not a directory, not a geoidspline store") from None
+        if (root / PROGRESS).exists():
+            raise StoreError(f"{root}: an unfinished fit, not a store yet (no {MANIFEST}; {PROGRESS} records the "
+                             "bands committed): continue it with geoid-fit --resume (resume=True)") from None
         raise StoreError(
             f"{root}: not a geoidspline store (no {MANIFEST}; a store whose first write did not finish has none)"
         ) from None

@@ -47,6 +47,7 @@ from .format import (
     MANIFEST,
     MANIFEST_TMP,
     MARKER,
+    PROGRESS,
     SIGNATURE_NAME,
     TILE_DIR,
     error_stats,
@@ -71,14 +72,20 @@ def group_by_tile(dirs, tile_size):
     return keys
 
 
+_crash_counts: dict = {}
+
+
 def crash_point(name):
     """Test hooks at the commit points of a write.
 
-    ``GEOIDSPLINE_CRASH_AT=name``: die here like SIGKILL (no clean-up).
+    ``GEOIDSPLINE_CRASH_AT=name``: die here like SIGKILL (no clean-up), the
+    ``GEOIDSPLINE_CRASH_AFTER``-th time (default the first) the write gets here.
     ``GEOIDSPLINE_STOP_AT=name``: stop here (SIGSTOP), for a test to SIGKILL the process.
     """
     if os.environ.get("GEOIDSPLINE_CRASH_AT") == name:
-        os._exit(77)
+        _crash_counts[name] = _crash_counts.get(name, 0) + 1
+        if _crash_counts[name] >= int(os.environ.get("GEOIDSPLINE_CRASH_AFTER", "1")):
+            os._exit(77)
     if os.environ.get("GEOIDSPLINE_STOP_AT") == name:
         os.kill(os.getpid(), signal.SIGSTOP)
 
@@ -545,51 +552,61 @@ def _fit_manifest(root, result, provenance, check, previous, version, extra, att
     crash_point("after-tiles")
 
     coverage = result.coverage if result.coverage is not None else Coverage.of_region(result.region)
-    node_stats = error_stats(node_errors)
-    check_stats = error_stats(check_errors if check is not None else [])
+    return fit_manifest(
+        entries, previous, version, store_id, provenance, result.region, coverage, params, quantisation,
+        [{"level": lv.level, "h": lv.h, "coefficients": len(lv)} for lv in spline.levels],
+        {"method": result.method, "converged": bool(result.converged), "seconds": round(result.seconds, 3),
+         "level_reports": [vars(r) for r in result.levels], **(extra or {})},
+        error_stats(node_errors), error_stats(result.node_errors)["max_error_m"],
+        error_stats(check_errors if check is not None else []), check.description if check is not None else None,
+        cell_centre, format_version)
+
+
+def fit_manifest(entries, previous, version, store_id, provenance, region, coverage, params, quantisation,
+                 level_counts, fit, node_stats, fit_node_max, check_stats, check_description, cell_centre=None,
+                 format_version=FORMAT_VERSION) -> dict:
+    """The manifest of a fit's store version ``version`` from its tile ``entries``, the
+    levels' coefficient counts (``[{level, h, coefficients}]``), the ``fit`` section's
+    account (method, converged, seconds, level reports, choices) and the stored spline's
+    statistics at the nodes and check points (:func:`~.format.error_stats`)."""
     record = {
         "action": "fit",
         "time": utc_now(),
         "store_version": version,
         "source": provenance.source,
         "sha256": provenance.sha256,
-        "region": list(result.region.as_tuple()),
+        "region": list(region.as_tuple()),
     }
     return build_manifest(
         record, entries, previous,
         format_version=format_version,
         store_id=store_id,
         provenance=provenance.as_dict(),
-        region=list(result.region.as_tuple()),
+        region=list(region.as_tuple()),
         coverage=coverage_record(coverage, provenance.source),
         spline={
             "reference_manifold": "unit sphere; direction u = (cos lat cos lon, cos lat sin lon, sin lat)",
             "order": params.order,
             "h0": params.h0,
             "tile_size": params.tile_size,
-            "levels": [
-                {"level": lv.level, "h": lv.h, "coefficients": len(lv)} for lv in spline.levels
-            ],
-            "coefficients": spline.coefficient_count,
+            "levels": level_counts,
+            "coefficients": sum(lv["coefficients"] for lv in level_counts),
             **quantisation,
         },
         fit={
-            "method": result.method,
+            "method": fit["method"],
             "parameters": params.as_dict(),
             "tolerance_m": params.tolerance_m,
-            "converged": bool(result.converged),
-            "seconds": round(result.seconds, 3),
-            "level_reports": [vars(r) for r in result.levels],
-            **(extra or {}),
+            **fit,
         },
         accuracy={
             "nodes": node_stats["count"],
             "node_max_error_m": node_stats["max_error_m"],
             "node_rms_error_m": node_stats["rms_error_m"],
             "node_p99_error_m": node_stats["p99_error_m"],
-            "fit_node_max_error_m": error_stats(result.node_errors)["max_error_m"],
+            "fit_node_max_error_m": fit_node_max,
             "check_points": check_stats["count"],
-            "check_truth": check.description if check is not None else None,
+            "check_truth": check_description,
             "max_error_m": check_stats["max_error_m"],
             "rms_error_m": check_stats["rms_error_m"],
             "p99_error_m": check_stats["p99_error_m"],
@@ -599,3 +616,163 @@ def _fit_manifest(root, result, provenance, check, previous, version, extra, att
             "units": "m",
         },
     )
+
+
+# -- a store written band by band -------------------------------------------------------
+
+
+class BandedWrite:
+    """A fit's store written band by band, each band committed on its own, so that an
+    interrupted fit resumes where it stopped.
+
+    Under the writer lock (held from :meth:`__enter__` to :meth:`__exit__`) a band's
+    tiles are written under new names, flushed, and then the band is recorded in the
+    progress record ``fit-progress.json`` (:data:`~.format.PROGRESS`), replaced
+    atomically: a crash leaves every band recorded there with all its tiles, and a band
+    not recorded is fitted again. A store directory holding that record is an unfinished
+    fit, not a store: it has no manifest (or still the previous version's, which stays
+    valid until :meth:`finish` commits the new one and removes the record). The record
+    names the fit (``identity``: source, parameters, quantisation step, check points); a
+    resumed fit must have the same one.
+
+    ``overwrite``: replace a store (or an unfinished fit) there; ``resume``: continue the
+    unfinished fit there (a directory without one starts a new fit).
+    """
+
+    def __init__(self, path, identity: dict, overwrite: bool = False, resume: bool = False, sign=None):
+        self.root = Path(path)
+        self.identity = identity
+        self.overwrite = overwrite
+        self.resume = resume
+        self.signing_key = load_private_key(sign) if sign is not None else None
+        self.lock: StoreLock | None = None
+        self.progress: dict | None = None
+        self.previous: dict | None = None
+        self.state: str | None = None
+
+    # the record of committed bands
+    def _read_progress(self) -> dict | None:
+        import json
+
+        path = self.root / PROGRESS
+        try:
+            text = path.read_text(encoding="utf-8")
+        except FileNotFoundError:
+            return None
+        except OSError as exc:
+            raise StoreError(f"{path}: cannot be read: {fault_cause(exc)}") from None
+        try:
+            record = json.loads(text)
+            record["bands"]  # noqa: B018 - the key a record must have
+        except (ValueError, KeyError, TypeError):
+            raise StoreCorruptError(f"{path}: is not a progress record of a banded fit; pass overwrite=True to "
+                                    "start the fit again") from None
+        return record
+
+    def _write_progress(self):
+        import json
+
+        from .._files import atomic_write
+
+        try:
+            atomic_write(self.root / PROGRESS, json.dumps(self.progress, separators=(",", ":")).encode())
+            fsync_dir(self.root)
+        except OSError as exc:
+            raise StoreError(f"{self.root / PROGRESS}: cannot record the band: {fault_cause(exc)}; the bands "
+                             "recorded before are kept (resume the fit)") from None
+
+    def _check_directory(self):
+        """Refuse, before anything is written, what this write may not replace; return the
+        unfinished fit's record to continue, or None."""
+        record = self._read_progress() if self.root.is_dir() else None
+        if record is not None:
+            if self.resume:
+                if record.get("identity") != self.identity:
+                    theirs, ours = record.get("identity") or {}, self.identity
+                    differ = sorted(k for k in set(theirs) | set(ours) if theirs.get(k) != ours.get(k))
+                    raise StoreError(f"{self.root}: the unfinished fit there is not this one (its {', '.join(differ)} "
+                                     "differ); fit with the same source and options, or pass overwrite=True "
+                                     "to start again")
+                return record
+            if not self.overwrite:
+                raise StoreError(f"{self.root}: holds an unfinished fit ({len(record['bands'])} bands committed); "
+                                 "pass resume=True to continue it, or overwrite=True to start again")
+            return None
+        if self.resume and (self.root / MANIFEST).exists() and not self.overwrite:
+            raise StoreError(f"{self.root}: holds a finished store, no unfinished fit to resume (pass "
+                             "overwrite=True to fit it again)")
+        return None
+
+    def __enter__(self):
+        record = self._check_directory()
+        if record is None:
+            self.previous = _previous_store(self.root, self.overwrite)
+        _create_store_directory(self.root)
+        self.lock = StoreLock(self.root)
+        self.lock.__enter__()
+        try:
+            record = self._check_directory()  # again, under the lock
+            if record is None:
+                self.previous = _previous_store(self.root, self.overwrite)
+                version = (self.previous["store_version"] + 1) if self.previous else 1
+                self.progress = {"identity": self.identity, "store_id": uuid.uuid4().hex, "store_version": version,
+                                 "started": utc_now(), "bands": {}}
+                self._write_progress()
+            else:
+                self.progress = record
+                self.previous = load_manifest(self.root) if (self.root / MANIFEST).exists() else None
+            self.state = _manifest_state(self.root)  # as read under the lock, for the commit
+        except BaseException:
+            self.lock.__exit__(None, None, None)
+            raise
+        return self
+
+    def __exit__(self, *exc):
+        if self.lock is not None:
+            self.lock.__exit__(*exc)
+            self.lock = None
+        return False
+
+    @property
+    def store_id(self) -> str:
+        return self.progress["store_id"]
+
+    @property
+    def version(self) -> int:
+        return self.progress["store_version"]
+
+    def done(self) -> dict:
+        """{band: its record} of the bands committed already."""
+        return {int(band): entry for band, entry in self.progress["bands"].items()}
+
+    def commit_band(self, band: int, groups: dict, tile_stats: dict, spline_meta: dict, summary: dict):
+        """Write band ``band``'s tiles (``groups``: {tile key: (levels, indices, values)},
+        ``tile_stats``: {tile key: its manifest statistics}) and record it with ``summary``
+        (what the manifest will need of it, JSON), atomically."""
+        entries = []
+        for key in sorted(groups):
+            try:
+                entries.append(write_tile_entry(self.root, key, groups[key], self.version,
+                                                {**spline_meta, "store_id": self.store_id}, tile_stats[key]))
+            except OSError as exc:
+                raise StoreError(f"{self.root}: cannot write band {band}'s tiles: {fault_cause(exc)}; the bands "
+                                 "recorded before are kept (resume the fit)") from None
+            crash_point("during-band")
+        try:
+            fsync_dir(self.root / TILE_DIR)
+        except OSError as exc:
+            raise StoreError(f"{self.root}: cannot flush band {band}'s tiles: {fault_cause(exc)}") from None
+        self.progress["bands"][str(band)] = {**summary, "tiles": entries}
+        self._write_progress()
+        crash_point("band-committed")
+
+    def finish(self, manifest: dict):
+        """Commit ``manifest`` (naming every band's tiles) as the store's new version and
+        remove the progress record."""
+        keep = [e["file"] for e in self.previous["tiles"]] if self.previous else []
+        commit(self.root, manifest, keep, expect_state=self.state, signing_key=self.signing_key)
+        try:
+            (self.root / PROGRESS).unlink(missing_ok=True)
+            fsync_dir(self.root)
+        except OSError as exc:  # committed already: the next write removes it
+            log.warning("%s: the progress record was not removed (%s)", self.root, fault_cause(exc))

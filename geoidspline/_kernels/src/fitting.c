@@ -114,6 +114,23 @@ GS_EXPORT void gs_normal_compress(const double *table, const int64_t *keys, int6
     }
 }
 
+/* sum_k a[k] b[k], k < n, in four partial sums: independent chains the compiler can keep
+ * in flight; the factorisation and the triangular solve share it, so their sums agree */
+GS_INLINE double dot4(const double *a, const double *b, int64_t n)
+{
+    double s0 = 0.0, s1 = 0.0, s2 = 0.0, s3 = 0.0;
+    int64_t k = 0;
+    for (; k + 4 <= n; k += 4) {
+        s0 += a[k] * b[k];
+        s1 += a[k + 1] * b[k + 1];
+        s2 += a[k + 2] * b[k + 2];
+        s3 += a[k + 3] * b[k + 3];
+    }
+    for (; k < n; ++k)
+        s0 += a[k] * b[k];
+    return (s0 + s1) + (s2 + s3);
+}
+
 /* Additive Schwarz preconditioner z = Σ_b R_bᵀ (L_b L_bᵀ)⁻¹ R_b r (z zeroed by the caller):
  * block b holds the indices index[block_at[b] .. block_at[b + 1]) (m of them) and its
  * Cholesky factor L_b packed by rows (row i: L[i][0..i]) at factors[factor_at[b] ..],
@@ -129,17 +146,7 @@ GS_EXPORT void gs_schwarz_apply(int64_t blocks, const int64_t *block_at, const i
         /* L y = r: row i of L is contiguous */
         for (int64_t i = 0; i < m; ++i) {
             const double *row = l + i * (i + 1) / 2;
-            double s0 = 0.0, s1 = 0.0, s2 = 0.0, s3 = 0.0; /* as in gs_cholesky_packed */
-            int64_t k = 0;
-            for (; k + 4 <= i; k += 4) {
-                s0 += row[k] * work[k];
-                s1 += row[k + 1] * work[k + 1];
-                s2 += row[k + 2] * work[k + 2];
-                s3 += row[k + 3] * work[k + 3];
-            }
-            for (; k < i; ++k)
-                s0 += row[k] * work[k];
-            work[i] = (r[idx[i]] - ((s0 + s1) + (s2 + s3))) / row[i];
+            work[i] = (r[idx[i]] - dot4(row, work, i)) / row[i];
         }
         /* Lᵀ z = y, by rows of L from the last: z_i final, then taken out of the rows above */
         for (int64_t i = m - 1; i >= 0; --i) {
@@ -165,18 +172,7 @@ GS_EXPORT int64_t gs_cholesky_packed(const double *lower, int64_t m, double shif
         double *li = packed + i * (i + 1) / 2;
         for (int64_t j = 0; j <= i; ++j) {
             const double *lj = packed + j * (j + 1) / 2;
-            /* four partial sums: independent chains the compiler can keep in flight */
-            double s0 = 0.0, s1 = 0.0, s2 = 0.0, s3 = 0.0;
-            int64_t k = 0;
-            for (; k + 4 <= j; k += 4) {
-                s0 += li[k] * lj[k];
-                s1 += li[k + 1] * lj[k + 1];
-                s2 += li[k + 2] * lj[k + 2];
-                s3 += li[k + 3] * lj[k + 3];
-            }
-            for (; k < j; ++k)
-                s0 += li[k] * lj[k];
-            double s = lower[i * m + j] + (i == j ? shift : 0.0) - ((s0 + s1) + (s2 + s3));
+            double s = lower[i * m + j] + (i == j ? shift : 0.0) - dot4(li, lj, j);
             if (j < i) {
                 li[j] = s / lj[j];
             } else {

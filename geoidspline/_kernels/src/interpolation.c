@@ -67,6 +67,7 @@ typedef struct {
     const double *grid;
     int64_t ncol;
     double lat0, dlat, lon0, dlon;
+    int64_t first_row;
     const double *latitude, *longitude;
     double *out;
     int64_t n, nchunk;
@@ -77,7 +78,9 @@ static void lookup_task(void *ctx, int64_t c)
     const lookup_job *J = ctx;
     double w_lat[6], w_lon[6];
     for (int64_t p = J->n * c / J->nchunk; p < J->n * (c + 1) / J->nchunk; ++p) {
-        double y = (J->latitude[p] - J->lat0) / J->dlat;
+        /* the row position on the whole lattice, then in the grid held: an exact
+         * integer shift, so a band of rows gives the whole lattice's bits */
+        double y = (J->latitude[p] - J->lat0) / J->dlat - (double)J->first_row;
         int64_t i = (int64_t)floor(y);
         lagrange6(y - (double)i, w_lat);
         double lon = J->longitude[p] - (J->lon0 + 2.0 * J->dlon);
@@ -97,11 +100,11 @@ static void lookup_task(void *ctx, int64_t c)
     }
 }
 
-GS_EXPORT void gs_lattice_lookup(const double *grid, int64_t ncol, double lat0, double dlat, double lon0, double dlon,
-                                 const double *latitude, const double *longitude, int64_t n, double *out,
-                                 int64_t nthreads)
+GS_EXPORT void gs_lattice_lookup(const double *grid, int64_t ncol, double lat0, double dlat, int64_t first_row,
+                                 double lon0, double dlon, const double *latitude, const double *longitude, int64_t n,
+                                 double *out, int64_t nthreads)
 {
-    lookup_job J = {grid, ncol, lat0, dlat, lon0, dlon, latitude, longitude, out, n, chunk_count(n)};
+    lookup_job J = {grid, ncol, lat0, dlat, lon0, dlon, first_row, latitude, longitude, out, n, chunk_count(n)};
     gs_parallel_for((int)nthreads, J.nchunk, lookup_task, &J);
 }
 

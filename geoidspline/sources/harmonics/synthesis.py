@@ -384,6 +384,58 @@ class GeoidSynthesis:
         """T (m²/s²) at the ellipsoid point (h = 0), degrees 2..N, normal zonals removed."""
         return self._points(latitude, longitude, "T")
 
+    def degree_power(self, latitude, directions: int = 1) -> np.ndarray:
+        """Mean square (m²) of each degree's part of N along latitude rings, by the
+        direction its waves run in.
+
+        ``latitude``: geodetic latitudes (degrees). ``out[i, n, b]``: on ring i, the mean
+        over the ring's longitudes of (degree n of ζ)² plus (degree n of the correction)²,
+        on the ellipsoid ((a/r)^n at the ring's radius): Σ_m w_m (ΔC̄nm² + S̄nm²) P̄nm²
+        times the ring's scale², w_0 = 1, w_m = 1/2, of the orders m whose waves run at
+        an angle from east in bin b of ``directions`` equal bins of [0°, 90°]. Locally
+        (large n) the term of order m is a wave of n + 1/2 radians per unit length on the
+        unit sphere with m / cos ψ of them eastwards (ψ geocentric latitude), the rest
+        north-south; poleward of its turning latitude (m / cos ψ > n + 1/2) it is small
+        and counted as running east. Degrees are summed incoherently: terms of distinct m
+        vanish in the mean along the ring, those of distinct degrees (and of ζ and the
+        correction) are left out, as they average out over latitude. The spectrum the
+        fit's parameter choice reads (:mod:`geoidspline.fitting.level0_error`).
+        """
+        lat = np.atleast_1d(np.asarray(latitude, dtype=np.float64))
+        if lat.ndim != 1 or not np.all(np.abs(lat) <= 90.0):
+            raise CoordinateError(f"latitudes must be a list within [-90, 90] degrees, got {latitude!r}")
+        if int(directions) != directions or directions < 1:
+            raise ParameterError(f"directions must be a positive integer, got {directions!r}")
+        nmax = self.max_degree
+        size = nmax + 1
+        t, u, r, gamma = self._geometry(lat)
+        scale = self._scales(r, gamma, "N")
+        weight = np.full(size, 0.5)
+        weight[0] = 1.0
+        # order-major power of each set, the order weight folded in: (k, m, n)
+        power = (self._CT**2 + self._ST**2) * weight[None, :, None]
+        m, n = np.meshgrid(np.arange(size), np.arange(size), indexing="ij")
+        below = m <= n
+        degree = np.arange(size)
+        plm = np.zeros((size, size))
+        out = np.zeros((lat.size, size, directions))
+        for i in range(lat.size):
+            legendre.plm_bar(nmax, float(t[i]), float(u[i]), self._AT, self._BT, plm)
+            plm_squared = np.where(below, plm.T, 0.0) ** 2  # [m, n]; plm_bar leaves m > n untouched
+            east = m / max(float(u[i]), 1e-300)
+            north = np.sqrt(np.maximum((n + 0.5) ** 2 - east**2, 0.0))
+            angle = np.arctan2(north, east)  # from east, 0..π/2
+            bins = np.minimum((angle / (0.5 * math.pi) * directions).astype(np.int64), directions - 1)
+            ring = np.zeros((size, size))
+            for k in range(power.shape[0]):
+                part = power[k] * plm_squared * scale[i, k] ** 2
+                if self._radial[k]:
+                    part *= ((self.conventions.scale_a / r[i]) ** (2 * degree))[None, :]
+                ring += part
+            out[i] = np.bincount((n * directions + bins)[below], ring[below],
+                                 minlength=size * directions).reshape(size, directions)
+        return out
+
     # ------------------------------------------------------------------ lattices
     def lattice_step(self, spacing_deg: float | None = None) -> float:
         """The lattice spacing (degrees) used for ``spacing_deg``: 180/k for the smallest

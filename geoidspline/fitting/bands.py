@@ -1,0 +1,286 @@
+"""A global fit of a model band by band: a bounded working set, each band on its own.
+
+The globe is cut into bands that are slabs of storage tiles (thesis §4: "solve local
+problems and put them together"): band ``k`` owns the B-splines whose support centre
+has ``z`` in ``[k t, (k + 1) t)`` (``t`` = ``FitParameters.tile_size``, the store's tile
+side on the unit sphere, so a band's coefficients are whole tile files) and the data
+nodes and check points whose direction has ``z`` there (the tile a node's statistics go
+to). Slabs of equal height hold equal areas of the sphere (Archimedes), so the bands'
+work is even; a smaller ``tile_size`` gives more, smaller bands.
+
+A band is fitted by :func:`fit_band`, a pure function of the source, the parameters and
+the band's index, on the latitudes of its slab grown by :func:`band_margin_deg`:
+
+1. the lattice of the synthesis is sampled over those latitudes (and the lookups'
+   stencil), level 0 of every B-spline there is quasi-interpolated
+   (:func:`~geoidspline.fitting.interpolation.interpolate_level`): each coefficient
+   depends on lattice values within a few cells only and the lookups give a point the
+   whole lattice's bits, so a band's level-0 coefficients are bitwise those of one
+   whole-globe computation;
+2. its nodes are checked and overlays are fitted where nodes exceed the tolerance, by the
+   overlay least squares of :func:`~geoidspline.fitting.driver.fit_nodes` in blocks
+   (always tiled, so that a block's problem does not depend on how many unknowns a
+   band holds);
+3. the band keeps the coefficients it owns, and measures its own nodes and check
+   points on the quantised spline it will store.
+
+The blocks of an overlay level reach ``(block_cells + 2 margin_cells + order)`` cells
+of their level around a coefficient: where a band's margin covers that reach for every
+level (:func:`band_margin_deg` with ``overlay_reach=True``) the overlays are those of one
+whole-globe fit too; the default margin covers level 0's support and the margin of one
+overlay block, and the band decomposition (``tile_size``) is then part of the
+parameters: the same parameters give the same store bit for bit whichever process or
+machine fits a band, in whichever order, across an interrupted and resumed fit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+from ..bspline.domain import active_cells
+from ..bspline.keys import touching_keys
+from ..bspline.level import LevelSpline, cube_of_support_centres
+from ..errors import FitError
+from ..hierarchy.ambient import AmbientSpline
+from ..sphere.coordinates import directions
+from ..sphere.region import Region
+from .interpolation import interpolate_level, lattice_spacing
+from .parameters import FitParameters
+from .progress import as_progress
+
+__all__ = ["band_indices", "band_latitudes", "band_margin_deg", "fit_band", "BandResult", "uses_bands",
+           "band_of_directions", "Rounding", "band_step"]
+
+
+def uses_bands(params: FitParameters, region: Region) -> bool:
+    """Whether a fit is made band by band: a model's quasi-interpolated level 0 with
+    overlays, over the whole globe."""
+    return (params.method == "interpolation" and params.refinement == "overlays"
+            and region.south <= -90.0 and region.north >= 90.0 and region.longitude_span >= 360.0)
+
+
+def band_indices(params: FitParameters) -> list[int]:
+    """The bands of the globe: every tile slab a B-spline touching the sphere can have
+    its support centre in (centres lie within ``order h0`` of the sphere)."""
+    reach = 1.0 + params.order * params.h0
+    return list(range(math.floor(-reach / params.tile_size), math.floor(reach / params.tile_size) + 1))
+
+
+def band_latitudes(band: int, tile_size: float) -> tuple[float, float]:
+    """(south, north) latitudes (degrees) of the sphere's points in band ``band``."""
+    low = min(1.0, max(-1.0, band * tile_size))
+    high = min(1.0, max(-1.0, (band + 1) * tile_size))
+    return math.degrees(math.asin(low)), math.degrees(math.asin(high))
+
+
+def band_of_directions(dirs, tile_size: float) -> np.ndarray:
+    """The band of each unit direction (M, 3): its tile's ``z`` index, as the store
+    groups node statistics (:func:`geoidspline.store.writer.group_by_tile`)."""
+    return np.floor(np.asarray(dirs)[:, 2] / tile_size).astype(np.int64)
+
+
+def band_margin_deg(params: FitParameters, overlay_reach: bool = False) -> float:
+    """Latitudes (degrees) a band's fit reaches beyond its slab: level 0's support
+    (so that every node of the slab sees all of its B-splines) and one overlay block's
+    margin and support at level 1; with ``overlay_reach`` the reach of an overlay
+    block's problem at every level (block, margins and support: its coefficients are
+    then those of a whole-globe fit)."""
+    support = params.order * params.h0 * math.sqrt(3.0)
+    if overlay_reach:
+        cells = params.block_cells + 2 * params.margin_cells + params.order
+        reach = sum(cells * params.spacing(level) for level in range(1, params.max_level + 1))
+    else:
+        reach = (params.margin_cells + params.order) * params.spacing(1)
+    return math.degrees(support + reach)
+
+
+class Rounding(NamedTuple):
+    """How a store rounds a band's coefficients: ``round(values, step)`` gives the
+    stored values; a band takes ``start_step`` halved as often as its own nodes need to
+    stay within ``tolerance_m`` (steps nest: a coarser step's multiples are multiples of
+    the finer ones)."""
+
+    start_step: float
+    tolerance_m: float
+    round: object
+
+
+@dataclass
+class BandResult:
+    """What a band's fit gives the store: the coefficients it owns (level, h, keys,
+    coefficients), the step its tiles are rounded to, per tile the statistics of its
+    nodes and check points on the rounded spline, and its part of the fit's account."""
+
+    band: int
+    levels: list  # [(level, h, keys, coefficients)], owned B-splines only
+    value_step_m: float | None  # the step the band's tiles are rounded to (None: not rounded)
+    tile_stats: dict  # packed tile key -> (node errors, check errors) of the stored spline
+    node_count: int
+    node_max_error_m: float  # the stored spline's, at most (see :func:`band_step`)
+    node_sum_squares: float
+    fit_node_max_error_m: float  # the fit's, before rounding
+    check_latitude: np.ndarray
+    check_longitude: np.ndarray
+    check_errors: np.ndarray  # truth - stored spline at the band's check points
+    level_reports: list
+    converged: bool
+    data_limited: bool
+    seconds: float
+    sample_rows: int = 0  # lattice rows the band synthesised (its margin included)
+
+
+def fit_band(source, params: FitParameters, band: int, check_latitude, check_longitude,
+             rounding: Rounding | None = None, margin_deg: float | None = None, executor=None,
+             progress=None) -> BandResult:
+    """Fit band ``band`` of the globe (see the module's docstring).
+
+    ``rounding``: how the store rounds the band's coefficients (:class:`Rounding`;
+    default none), where the band measures its nodes and check points;
+    ``check_latitude``/``check_longitude``: the whole fit's check points
+    (degrees), of which the band measures those it owns by the exact synthesis.
+    ``margin_deg``: how far the band's fit reaches beyond its slab (default
+    :func:`band_margin_deg`). ``executor`` solves the overlay blocks (default: here).
+    """
+    from .check_points import exact_values
+    from .driver import fit_nodes, finer_data_hint
+
+    started = time.perf_counter()
+    progress = as_progress(progress)
+    margin = band_margin_deg(params) if margin_deg is None else float(margin_deg)
+    south, north = band_latitudes(band, params.tile_size)
+    reach = Region(max(-90.0, south - margin), -180.0, min(90.0, north + margin), 180.0)
+    h = params.h0
+    cells = active_cells(h, reach)
+    if cells.size == 0:
+        raise FitError(f"band {band}: no cells of spacing {h} meet the sphere over {reach.as_tuple()}")
+    keys = touching_keys(cells, params.order)
+    del cells
+    spacing = lattice_spacing(source, h, params.sample_spacing_deg)
+    coefficients, sample, lattice_points = interpolate_level(source, keys, h, params.order, spacing,
+                                                             progress=progress)
+    # thinning strides count rows of the whole lattice, not of the band's
+    sample = dataclasses.replace(sample, first_row=round((float(sample.latitude[0]) + 90.0) / spacing))
+    level0 = LevelSpline(0, h, params.order, keys, coefficients)
+    result = fit_nodes(sample, reach, params, progress=progress, force_tiles=True, executor=executor,
+                       first_level=(level0, time.perf_counter() - started, lattice_points),
+                       finer_hint=finer_data_hint(source))
+    rows = sample.latitude.size
+    del sample, level0, keys, coefficients
+    owned = [cube_of_support_centres(lv.indices, lv.h, lv.order, params.tile_size)[:, 2] == band
+             for lv in result.spline.levels]
+    # the band's nodes and check points, on the spline as stored
+    mine = band_of_directions(result.node_directions, params.tile_size) == band
+    node_dirs = result.node_directions[mine]
+    fit_errors = result.node_errors[mine]
+    step, stored, node_errors, node_bound = band_step(result.spline, owned, node_dirs, fit_errors, rounding)
+    check_latitude = np.asarray(check_latitude, dtype=float)
+    check_longitude = np.asarray(check_longitude, dtype=float)
+    check_dirs = directions(check_latitude, check_longitude)
+    own_checks = band_of_directions(check_dirs, params.tile_size) == band
+    check_lat, check_lon = check_latitude[own_checks], check_longitude[own_checks]
+    truth = exact_values(source, check_lat, check_lon, progress)
+    check_errors = truth - stored.undulation(check_lat, check_lon) if check_lat.size else np.empty(0)
+    owned_levels = [(lv.level, lv.h, lv.keys[m], lv.coefficients[m]) for lv, m in zip(result.spline.levels, owned)]
+    tile_stats = _tile_stats(owned_levels, node_dirs, node_errors, check_dirs[own_checks], check_errors,
+                             params)
+    return BandResult(
+        band=band, levels=owned_levels, value_step_m=step, tile_stats=tile_stats,
+        node_count=int(node_errors.size), node_max_error_m=node_bound,
+        node_sum_squares=float(np.sum(node_errors ** 2)),
+        fit_node_max_error_m=float(np.abs(fit_errors).max()) if fit_errors.size else 0.0,
+        check_latitude=check_lat, check_longitude=check_lon, check_errors=check_errors,
+        level_reports=[vars(r) for r in result.levels], converged=bool(result.converged),
+        data_limited=bool(result.data_limited), seconds=time.perf_counter() - started, sample_rows=rows,
+    )
+
+
+def band_step(spline: AmbientSpline, owned, node_dirs, fit_errors, rounding: Rounding | None):
+    """(step, stored spline, node errors, largest node error at most) of a band.
+
+    The band's own coefficients are rounded to ``rounding.start_step`` halved until its
+    nodes stay within ``max(rounding.tolerance_m, the fit's own node max)`` (as
+    :func:`geoidspline.store.codec.node_safe_step` does for a whole store). Its
+    neighbours' coefficients that reach its nodes are rounded by them, to a step of
+    at most ``start_step``: each moves by at most ``start_step / 2``, so their share is
+    bounded by ``start_step / 2`` times their B-splines' sum at a node, added to that
+    node's error for the test and for the largest error reported (only nodes within a
+    support of the band's edge have any). The node errors returned are those with the
+    neighbours' coefficients unrounded."""
+    if rounding is None:
+        return None, spline, fit_errors, float(np.abs(fit_errors).max()) if fit_errors.size else 0.0
+    others = AmbientSpline([LevelSpline(lv.level, lv.h, lv.order, lv.keys[~m], np.ones(int((~m).sum())))
+                            for lv, m in zip(spline.levels, owned)])
+    reach = 0.5 * rounding.start_step * others.evaluate_points(node_dirs, any_batch=True) if node_dirs.size \
+        else np.empty(0)
+    fit_max = float(np.abs(fit_errors).max()) if fit_errors.size else 0.0
+    target = max(float(rounding.tolerance_m), fit_max)
+    exact = spline.evaluate_points(node_dirs, any_batch=True) if node_dirs.size else np.empty(0)
+    step = float(rounding.start_step)
+    while True:
+        stored = AmbientSpline([LevelSpline(lv.level, lv.h, lv.order, lv.keys,
+                                            np.where(m, rounding.round(lv.coefficients, step), lv.coefficients))
+                                for lv, m in zip(spline.levels, owned)])
+        errors = fit_errors - (stored.evaluate_points(node_dirs, any_batch=True) - exact) if node_dirs.size \
+            else np.empty(0)
+        largest = float((np.abs(errors) + reach).max()) if errors.size else 0.0
+        if largest <= target or step / 2.0 < 1e-6:
+            return step, stored, errors, largest
+        step /= 2.0
+
+
+def _tile_stats(owned_levels, node_dirs, node_errors, check_dirs, check_errors, params):
+    """{packed tile key: (node errors, check errors)} for the tiles of the band's coefficients."""
+    from ..bspline.keys import pack_keys, unpack_keys
+
+    tiles = [pack_keys(cube_of_support_centres(unpack_keys(keys), h, params.order, params.tile_size))
+             for _, h, keys, _ in owned_levels if keys.size]
+    if not tiles:
+        return {}
+    node_tile = pack_keys(np.floor(node_dirs / params.tile_size).astype(np.int64))
+    check_tile = pack_keys(np.floor(check_dirs / params.tile_size).astype(np.int64))
+    return {int(key): (node_errors[node_tile == key], check_errors[check_tile == key])
+            for key in np.unique(np.concatenate(tiles))}
+
+
+def level_reports(bands) -> list[dict]:
+    """The fit's level reports from the bands' (``[(level reports, {level: coefficients})]``):
+    counts added, the largest error kept (and the largest band's RMS: the RMS over every
+    node is the manifest's accuracy)."""
+    merged: dict[int, dict] = {}
+    for reports, _ in bands:
+        for report in reports:
+            into = merged.setdefault(report["level"], {**report, "coefficients": 0, "marked_cells": 0, "sites": 0,
+                                                       "blocks_solved": 0, "nodes_above_tolerance": 0,
+                                                       "seconds": 0.0, "max_error_m": 0.0, "rms_error_m": 0.0})
+            for key in ("marked_cells", "sites", "blocks_solved", "nodes_above_tolerance", "seconds"):
+                into[key] += report[key]
+            into["max_error_m"] = max(into["max_error_m"], report["max_error_m"])
+            into["rms_error_m"] = max(into["rms_error_m"], report["rms_error_m"])
+    for _, counts in bands:
+        for level, count in counts.items():
+            if int(level) in merged:
+                merged[int(level)]["coefficients"] += int(count)
+    return [merged[level] for level in sorted(merged)]
+
+
+def band_spline(results, params: FitParameters) -> AmbientSpline:
+    """The whole spline from the bands' owned coefficients (for tests and small fits:
+    a global fit's spline is the store's, read tile by tile)."""
+    by_level: dict[int, list] = {}
+    for result in results:
+        for level, h, keys, coefs in result.levels:
+            by_level.setdefault(level, []).append((h, keys, coefs))
+    levels = []
+    for level in sorted(by_level):
+        parts = by_level[level]
+        keys = np.concatenate([p[1] for p in parts])
+        coefs = np.concatenate([p[2] for p in parts])
+        order = np.argsort(keys)
+        levels.append(LevelSpline(level, parts[0][0], params.order, keys[order], coefs[order]))
+    return AmbientSpline(levels)

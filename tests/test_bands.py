@@ -1,0 +1,249 @@
+"""A model's whole globe fitted band by band (geoidspline.fitting.bands, geoidspline.api.banded):
+the bands give the whole-globe fit's coefficients bit for bit, each band is committed on
+its own, an interrupted fit resumes to the same store, and a dask cluster of separate
+worker processes over TCP writes the same store as this process."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import random_synthesis
+from test_interpolation import _write_gfc
+
+from geoidspline.api import build_store, open_store
+from geoidspline.errors import FitError, StoreError
+from geoidspline.fitting.bands import band_indices, band_margin_deg, band_spline, fit_band, uses_bands
+from geoidspline.fitting.driver import _fit_by_interpolation
+from geoidspline.fitting.executors import Executor
+from geoidspline.fitting.parameters import FitParameters
+from geoidspline.sphere.region import GLOBAL, Region
+from geoidspline.store.format import PROGRESS
+
+#: A degree-48 model whose level 0 at h0 = 0.03 leaves 48 nodes above 0.14 m (0.157 m
+#: max): a small level-1 overlay on the globe, tiled into blocks of 8 cells.
+PARAMS = dict(method="interpolation", order=4, h0=0.03, max_level=2, tolerance_m=0.14, block_cells=8)
+CLI_OPTIONS = ["--preset", "generic", "--method", "interpolation", "--refinement", "overlays", "--order", "4",
+               "--h0", "0.03", "--max-level", "2", "--sample-spacing", "0.625", "--tolerance", "0.15"]
+
+
+@pytest.fixture(scope="module")
+def model():
+    return random_synthesis(48, 3, "toy48")
+
+
+@pytest.fixture(scope="module")
+def model_file(model, tmp_path_factory):
+    return _write_gfc(tmp_path_factory.mktemp("model") / "toy48.gfc", model.model)
+
+
+@pytest.fixture(scope="module")
+def whole(model):
+    """The whole globe in one call, its overlay blocks tiled as a band's are."""
+    return _fit_by_interpolation(model, GLOBAL, FitParameters(**PARAMS), None, None, True, None)
+
+
+def store_levels(path):
+    """{level: (keys, coefficients)} of a store, read back tile by tile."""
+    spline = open_store(path, lazy=False).spline
+    levels = getattr(spline, "full", spline).levels
+    return {lv.level: (lv.keys, lv.coefficients) for lv in levels}
+
+
+def assert_same_store(a, b):
+    """Two stores hold the same coefficients bit for bit, in the same tiles."""
+    la, lb = store_levels(a), store_levels(b)
+    assert la.keys() == lb.keys()
+    for level in la:
+        assert np.array_equal(la[level][0], lb[level][0])
+        assert np.array_equal(la[level][1], lb[level][1])
+    ma, mb = (json.loads((Path(p) / "manifest.json").read_text()) for p in (a, b))
+    assert [t["tile"] for t in ma["tiles"]] == [t["tile"] for t in mb["tiles"]]
+    assert [t["coefficients"] for t in ma["tiles"]] == [t["coefficients"] for t in mb["tiles"]]
+    assert ma["accuracy"] == mb["accuracy"]
+
+
+@pytest.mark.parametrize("reach", [False, True])
+def test_bands_give_the_whole_globe_coefficients_bit_for_bit(model, whole, reach):
+    """Level 0 (quasi-interpolated from a band of lattice rows) and the overlays (least
+    squares in blocks) of the bands together are the whole-globe fit's, bit for bit, with
+    the default margin and with one covering every overlay block's reach."""
+    params = FitParameters(**PARAMS)
+    margin = band_margin_deg(params, overlay_reach=reach)
+    bands = [fit_band(model, params, band, np.empty(0), np.empty(0), margin_deg=margin)
+             for band in band_indices(params)]
+    assert len(bands) == 6  # z slabs of 0.4 from -1.2 to 1.2
+    banded = band_spline(bands, params)
+    assert [lv.level for lv in whole.spline.levels] == [lv.level for lv in banded.levels] == [0, 1]
+    assert len(whole.spline.levels[1]) > 50  # the overlay is not empty
+    for a, b in zip(whole.spline.levels, banded.levels):
+        assert np.array_equal(a.keys, b.keys)
+        assert np.array_equal(a.coefficients, b.coefficients)
+    # every node is some band's, once
+    assert sum(b.node_count for b in bands) == whole.node_count
+
+
+def test_only_a_models_whole_globe_is_fitted_by_bands():
+    params = FitParameters(**PARAMS)
+    assert uses_bands(params, GLOBAL)
+    assert not uses_bands(params, Region(-60, -180, 60, 180))
+    assert not uses_bands(FitParameters(**{**PARAMS, "method": "least-squares"}), GLOBAL)
+
+
+def test_a_banded_store_holds_the_whole_fit_and_measures_it(model, whole, tmp_path):
+    result, info = build_store(model, tmp_path / "s", params=FitParameters(**PARAMS), check_count=2000)
+    levels = store_levels(tmp_path / "s")
+    manifest = json.loads((tmp_path / "s" / "manifest.json").read_text())
+    start, steps = manifest["spline"]["value_step_m"], manifest["fit"]["bands"]["value_steps_m"]
+    assert all(start / step in (1, 2, 4, 8, 16) for step in steps)  # each band's nests in the store's
+    for lv in whole.spline.levels:  # the whole fit's coefficients, each rounded to its band's step
+        keys, coefs = levels[lv.level]
+        assert np.array_equal(keys, lv.keys)
+        assert np.abs(coefs - lv.coefficients).max() <= start / 2
+        assert np.all(np.isclose(coefs / min(steps), np.rint(coefs / min(steps)), rtol=0, atol=1e-6))
+    assert info["converged"] and info["nodes"] == whole.node_count and info["check_points"] == 2000
+    # the store keeps the tolerance at the nodes and the random check points (exact synthesis)
+    assert info["node_max_error_m"] <= 0.14 and info["max_error_m"] <= 0.14
+    assert not (tmp_path / "s" / PROGRESS).exists()
+    assert manifest["fit"]["bands"]["count"] == 6 and result.spline is None
+
+
+def info_step(path):
+    return json.loads((Path(path) / "manifest.json").read_text())["spline"]["value_step_m"]
+
+
+def test_the_memory_plan_names_the_largest_band(model, tmp_path):
+    with pytest.raises(FitError, match="largest band"):
+        build_store(model, tmp_path / "s", params=FitParameters(**PARAMS), executor=Executor(max_memory_bytes=1e7))
+    assert not (tmp_path / "s").exists()
+
+
+def _fit_command(model_file, store, *extra):
+    """``geoid-fit`` of the model into ``store``, quiet unless ``-v`` is among ``extra``."""
+    quiet = [] if "-v" in extra else ["-q"]
+    return [sys.executable, "-m", "geoidspline", "fit", str(model_file), *CLI_OPTIONS, "--store", str(store),
+            *quiet, *extra]
+
+
+def test_an_interrupted_fit_resumes_to_the_uninterrupted_store(model_file, tmp_path):
+    """A fit killed (like SIGKILL) right after its second band was committed leaves an
+    unfinished fit; a new fit there is refused, --resume fits the other four bands only
+    and writes the store an uninterrupted fit writes."""
+    whole_store = tmp_path / "whole"
+    done = subprocess.run(_fit_command(model_file, whole_store), capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    store = tmp_path / "killed"
+    env = {**os.environ, "GEOIDSPLINE_CRASH_AT": "band-committed", "GEOIDSPLINE_CRASH_AFTER": "2"}
+    killed = subprocess.run(_fit_command(model_file, store), capture_output=True, text=True, env=env)
+    assert killed.returncode == 77, killed.stderr
+    record = json.loads((store / PROGRESS).read_text())
+    assert len(record["bands"]) == 2 and not (store / "manifest.json").exists()
+    with pytest.raises(StoreError, match="unfinished fit"):
+        open_store(store)
+    again = subprocess.run(_fit_command(model_file, store), capture_output=True, text=True)
+    assert again.returncode == 1 and "unfinished fit (2 bands committed)" in again.stderr and "resume" in again.stderr
+    resumed = subprocess.run(_fit_command(model_file, store, "--resume", "-v"), capture_output=True, text=True)
+    assert resumed.returncode == 0, resumed.stderr
+    assert "resuming: 2 of 6 bands committed already" in resumed.stderr
+    assert resumed.stderr.count("INFO: band ") == 4
+    assert_same_store(whole_store, store)
+    assert not (store / PROGRESS).exists()
+
+
+def test_a_resumed_fit_must_be_the_same_fit(model_file, tmp_path):
+    store = tmp_path / "s"
+    env = {**os.environ, "GEOIDSPLINE_CRASH_AT": "band-committed"}
+    assert subprocess.run(_fit_command(model_file, store), capture_output=True, env=env).returncode == 77
+    other = [a if a != "2" else "1" for a in _fit_command(model_file, store, "--resume")]  # --max-level 1
+    refused = subprocess.run(other, capture_output=True, text=True)
+    assert refused.returncode == 1 and "not this one" in refused.stderr and "parameters" in refused.stderr
+
+
+def test_progress_shows_every_phase_and_quiet_silences_it(model_file, tmp_path):
+    loud = subprocess.run(_fit_command(model_file, tmp_path / "a", "-v"), capture_output=True, text=True)
+    assert loud.returncode == 0, loud.stderr
+    for stage in ("bands: 6 bands", "synthesis:", "lookups:", "prefilter:", "level 0 node errors:",
+                  "level 1 blocks:", "check points:", "write:", "bands: 6/6 bands in"):
+        assert f"progress: {stage}" in loud.stderr, stage
+    quiet = subprocess.run(_fit_command(model_file, tmp_path / "b"), capture_output=True, text=True)
+    assert quiet.returncode == 0 and quiet.stderr == ""
+
+
+def _free_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.slow
+def test_a_dask_cluster_over_tcp_writes_the_local_store(model_file, tmp_path):
+    """``dask scheduler`` and two ``dask worker`` processes on this machine, over TCP, as
+    dask's documentation starts them: the bands are fitted on the workers and the store
+    is the local fit's, bit for bit."""
+    pytest.importorskip("dask.distributed")
+    from distributed import Client
+
+    dask_cli = shutil.which("dask", path=str(Path(sys.executable).parent)) or shutil.which("dask")
+    if dask_cli is None:
+        pytest.skip("the dask command is not installed")
+    port = _free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    processes = [subprocess.Popen([dask_cli, "scheduler", "--host", "127.0.0.1", "--port", str(port),
+                                   "--no-dashboard"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    try:
+        for name in ("w1", "w2"):
+            processes.append(subprocess.Popen([dask_cli, "worker", address, "--nthreads", "1", "--name", name,
+                                               "--no-dashboard"], stdout=subprocess.DEVNULL,
+                                              stderr=subprocess.DEVNULL))
+        with Client(address, timeout="60s") as client:
+            client.wait_for_workers(2, timeout=120)
+            assert len(client.scheduler_info()["workers"]) == 2
+        local = subprocess.run(_fit_command(model_file, tmp_path / "local"), capture_output=True, text=True)
+        assert local.returncode == 0, local.stderr
+        farmed = subprocess.run(_fit_command(model_file, tmp_path / "dask", "--scheduler", address),
+                                capture_output=True, text=True)
+        assert farmed.returncode == 0, farmed.stderr
+        assert_same_store(tmp_path / "local", tmp_path / "dask")
+    finally:
+        for process in processes[::-1]:
+            process.terminate()
+        for process in processes:
+            process.wait(timeout=60)
+
+
+def test_bands_are_made_smaller_until_the_largest_fits_the_memory(model):
+    from geoidspline.fitting.memory import SMALLEST_BAND_TILE, banded_parameters, plan
+
+    params = FitParameters(**PARAMS)
+    need = plan(model, GLOBAL, params).bytes
+    smaller = banded_parameters(model, GLOBAL, params, 0.9 * need)
+    assert smaller.tile_size == 0.2 and plan(model, GLOBAL, smaller).bytes <= 0.9 * need
+    assert len(band_indices(smaller)) == 12  # z from -1.2 to 1.2 (support centres lie off the sphere)
+    assert banded_parameters(model, GLOBAL, params, need) == params  # fits: unchanged
+    assert banded_parameters(model, GLOBAL, params, 1.0).tile_size >= SMALLEST_BAND_TILE  # then refused by the plan
+    regional = Region(-60, -180, 60, 180)
+    assert banded_parameters(model, regional, params, 1.0) == params  # not fitted by bands
+
+
+def test_the_stores_node_figures_hold_for_the_store_read_back(model, tmp_path):
+    """Each band measured its nodes with its own rounding and bounded its neighbours' at
+    its edges: at every lattice node the store read back is within the node maximum
+    its manifest states; its RMS is measured with the neighbours' coefficients
+    unrounded near a band's edges (here a step of 6.7 cm moves it by 0.1 %)."""
+    params = FitParameters(**{**PARAMS, "tolerance_m": 0.15})  # a coarser step: rounding shows
+    build_store(model, tmp_path / "s", params=params, check_count=500)
+    manifest = json.loads((tmp_path / "s" / "manifest.json").read_text())
+    sample = model.nodes(GLOBAL, spacing_deg=0.625)
+    lat, lon = np.meshgrid(sample.latitude, sample.longitude, indexing="ij")  # -180 and 180 both, as the fit
+    keep = (np.abs(lat) < 90) | (lon == lon[0, 0])  # a pole is one node
+    errors = sample.undulation[keep] - open_store(tmp_path / "s").undulation(lat[keep], lon[keep])
+    assert errors.size == manifest["accuracy"]["nodes"]
+    assert np.abs(errors).max() <= manifest["accuracy"]["node_max_error_m"] <= 0.15
+    assert np.sqrt(np.mean(errors ** 2)) == pytest.approx(manifest["accuracy"]["node_rms_error_m"], rel=3e-3)
