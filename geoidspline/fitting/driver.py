@@ -64,7 +64,7 @@ def finer_data_hint(source) -> str:
 def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, progress=None,
               force_tiles=False, base_is_overlay=False, first_level=None,
               executor: Executor | None = None, interpolant=None, started=None,
-              finer_hint: str = "finer data are needed for a finer level") -> FitResult:
+              finer_hint: str = "finer data are needed for a finer level", cell_centres: bool = False) -> FitResult:
     """Fit the nodes of a :class:`~geoidspline.sphere.sample.NodeSample` over ``region``.
 
     ``sample`` must cover the region plus the support margin of level 0 (see
@@ -79,6 +79,8 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
     (:mod:`geoidspline.fitting.hierarchical_interpolation`) gives the hierarchical basis's
     coefficients instead of least squares. ``started``: the ``time.perf_counter()`` the
     fit's seconds count from (work done before this call, e.g. synthesising the sample).
+    ``cell_centres``: the sample is a grid's nodes, whose cell centres keep a hierarchical
+    fit near the grid's interpolants between them (:mod:`geoidspline.fitting.cell_centres`).
     """
     # the hierarchical basis (§5.3) replaces the overlays of a new fit; an update (a
     # strategy given, or residuals on a base) adds overlays to any store
@@ -108,8 +110,14 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
         from .hierarchical import BasisTooLarge, fit_hierarchical  # §5.3: one basis over all levels
 
         try:
+            centres = None
+            if cell_centres and interpolant is None:
+                from .cell_centres import cell_centre_nodes
+
+                centres = cell_centre_nodes(sample, region)
             result = fit_hierarchical(nodes, coverage, region, params, progress, force_tiles, start,
-                                      interpolant=interpolant, memory_budget=executor.memory_budget)
+                                      interpolant=interpolant, memory_budget=executor.memory_budget,
+                                      centres=centres)
             if not result.converged:  # the promise is kept, not given up: local passes take the rest
                 result = complete_at_finest_level(result, nodes, region, params, force_tiles, executor, progress)
             return result
@@ -394,8 +402,9 @@ def fit_source(source, region: Region | None = None, params: FitParameters | Non
         # handful of nodes: keep at least a few per level-0 cell
         spacing = min(source.lattice_step(None), math.degrees(params.h0) / 4.0)
     sample = sample_nodes(source, clip_to_extent(data_region, source), spacing, as_progress(progress))
+    # a grid is known at its nodes only: its cell centres keep the spline near its interpolants
     return fit_nodes(sample, region, params, progress=progress, force_tiles=force_tiles, executor=executor,
-                     finer_hint=finer_data_hint(source))
+                     finer_hint=finer_data_hint(source), cell_centres=not hasattr(source, "lattice_step"))
 
 
 def check_method(source, params: FitParameters):

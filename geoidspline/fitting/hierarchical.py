@@ -103,6 +103,15 @@ MAX_ITERATIONS = 1_000
 #: available is not built (:class:`BasisTooLarge`).
 BYTES_PER_UNKNOWN = 6_500
 
+#: Cell centres of a grid (:mod:`geoidspline.fitting.cell_centres`) as sites: their weight
+#: relative to a node's; whether only those found outside the interval join the sites
+#: (once the nodes are kept or can be refined no further), rather than every centre from
+#: the first step; whether those also mark their B-splines for refinement.
+#: Measured in benchmarks/README.md ("Between the nodes").
+CELL_CENTRE_WEIGHT = 1.0
+CELL_CENTRES_ACTIVE_SET = True
+CELL_CENTRE_MARKS = False
+
 #: Ridge relative to the mean diagonal of AᵀA: keeps B-splines no site sees decided.
 RIDGE = 1e-10
 
@@ -168,19 +177,24 @@ class SymmetricMatrix:
         return self.upper[index][:, index].T.toarray()
 
 
-def _system(basis: HierarchicalBasis, points, values, regularization):
-    """The whole problem's matrix (AᵀA + penalty + ridge, a :class:`SymmetricMatrix`) and Aᵀv."""
+def _system(basis: HierarchicalBasis, points, values, regularization, extra=None):
+    """The whole problem's matrix (AᵀA + penalty + ridge, a :class:`SymmetricMatrix`) and Aᵀv.
+    ``extra``: ``(points, values, weight)`` of sites weighted ``weight`` (per level, as
+    ``points`` and ``values``); the penalty scales with the nodes' diagonal alone."""
     matrix, rhs = normal_matrix(basis, [(p, v) for p, v in zip(points, values)])
     diagonal = matrix.diagonal()
+    if extra is not None:
+        more, more_rhs = normal_matrix(basis, [(p, v) for p, v in zip(extra[0], extra[1])])
+        matrix, rhs = matrix + extra[2] * more, rhs + extra[2] * more_rhs
     matrix = matrix + sp.triu(_penalty(basis, diagonal, regularization), format="csc")
     scale = float(diagonal[diagonal > 0].mean()) if np.any(diagonal > 0) else 1.0
     matrix = matrix + sp.identity(basis.coefficient_count, format="csc") * (RIDGE * scale)
     return SymmetricMatrix(matrix), rhs
 
 
-def _solve(basis: HierarchicalBasis, points, values, regularization):
+def _solve(basis: HierarchicalBasis, points, values, regularization, extra=None):
     """The whole problem by one sparse LDLᵀ factorisation."""
-    system, rhs = _system(basis, points, values, regularization)
+    system, rhs = _system(basis, points, values, regularization, extra)
     return qdldl.Solver(system.upper.tocsc()).solve(rhs)
 
 
@@ -199,7 +213,7 @@ def _gather(sorted_bins, order, wanted):
 
 
 def solve_basis(basis: HierarchicalBasis, points, values, params: FitParameters, force_tiles=False,
-                progress=None, name="hierarchical fit", start=None, memory_budget=None):
+                progress=None, name="hierarchical fit", start=None, memory_budget=None, extra=None):
     """Coefficients (all levels, in :meth:`HierarchicalBasis.offsets` order) of the
     least-squares fit of ``values`` at ``points`` (one array each per level) over the
     whole basis, and the number of local problems factorised.
@@ -216,7 +230,7 @@ def solve_basis(basis: HierarchicalBasis, points, values, params: FitParameters,
     progress = as_progress(progress)
     if basis.coefficient_count <= WHOLE_MAX_UNKNOWNS and not force_tiles:
         with progress.stage(name, 1, "block") as advance:
-            coefs = _solve(basis, points, values, params.regularization)
+            coefs = _solve(basis, points, values, params.regularization, extra)
             advance(1)
         return coefs, 1
     need = basis.coefficient_count * BYTES_PER_UNKNOWN
@@ -227,7 +241,7 @@ def solve_basis(basis: HierarchicalBasis, points, values, params: FitParameters,
                             f"which need about {need / 1e9:.3g} GB at once; {available / 1e9:.3g} GB are available; "
                             "overlays are fitted level by level in local blocks")
     t0 = time.perf_counter()
-    system, rhs = _system(basis, points, values, params.regularization)
+    system, rhs = _system(basis, points, values, params.regularization, extra)
     t1 = time.perf_counter()
     index_sets = schwarz_blocks(basis, SCHWARZ_BLOCK, SCHWARZ_OVERLAP)
     with progress.stage(name, len(index_sets), "block") as advance:
@@ -257,7 +271,7 @@ def finest_admissible_level(params: FitParameters, nodes: DataNodes) -> int:
 
 def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitParameters, progress=None,
                      force_tiles=False, start=None, on_step=None, interpolant=None,
-                     memory_budget=None) -> FitResult:
+                     memory_budget=None, centres=None) -> FitResult:
     """Fit ``nodes`` (:class:`~geoidspline.fitting.sites.DataNodes`) over ``region`` with
     the hierarchical basis; :func:`geoidspline.fitting.driver.fit_nodes` calls it for
     ``params.refinement == "hierarchical"``. ``coverage`` goes into the result as it is.
@@ -268,7 +282,12 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
     source's :class:`~geoidspline.fitting.hierarchical_interpolation.HierarchicalQuasiInterpolant`)
     gives each step's coefficients, on its basis (``shell``), instead of least squares.
     ``memory_budget`` (bytes): a step whose whole problem would need more is not built
-    (:class:`BasisTooLarge`).
+    (:class:`BasisTooLarge`). ``centres``: a grid's cell centres
+    (:class:`~geoidspline.fitting.cell_centres.CellCentres`); once the nodes are within
+    the tolerance or can be refined no further, the centres of the region where the
+    spline lies more than the tolerance outside their interval join the sites (weight
+    :data:`CELL_CENTRE_WEIGHT`) and the basis is fitted again (refined again where nodes
+    rise above the tolerance), until no centre is outside or none is added.
     """
     start = time.perf_counter() if start is None else start
     progress = as_progress(progress)
@@ -283,6 +302,12 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
     reports = []
     previous = None  # (basis, coefficients) of the last step: conjugate gradients start there
     converged = data_limited = False
+    if centres is not None:
+        centre_dirs = centres.directions[centres.in_region]
+        # the centres fitted as sites: an active set that only grows, or all of them
+        fitted_centres = np.full(centres.values.size, not CELL_CENTRES_ACTIVE_SET)
+        centre_index = np.flatnonzero(centres.in_region)
+    kept = None
     while True:
         t0 = time.perf_counter()
         step = len(reports)
@@ -290,9 +315,21 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
             sites = leaf_sites(nodes, basis, params)
             points, values = [p for p, _ in sites], [nodes.values[i] for _, i in sites]
             x0 = carry_over(*previous, basis) if previous is not None else None
+            extra = None
+            if centres is not None:
+                # leaves of a level finer than the nodes take every centre (the nodes alone
+                # leave such B-splines free between them); coarser ones those found outside
+                fine = [basis.spacing(lv) < nodes.spacing_rad for lv in range(basis.levels)]
+                some = leaf_sites(centres.subset(fitted_centres), basis, params)
+                every = leaf_sites(centres, basis, params) if any(fine) else some
+                chosen = [(every if f else some)[lv] for lv, f in enumerate(fine)]
+                subset_values = centres.values[fitted_centres]
+                extra = ([p for p, _ in chosen],
+                         [(centres.values if f else subset_values)[i] for f, (_, i) in zip(fine, chosen)],
+                         CELL_CENTRE_WEIGHT)
             coefs, solved = solve_basis(basis, points, values, params, force_tiles, progress,
                                         f"hierarchical step {step} ({basis.coefficient_count:,} unknowns)", x0,
-                                        memory_budget)
+                                        memory_budget, extra)
             previous = (basis, coefs)
         else:  # §5.3.1: the hierarchical quasi-interpolant, no solve
             (coefs, points, values), solved = interpolant.coefficients(basis, progress), 0
@@ -313,14 +350,42 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
                  "%.4g m (%.1f s)", step, top, basis.coefficient_count,
                  "/".join(str(a.size) for a in basis.active), reports[-1].max_error_m, int(above.sum()),
                  params.node_target_m, reports[-1].seconds)
-        if not above.any():
+        if centres is not None and not above.any():
+            kept = (spline, errors, basis, len(reports))  # the last spline keeping every node
+        refined = strategy.refine(basis, region_dirs[above], max_level=finest) if above.any() else basis
+        grew = False
+        if centres is not None and (refined is basis or not CELL_CENTRES_ACTIVE_SET):
+            # the nodes are kept or can be refined no further: the cell centres outside
+            # the interval join the sites (marking their B-splines only with CELL_CENTRE_MARKS:
+            # finer B-splines there swing between the nodes elsewhere)
+            outside = centres.outside(spline.evaluate_points(centre_dirs), centres.in_region)
+            out = outside > params.node_target_m
+            log.info("hierarchical step %d: cell centres at most %.4f m outside the interval, %d above %.4g m",
+                     step, float(outside.max(initial=0.0)), int(out.sum()), params.node_target_m)
+            grew = bool((out & ~fitted_centres[centre_index]).any())
+            fitted_centres[centre_index[out]] = True
+            if CELL_CENTRE_MARKS and out.any():
+                refined = strategy.refine(basis, np.concatenate([region_dirs[above], centre_dirs[out]]),
+                                          max_level=finest)
+            if not above.any() and not out.any():
+                converged = True
+                break
+        elif not above.any():
             converged = True
             break
-        refined = strategy.refine(basis, region_dirs[above], max_level=finest)
-        if refined is basis:
+        if refined is basis and not grew:
             data_limited = finest < params.max_level
+            converged = not above.any()
             break
         basis = refined
+    if centres is not None and above.any() and kept is not None:
+        # the centres cost the nodes their tolerance and no refinement gives it back: the
+        # nodes' promise comes first, so the last spline that kept it is the fit
+        log.info("hierarchical fit: %d nodes above %.4g m after the cell centres' steps; the fit of step %d "
+                 "(every node kept) is the result", int(above.sum()), params.node_target_m, kept[3] - 1)
+        spline, errors, basis, steps = kept
+        reports = reports[:steps]
+        converged = True
     return FitResult(
         spline=spline, parameters=params, region=region, levels=reports,
         node_count=int(errors.size), node_max_error_m=float(np.abs(errors).max()),

@@ -7,6 +7,7 @@ outside the level's active cells are dropped.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -58,6 +59,11 @@ class DataNodes:
             dlat_rad=float(dlat),
             dlon_rad=float(dlon),
         )
+
+    def subset(self, mask) -> "DataNodes":
+        """The nodes of ``mask`` (bool over the nodes), same spacing."""
+        return dataclasses.replace(self, **{f.name: getattr(self, f.name)[mask] for f in dataclasses.fields(self)
+                                            if isinstance(getattr(self, f.name), np.ndarray)})
 
     @property
     def spacing_rad(self) -> float:

@@ -1,0 +1,85 @@
+"""Pseudo-observations between a grid's nodes: its cell centres (issue 21, item 3).
+
+A grid says nothing between its nodes, but its truth there lies near the grid's
+bilinear and bicubic interpolants. A least-squares fit at the nodes alone leaves the
+spline free between them wherever its finest level is about as fine as the nodes
+(Andes, 0.01 m: up to 0.16 m off that interval at a cell centre). The centre of each
+cell, valued at the middle of the interval its bilinear and bicubic (Catmull-Rom,
+a = -0.5) interpolants span there, is fitted as a site of lower weight than the nodes:
+it decides what the nodes leave free and yields to them where the two disagree.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..sphere.coordinates import directions
+from ..sphere.region import Region
+from .sites import DataNodes
+
+__all__ = ["CATMULL_ROM_CENTRE", "CellCentres", "cell_centre_interval", "cell_centre_nodes"]
+
+#: Catmull-Rom (a = -0.5) weights of the four nodes along an axis at a cell's centre.
+CATMULL_ROM_CENTRE = np.array([-1.0, 9.0, 9.0, -1.0]) / 16.0
+
+
+def cell_centre_interval(latitude, longitude, values):
+    """Centres of the cells of a lattice (degrees) whose 4 x 4 stencil has data, and the
+    (low, high) interval of the bilinear and bicubic interpolants there (metres).
+
+    A lattice spanning 360 degrees of longitude wraps around; otherwise only cells with
+    a whole stencil inside it count. Returns ``(lat, lon, low, high, row, col)``, the
+    cell's south-west node's indices in ``row``/``col`` (1-D arrays)."""
+    latitude, longitude = np.asarray(latitude, float), np.asarray(longitude, float)
+    values = np.asarray(values, float)
+    nlat, nlon = values.shape
+    if nlat < 4 or nlon < 2:
+        empty = np.empty(0)
+        return empty, empty, empty, empty, empty.astype(np.int64), empty.astype(np.int64)
+    dlon = float(np.diff(longitude).min()) if nlon > 1 else 360.0
+    periodic = abs(longitude[-1] - longitude[0] + dlon - 360.0) < 1e-6
+    rows = np.arange(1, nlat - 2)
+    cols = np.arange(nlon) if periodic else np.arange(1, nlon - 2)
+    stencil = np.arange(-1, 3)
+    r = rows[:, None] + stencil
+    c = cols[:, None] + stencil
+    if periodic:
+        c %= nlon
+    block = values[r[:, None, :, None], c[None, :, None, :]]  # (rows, cols, 4, 4)
+    bicubic = np.einsum("abij,i,j->ab", block, CATMULL_ROM_CENTRE, CATMULL_ROM_CENTRE)
+    bilinear = block[:, :, 1:3, 1:3].mean(axis=(2, 3))
+    lat = latitude[rows] + 0.5 * (latitude[rows + 1] - latitude[rows])
+    lon = longitude[cols] + 0.5 * dlon
+    lat2, lon2 = np.meshgrid(lat, lon, indexing="ij")
+    row2, col2 = np.meshgrid(rows, cols, indexing="ij")
+    keep = np.isfinite(bicubic) & np.isfinite(bilinear)
+    return (lat2[keep], lon2[keep], np.minimum(bicubic, bilinear)[keep], np.maximum(bicubic, bilinear)[keep],
+            row2[keep], col2[keep])
+
+
+@dataclass
+class CellCentres(DataNodes):
+    """Cell centres as data nodes: ``values`` the middle of the bilinear-bicubic
+    interval, ``half_width`` half its width (metres)."""
+
+    half_width: np.ndarray
+
+    def outside(self, spline_values, mask=None) -> np.ndarray:
+        """How far ``spline_values`` (at the centres of ``mask``) lie outside the interval (m)."""
+        mid, half = (self.values, self.half_width) if mask is None else (self.values[mask], self.half_width[mask])
+        return np.maximum(np.abs(spline_values - mid) - half, 0.0)
+
+
+def cell_centre_nodes(sample, region: Region) -> CellCentres | None:
+    """The centres of a grid sample's cells as :class:`DataNodes` valued at the middle
+    of their bilinear-bicubic interval (None when the sample has no whole cell)."""
+    lat, lon, low, high, row, col = cell_centre_interval(sample.latitude, sample.longitude, sample.undulation)
+    if lat.size == 0:
+        return None
+    dlat = np.radians(np.diff(sample.latitude).min())
+    dlon = np.radians(np.diff(sample.longitude).min())
+    return CellCentres(latitude=lat, longitude=lon, values=0.5 * (low + high), directions=directions(lat, lon),
+                       in_region=region.contains(lat, lon), row=row, col=col, dlat_rad=float(dlat),
+                       dlon_rad=float(dlon), half_width=0.5 * (high - low))
