@@ -112,6 +112,19 @@ CELL_CENTRE_WEIGHT = 1.0
 CELL_CENTRES_ACTIVE_SET = True
 CELL_CENTRE_MARKS = False
 
+#: Rounds in which centres found outside the interval may join the sites. Each round
+#: solves the whole basis again; uncapped, Andes at 0.01 m ran for over 15 minutes
+#: (against 55 s with the nodes alone) while its centres still moved: the fit stops
+#: adding centres after this many and reports the cell-centre figure it reached.
+CELL_CENTRE_ROUNDS = 4
+
+#: Whether a grid fit (:func:`geoidspline.fitting.driver.fit_source`) takes its cell
+#: centres by default. Off: at 0.1 m over the Andes they cost 2.9 x the time for the
+#: centres' figure 0.167 -> 0.104 m, and at 0.01 m the fit ran over 10 minutes (55 s
+#: without them) and ended no better; measured in benchmarks/README.md ("Between the
+#: nodes"). ``fit_nodes(..., cell_centres=True)`` asks for them.
+CELL_CENTRES_BY_DEFAULT = False
+
 #: Ridge relative to the mean diagonal of AᵀA: keeps B-splines no site sees decided.
 RIDGE = 1e-10
 
@@ -308,6 +321,7 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
         fitted_centres = np.full(centres.values.size, not CELL_CENTRES_ACTIVE_SET)
         centre_index = np.flatnonzero(centres.in_region)
     kept = None
+    rounds = 0  # of cell centres joining the sites
     while True:
         t0 = time.perf_counter()
         step = len(reports)
@@ -362,8 +376,10 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
             out = outside > params.node_target_m
             log.info("hierarchical step %d: cell centres at most %.4f m outside the interval, %d above %.4g m",
                      step, float(outside.max(initial=0.0)), int(out.sum()), params.node_target_m)
-            grew = bool((out & ~fitted_centres[centre_index]).any())
-            fitted_centres[centre_index[out]] = True
+            grew = rounds < CELL_CENTRE_ROUNDS and bool((out & ~fitted_centres[centre_index]).any())
+            if grew:
+                rounds += 1
+                fitted_centres[centre_index[out]] = True
             if CELL_CENTRE_MARKS and out.any():
                 refined = strategy.refine(basis, np.concatenate([region_dirs[above], centre_dirs[out]]),
                                           max_level=finest)
