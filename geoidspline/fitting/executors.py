@@ -175,8 +175,13 @@ def _quiet_dask_logs():
         logger.setLevel(old)
 
 
-def _solve_dask(problems, workers, scheduler, progress):
-    dask, Client, LocalCluster, as_completed = _import_dask()
+@contextlib.contextmanager
+def _dask_client(workers, scheduler):
+    """A dask client for a call: on a ``LocalCluster`` of ``workers`` single-threaded
+    processes started for it (``scheduler == "local"``), or on the running cluster at the
+    address ``scheduler``; dask's INFO logs quieted and its large-graph warning off for
+    the call."""
+    dask, Client, LocalCluster, _ = _import_dask()
     with contextlib.ExitStack() as stack:
         stack.enter_context(_quiet_dask_logs())
         if scheduler == "local":
@@ -193,10 +198,16 @@ def _solve_dask(problems, workers, scheduler, progress):
             except (OSError, TimeoutError) as exc:
                 raise FitError(f"cannot connect to the dask scheduler at {scheduler}: {exc}") from exc
             stack.enter_context(client)
-        # A block travels inside its task (a few MB: its sites and values), so that the
+        # A block (or a band's shared inputs) travels inside its task, so that the
         # scheduler hands it to whichever worker is free; dask's warning about large
         # graphs is expected here and says nothing useful to the user.
         stack.enter_context(dask.config.set({"distributed.admin.large-graph-warning-threshold": "1 TiB"}))
+        yield client
+
+
+def _solve_dask(problems, workers, scheduler, progress):
+    *_, as_completed = _import_dask()
+    with _dask_client(workers, scheduler) as client:
         # At most `window` blocks are submitted and not yet finished, so neither the
         # scheduler nor the workers hold a whole level's data at once.
         window = max(8, 4 * sum(client.nthreads().values()))
@@ -242,22 +253,8 @@ def run_tasks(function, items, executor: Executor, shared=None):
         for item in items:
             yield item, function(shared, item)
         return
-    dask, Client, LocalCluster, as_completed = _import_dask()
-    with contextlib.ExitStack() as stack:
-        stack.enter_context(_quiet_dask_logs())
-        if executor.scheduler == "local":
-            cluster = stack.enter_context(LocalCluster(
-                n_workers=executor.workers, threads_per_worker=1, processes=True, env=dict(_WORKER_ENV),
-                dashboard_address=":0", scheduler_kwargs={"dashboard": False},
-            ))
-            client = stack.enter_context(Client(cluster))
-        else:
-            try:
-                client = Client(executor.scheduler)
-            except (OSError, TimeoutError) as exc:
-                raise FitError(f"cannot connect to the dask scheduler at {executor.scheduler}: {exc}") from exc
-            stack.enter_context(client)
-        stack.enter_context(dask.config.set({"distributed.admin.large-graph-warning-threshold": "1 TiB"}))
+    *_, as_completed = _import_dask()
+    with _dask_client(executor.workers, executor.scheduler) as client:
         shared_future = client.scatter(shared, broadcast=True) if shared is not None else None
         window = max(1, sum(client.nthreads().values()))
         pending = iter(items)
