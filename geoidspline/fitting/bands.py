@@ -125,8 +125,6 @@ class BandResult:
     node_max_error_m: float  # the stored spline's, at most (see :func:`band_step`)
     node_sum_squares: float
     fit_node_max_error_m: float  # the fit's, before rounding
-    check_latitude: np.ndarray
-    check_longitude: np.ndarray
     check_errors: np.ndarray  # truth - stored spline at the band's check points
     level_reports: list
     converged: bool
@@ -194,7 +192,7 @@ def fit_band(source, params: FitParameters, band: int, check_latitude, check_lon
         node_count=int(node_errors.size), node_max_error_m=node_bound,
         node_sum_squares=float(np.sum(node_errors ** 2)),
         fit_node_max_error_m=float(np.abs(fit_errors).max()) if fit_errors.size else 0.0,
-        check_latitude=check_lat, check_longitude=check_lon, check_errors=check_errors,
+        check_errors=check_errors,
         level_reports=[vars(r) for r in result.levels], converged=bool(result.converged),
         data_limited=bool(result.data_limited), seconds=time.perf_counter() - started, sample_rows=rows,
     )
