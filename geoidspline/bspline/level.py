@@ -18,6 +18,13 @@ def cube_of_support_centres(indices, h, order, cube_size):
     return np.floor(centre / cube_size).astype(np.int64)
 
 
+def tiles_of_directions(dirs, tile_size):
+    """The storage tile of each point ``dirs`` (M, 3), as packed keys of the cube of
+    side ``tile_size`` holding it: the tile whose statistics a data node or check point
+    counts in (coefficients go by :func:`cube_of_support_centres`)."""
+    return _keys.pack_keys(np.floor(np.asarray(dirs) / tile_size).astype(np.int64))
+
+
 @dataclass(frozen=True, eq=False)
 class LevelSpline:
     """One level of an ambient spline: sparse B-spline coefficients on spacing ``h``.

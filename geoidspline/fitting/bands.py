@@ -44,8 +44,8 @@ from typing import NamedTuple
 import numpy as np
 
 from ..bspline.domain import active_cells
-from ..bspline.keys import touching_keys
-from ..bspline.level import LevelSpline, cube_of_support_centres
+from ..bspline.keys import pack_keys, touching_keys, unpack_keys
+from ..bspline.level import LevelSpline, cube_of_support_centres, tiles_of_directions
 from ..errors import FitError
 from ..hierarchy.ambient import AmbientSpline
 from ..sphere.coordinates import directions
@@ -80,9 +80,9 @@ def band_latitudes(band: int, tile_size: float) -> tuple[float, float]:
 
 
 def band_of_directions(dirs, tile_size: float) -> np.ndarray:
-    """The band of each unit direction (M, 3): its tile's ``z`` index, as the store
-    groups node statistics (:func:`geoidspline.store.writer.group_by_tile`)."""
-    return np.floor(np.asarray(dirs)[:, 2] / tile_size).astype(np.int64)
+    """The band of each unit direction (M, 3): the ``z`` index of its storage tile
+    (:func:`~geoidspline.bspline.level.tiles_of_directions`)."""
+    return unpack_keys(tiles_of_directions(dirs, tile_size))[:, 2]
 
 
 def band_margin_deg(params: FitParameters, overlay_reach: bool = False) -> float:
@@ -234,14 +234,12 @@ def band_step(spline: AmbientSpline, owned, node_dirs, fit_errors, rounding: Rou
 
 def _tile_stats(owned_levels, node_dirs, node_errors, check_dirs, check_errors, params):
     """{packed tile key: (node errors, check errors)} for the tiles of the band's coefficients."""
-    from ..bspline.keys import pack_keys, unpack_keys
-
     tiles = [pack_keys(cube_of_support_centres(unpack_keys(keys), h, params.order, params.tile_size))
              for _, h, keys, _ in owned_levels if keys.size]
     if not tiles:
         return {}
-    node_tile = pack_keys(np.floor(node_dirs / params.tile_size).astype(np.int64))
-    check_tile = pack_keys(np.floor(check_dirs / params.tile_size).astype(np.int64))
+    node_tile = tiles_of_directions(node_dirs, params.tile_size)
+    check_tile = tiles_of_directions(check_dirs, params.tile_size)
     return {int(key): (node_errors[node_tile == key], check_errors[check_tile == key])
             for key in np.unique(np.concatenate(tiles))}
 

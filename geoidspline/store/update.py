@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..bspline.keys import unpack_keys
+from ..bspline.level import tiles_of_directions
 from ..errors import StoreError
 from ..sphere.coordinates import directions
 from .codec import node_safe_step
@@ -32,7 +33,6 @@ from .writer import (
     _manifest_state,
     commit,
     crash_point,
-    group_by_tile,
     quantisation_meta,
     tile_encoding,
     tile_groups,
@@ -151,7 +151,7 @@ def _write_update(root, store, update, source, region, blend_width_km, attempt):
         spline_meta["store_id"] = manifest["store_id"]
     changed = set(tile_groups(delta.spline, params.tile_size))
     groups = tile_groups(merged, params.tile_size)
-    node_tile = group_by_tile(node_directions, params.tile_size)
+    node_tile = tiles_of_directions(node_directions, params.tile_size)
     entries = {tuple(e["tile"]): e for e in manifest["tiles"]}
     crash_point("before-tiles")
     for key in sorted(changed):

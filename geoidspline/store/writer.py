@@ -34,7 +34,7 @@ import numpy as np
 
 from .._files import fault_cause, fsync_dir, sha256_file, write_fault
 from ..bspline import keys as _keys
-from ..bspline.level import cube_of_support_centres
+from ..bspline.level import cube_of_support_centres, tiles_of_directions
 from ..errors import StoreCorruptError, StoreError
 from ..sphere.coordinates import directions
 from ..sphere.coverage import Coverage
@@ -64,12 +64,6 @@ if TYPE_CHECKING:  # annotations only
     from ..hierarchy.ambient import AmbientSpline
 
 log = logging.getLogger("geoidspline.store")
-
-
-def group_by_tile(dirs, tile_size):
-    tiles = np.floor(dirs / tile_size).astype(np.int64)
-    keys = _keys.pack_keys(tiles)
-    return keys
 
 
 _crash_counts: dict = {}
@@ -530,7 +524,7 @@ def _fit_manifest(root, result, provenance, check, previous, version, extra, att
                                                tolerance_asked({"tolerance_m": params.tolerance_m, **(extra or {})}))
         quantisation = quantisation_meta(step, len(spline.levels))
         stored = quantised_spline(spline, step)
-    node_tile = group_by_tile(result.node_directions, params.tile_size)
+    node_tile = tiles_of_directions(result.node_directions, params.tile_size)
     check_errors = cell_centre = None
     if check is not None:
         stored_values = stored.undulation(check.latitude, check.longitude)
@@ -538,7 +532,7 @@ def _fit_manifest(root, result, provenance, check, previous, version, extra, att
         outside = check.interval_distance(stored_values) if hasattr(check, "interval_distance") else None
         if outside is not None:  # a grid: how far the store leaves its interpolants' interval
             cell_centre = float(outside.max()) if outside.size else 0.0
-        check_tile = group_by_tile(directions(check.latitude, check.longitude), params.tile_size)
+        check_tile = tiles_of_directions(directions(check.latitude, check.longitude), params.tile_size)
     spline_meta = {"order": params.order, "h0": params.h0, "tile_size": params.tile_size, "store_id": store_id}
     if format_version >= 2:
         spline_meta["value_step_m"] = quantisation["value_step_m"]
