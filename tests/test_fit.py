@@ -291,14 +291,17 @@ def test_fit_straight_from_a_spherical_harmonic_model(make_synthesis):
 
 
 @pytest.mark.parametrize("count", [0, 1, 5, 3000])
-@pytest.mark.parametrize("chunk", [1, 7, 1_000_000])
-def test_union_of_shifts_equals_unique_of_all_shifts(count, chunk):
-    from geoidspline.bspline.keys import union_of_shifts
+@pytest.mark.parametrize("step, lo, hi", [(1, -7, 3), (1, 0, 0), (1000, -2, 5), (1 << 21, -16, 16), (1 << 42, 0, 5)])
+def test_dilate_axis_equals_unique_of_all_shifts(count, step, lo, hi):
+    from geoidspline.bspline.keys import dilate_axis
 
-    keys = np.unique(np.random.default_rng(count).integers(0, 10**6, count))
-    shifts = np.array([-7, 0, 3, 100])
+    rng = np.random.default_rng(count)
+    # runs of consecutive keys (as a shell's columns give) and scattered ones
+    starts = rng.integers(0, 10**6, count) * 37
+    keys = np.unique(np.concatenate([starts, starts + 1, starts + 2, rng.integers(0, 4 * 10**7, count)]))
+    shifts = np.arange(lo, hi + 1) * step
     expected = np.unique((keys[:, None] + shifts[None, :]).ravel())
-    np.testing.assert_array_equal(union_of_shifts(keys, shifts, chunk), expected)
+    np.testing.assert_array_equal(dilate_axis(keys, step, lo, hi), expected)
 
 
 @pytest.mark.parametrize("h", [0.1, 0.04, 0.005, 0.0025])

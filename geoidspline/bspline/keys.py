@@ -44,33 +44,60 @@ def cube_offsets(lo, hi):
     return np.array(np.meshgrid(r, r, r, indexing="ij")).reshape(3, -1).T
 
 
-def union_of_shifts(keys, shifts, chunk=1_000_000):
-    """Sorted unique ``key + s`` for every key of ``keys`` (sorted, unique) and s in ``shifts``.
+def _runs(keys):
+    """(first, last) keys of the runs of consecutive integers in sorted unique ``keys``."""
+    if keys.size == 0:
+        return keys, keys
+    breaks = np.flatnonzero(keys[1:] != keys[:-1] + 1) + 1
+    return keys[np.r_[0, breaks]], keys[np.r_[breaks - 1, keys.size - 1]]
 
-    Each shifted copy is sorted, so a stable sort (timsort) only merges runs: 25x faster
-    than ``np.unique`` on millions of keys. In chunks of keys, so the transient is
-    ``chunk * len(shifts)`` keys, not the whole set times the shifts.
+
+def _keys_of_runs(first, last):
+    """Sorted keys of disjoint runs ``first..last`` (sorted, not touching)."""
+    lengths = last - first + 1
+    total = int(lengths.sum())
+    # each key is its run's first key plus its position in the run
+    offsets = np.repeat(first - (np.cumsum(lengths) - lengths), lengths)
+    return offsets + np.arange(total, dtype=np.int64)
+
+
+def dilate_axis(keys, step, lo, hi):
+    """Sorted unique ``key + t * step`` for every key of ``keys`` (sorted, unique) and t
+    in ``lo..hi``: the keys dilated along the axis of key increment ``step``
+    (:data:`AXIS_STEPS`).
+
+    The keys go as runs of consecutive keys (a column's stretch along the last axis), so
+    the work is the runs' count times the shifts, not the keys' (about 20x fewer on a
+    shell): every run is shifted, the shifted runs sorted and merged where they overlap
+    or touch, and the keys written out once.
     """
-    shifts = np.asarray(shifts, dtype=np.int64)
-    parts = []
-    for a in range(0, max(keys.size, 1), chunk):
-        merged = np.sort((shifts[:, None] + keys[None, a:a + chunk]).ravel(), kind="stable")
-        parts.append(merged[np.r_[True, merged[1:] != merged[:-1]]] if merged.size else merged)
-    if len(parts) == 1:
-        return parts[0]
-    merged = np.sort(np.concatenate(parts), kind="stable")
-    return merged[np.r_[True, merged[1:] != merged[:-1]]]
+    keys = np.asarray(keys, dtype=np.int64)
+    first, last = _runs(keys)
+    if first.size == 0:
+        return keys
+    if step == 1:  # runs stay in order: widen, then merge the ones that now touch
+        first, last = first + lo, last + hi
+    else:
+        shifts = np.arange(lo, hi + 1, dtype=np.int64) * step
+        first = (shifts[:, None] + first[None, :]).ravel()
+        last = (shifts[:, None] + last[None, :]).ravel()
+        order = np.argsort(first, kind="stable")
+        first, last = first[order], last[order]
+        last = np.maximum.accumulate(last)
+    new = np.r_[True, first[1:] > last[:-1] + 1]
+    group_last = np.r_[np.flatnonzero(new)[1:] - 1, first.size - 1]
+    return _keys_of_runs(first[new], last[group_last])
 
 
 def dilate_keys(keys, lo, hi):
     """Sorted unique keys of ``key + o`` for every offset o in [lo, hi]³.
 
     Packing is linear in each index, so offsets add to the keys; dilating one axis at
-    a time keeps the intermediate arrays (hi - lo + 1) times the result, not its cube.
+    a time keeps the intermediate arrays no larger than the result, not its cube.
     """
     keys = np.unique(keys)
     for step in AXIS_STEPS:
-        keys = union_of_shifts(keys, np.arange(lo, hi + 1) * step)
+        keys = dilate_axis(keys, step, lo, hi)
     return keys
 
 

@@ -36,7 +36,7 @@ import numpy as np
 
 from .._kernels import interpolation as kern
 from ..bspline.basis import centred_bspline_samples
-from ..bspline.keys import AXIS_STEPS, KEY_BITS, KEY_OFFSET, union_of_shifts
+from ..bspline.keys import AXIS_STEPS, KEY_BITS, KEY_OFFSET, dilate_axis
 from ..errors import FitError
 from ..sphere.coordinates import latlon_of
 from ..sphere.region import Region
@@ -220,7 +220,7 @@ def interpolate_level(source, keys, h: float, order: int, spacing_deg: float,
     # the key sets each pass writes: the coefficients, then dilated one axis at a time
     sets = [np.asarray(keys, dtype=np.int64)]
     for step in steps[::-1]:
-        sets.append(union_of_shifts(sets[-1], np.arange(-half, half + 1) * step))
+        sets.append(dilate_axis(sets[-1], step, -half, half))
     lattice = sets[-1]
     lat = np.empty(lattice.size)
     lon = np.empty(lattice.size)
