@@ -8,12 +8,13 @@ outside the level's active cells are dropped.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from .._kernels.fitting import cells_meet_sphere
-from ..bspline.keys import covered_cell_keys, isin_sorted, pack_keys
+from ..bspline.keys import covered_cell_keys, dilate_keys, isin_sorted, pack_keys
 from ..sphere.coordinates import directions
 from ..sphere.region import Region
 
@@ -85,6 +86,13 @@ def sites_for_level(nodes: DataNodes, ray_mask, h, order, keys, radial_offsets, 
     """Site positions and node indices for one level (rays through the kept nodes)."""
     covered = covered_cell_keys(keys, order) if site_cells is None else site_cells
     node_idx = np.flatnonzero(ray_mask)
+    # a site is at most max |offset| h from its node, so its cell at most that many cells
+    # (+1 for the floor) from the node's own per axis: nodes whose own cell is farther
+    # from every covered cell have no site (an overlay covers a few cells of millions)
+    reach = math.ceil(max(abs(rho) for rho in radial_offsets)) + 1
+    near = isin_sorted(pack_keys(np.floor(nodes.directions[node_idx] / h).astype(np.int64)),
+                       dilate_keys(covered, -reach, reach))
+    node_idx = node_idx[near]
     pts_all, idx_all = [], []
     for rho in radial_offsets:
         pts = nodes.directions[node_idx] * (1.0 + rho * h)
