@@ -78,12 +78,18 @@ def test_the_chosen_level_0_is_the_coarsest_the_prediction_allows(make_synthesis
     assert "degree variances" in choice.reasons["h0"]
     # the whole sphere's prediction, whatever the region (a region's rings hold their
     # latitudes' average, not the region's own roughness)
-    assert choose.choose_parameters(synthesis, 0.002).parameters == p
+    assert choose.choose_parameters(synthesis, 0.002, Region.from_bounds(-60, 100, -40, 150)).parameters == p
     spectrum = level0_error.ModelSpectrum.of(synthesis)
     area = 4 * math.pi
     target = choose.LEVEL0_OVER_TOLERANCE * 0.002
     assert level0_error.predicted_level0(spectrum, p.h0, p.order, area)[0] <= target
     assert level0_error.predicted_level0(spectrum, p.h0 * 1.01, p.order, area)[0] > target * 0.99
+    # the whole globe, fitted band by band, keeps the tolerance with level 0 alone (room
+    # for the bands' rounding at their edges): a finer level 0
+    globe = choose.choose_parameters(synthesis, 0.002).parameters
+    assert level0_error.predicted_level0(spectrum, globe.h0, p.order, area)[0] <= \
+        choose.BANDED_LEVEL0_OVER_TOLERANCE * 0.002 < target
+    assert globe.h0 < p.h0
     # a model with the same degrees but ten times the power above degree 40 needs a finer level 0
     rough = dataclasses.replace(spectrum, power=spectrum.power * np.where(np.arange(61) > 40, 10.0, 1.0)[None, :, None])
     assert level0_error.spacing_for_level0(rough, p.order, target, area, 0.05) < p.h0 * 0.95
