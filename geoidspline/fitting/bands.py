@@ -258,10 +258,21 @@ def _tile_stats(owned_levels, node_dirs, node_errors, check_dirs, check_errors, 
              for _, h, keys, _ in owned_levels if keys.size]
     if not tiles:
         return {}
-    node_tile = tiles_of_directions(node_dirs, params.tile_size)
-    check_tile = tiles_of_directions(check_dirs, params.tile_size)
-    return {int(key): (node_errors[node_tile == key], check_errors[check_tile == key])
+    nodes = _by_tile(tiles_of_directions(node_dirs, params.tile_size), node_errors)
+    checks = _by_tile(tiles_of_directions(check_dirs, params.tile_size), check_errors)
+    empty = np.empty(0)
+    return {int(key): (nodes.get(int(key), empty), checks.get(int(key), empty))
             for key in np.unique(np.concatenate(tiles))}
+
+
+def _by_tile(tile_keys, values) -> dict:
+    """{tile key: its values, in their order} by one stable sort (not a mask per tile:
+    a polar band has 35 M nodes in hundreds of tiles)."""
+    order = np.argsort(tile_keys, kind="stable")
+    keys = tile_keys[order]
+    starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]]) if keys.size else np.empty(0, np.int64)
+    parts = np.split(np.asarray(values)[order], starts[1:])
+    return {int(keys[a]): part for a, part in zip(starts, parts)}
 
 
 def level_reports(bands) -> list[dict]:
