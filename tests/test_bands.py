@@ -20,7 +20,7 @@ from test_interpolation import _write_gfc
 
 from geoidspline.api import build_store, open_store
 from geoidspline.errors import FitError, StoreError
-from geoidspline.fitting.bands import band_indices, band_margin_deg, band_spline, fit_band, uses_bands
+from geoidspline.fitting.bands import Band, band_indices, band_margin_deg, band_spline, fit_band, uses_bands
 from geoidspline.fitting.driver import _fit_by_interpolation
 from geoidspline.fitting.executors import Executor
 from geoidspline.fitting.parameters import FitParameters
@@ -70,16 +70,19 @@ def assert_same_store(a, b):
     assert ma["accuracy"] == mb["accuracy"]
 
 
-@pytest.mark.parametrize("reach", [False, True])
-def test_bands_give_the_whole_globe_coefficients_bit_for_bit(model, whole, reach):
+@pytest.mark.parametrize("reach, grouped", [(False, False), (True, False), (True, True)])
+def test_bands_give_the_whole_globe_coefficients_bit_for_bit(model, whole, reach, grouped):
     """Level 0 (quasi-interpolated from a band of lattice rows) and the overlays (least
     squares in blocks) of the bands together are the whole-globe fit's, bit for bit, with
-    the default margin and with one covering every overlay block's reach."""
+    the default margin and with one covering every overlay block's reach, with a slab a
+    band or with slabs grouped (two near the equator)."""
     params = FitParameters(**PARAMS)
     margin = band_margin_deg(params, overlay_reach=reach)
-    bands = [fit_band(model, params, band, np.empty(0), np.empty(0), margin_deg=margin)
-             for band in band_indices(params)]
-    assert len(bands) == 6  # z slabs of 0.4 from -1.2 to 1.2
+    slabs = band_indices(params)
+    assert len(slabs) == 6  # z slabs of 0.4 from -1.2 to 1.2
+    groups = [Band(-3, -3), Band(-2, -2), Band(-1, 0), Band(1, 1), Band(2, 2)] if grouped \
+        else [Band(b, b) for b in slabs]
+    bands = [fit_band(model, params, band, np.empty(0), np.empty(0), margin_deg=margin) for band in groups]
     banded = band_spline(bands, params)
     assert [lv.level for lv in whole.spline.levels] == [lv.level for lv in banded.levels] == [0, 1]
     assert len(whole.spline.levels[1]) > 50  # the overlay is not empty
@@ -117,6 +120,25 @@ def test_a_banded_store_holds_the_whole_fit_and_measures_it(model, whole, tmp_pa
 
 def info_step(path):
     return json.loads((Path(path) / "manifest.json").read_text())["spline"]["value_step_m"]
+
+
+def test_bands_group_slabs_where_the_memory_allows(model):
+    """Slabs near the equator hold fewer lattice rows than those near the poles: a band
+    takes consecutive slabs while its need stays within the largest one-slab band's (the
+    memory the tiles were sized for); every slab is one band's."""
+    from geoidspline.fitting.memory import band_need, band_slabs
+
+    # a lattice of many nodes for its level-0 coefficients (as EGM2008's 0.82' at h0 0.0009)
+    params = FitParameters(**{**PARAMS, "tile_size": 0.1, "h0": 0.01, "sample_spacing_deg": 0.05})
+    slabs = band_indices(params)
+    largest = max(band_need(model, params, Band(b, b))[0] for b in slabs)
+    bands = band_slabs(model, params)
+    assert [b for band in bands for b in range(band.first, band.last + 1)] == slabs
+    assert all(band_need(model, params, band)[0] <= largest for band in bands)
+    assert len(bands) < len(slabs)
+    equator = next(band for band in bands if band.first <= 0 <= band.last)
+    below = next(band for band in bands if band.first <= -9 <= band.last)  # z -0.9..-0.8, 64..53 S
+    assert equator.last - equator.first >= 2 > below.last - below.first
 
 
 def test_the_memory_plan_names_the_largest_band(model, tmp_path):

@@ -68,10 +68,10 @@ def build_banded_store(source, path, region, params, progress=None, overwrite=Fa
     :func:`~geoidspline.api.build_store` does (the result's ``spline`` is None: the
     store holds it, read it with :func:`~geoidspline.api.open_store`)."""
     from ..bspline.level import LevelSpline
-    from ..fitting.bands import Rounding, band_indices, band_margin_deg
+    from ..fitting.bands import Rounding, band_margin_deg
     from ..fitting.check_points import random_positions
     from ..fitting.executors import Executor
-    from ..fitting.memory import banded_parameters, check_plan
+    from ..fitting.memory import band_slabs, banded_parameters, check_plan
     from ..fitting.parameters import check_promise
     from ..fitting.progress import as_progress
     from ..hierarchy.ambient import AmbientSpline
@@ -92,18 +92,19 @@ def build_banded_store(source, path, region, params, progress=None, overwrite=Fa
     step = value_step(asked, params.max_level + 1)
     rounding = Rounding(step, asked, stored_values)
     check_lat, check_lon = random_positions(region, check_count, CHECK_SEED)
+    bands = band_slabs(source, params)
     identity = json.loads(json.dumps({
         "source": source.provenance.source, "sha256": source.provenance.sha256, "parameters": params.as_dict(),
         "value_step_m": step, "check_points": check_count, "check_seed": CHECK_SEED, "margin_deg": margin,
         "region": list(region.as_tuple()), "extra": extra or {},
+        "bands": [list(band) for band in bands],  # the slabs of each: part of the fit, as the tile size
     }, default=_plain))
-    bands = band_indices(params)
     spline_meta = {"order": params.order, "h0": params.h0, "tile_size": params.tile_size}
     with BandedWrite(path, identity, overwrite=overwrite, resume=resume, sign=sign) as write:
         done = write.done()
         if done:
             log.info("resuming: %d of %d bands committed already", len(done), len(bands))
-        todo = [band for band in bands if band not in done]
+        todo = [band for band in bands if band.first not in done]
         shared = (source, params, rounding, check_lat, check_lon, margin)
         with progress.stage("bands", len(bands), "band") as advance:
             advance(len(done))
@@ -122,8 +123,9 @@ def build_banded_store(source, path, region, params, progress=None, overwrite=Fa
                     "seconds": round(result.seconds, 3), "rows": result.sample_rows,
                     "value_step_m": result.value_step_m,
                 }, default=_plain))
-                write.commit_band(band, groups, stats, {**spline_meta, "value_step_m": result.value_step_m}, summary)
-                log.info("band %d: %d coefficients, node max %.4f m, %.1f s", band,
+                write.commit_band(band.first, groups, stats, {**spline_meta, "value_step_m": result.value_step_m},
+                                  summary)
+                log.info("band %d..%d: %d coefficients, node max %.4f m, %.1f s", band.first, band.last,
                          sum(summary["levels"].values()), summary["node_max_error_m"], summary["seconds"])
                 advance(1)
         manifest, result = _banded_manifest(write, source, region, params, step, extra, started, check_count)

@@ -5,8 +5,12 @@ problems and put them together"): band ``k`` owns the B-splines whose support ce
 has ``z`` in ``[k t, (k + 1) t)`` (``t`` = ``FitParameters.tile_size``, the store's tile
 side on the unit sphere, so a band's coefficients are whole tile files) and the data
 nodes and check points whose direction has ``z`` there (the tile a node's statistics go
-to). Slabs of equal height hold equal areas of the sphere (Archimedes), so the bands'
-work is even; a smaller ``tile_size`` gives more, smaller bands.
+to). Slabs of equal height hold equal areas of the sphere (Archimedes), but not equal
+lattice rows: a slab near a pole spans many more latitudes, each a full circle of the
+lattice. So a band is a run of consecutive slabs (:class:`Band`): one near the poles,
+several near the equator, as many as the memory allows
+(:func:`~geoidspline.fitting.memory.band_slabs`), so that fewer bands synthesise and
+quasi-interpolate their margins again; a smaller ``tile_size`` gives smaller bands.
 
 A band is fitted by :func:`fit_band`, a pure function of the source, the parameters and
 the band's index, on the latitudes of its slab grown by :func:`band_margin_deg`:
@@ -55,7 +59,25 @@ from .parameters import FitParameters
 from .progress import as_progress
 
 __all__ = ["band_indices", "band_latitudes", "band_margin_deg", "fit_band", "BandResult", "uses_bands",
-           "band_of_directions", "Rounding", "band_step"]
+           "band_of_directions", "Rounding", "band_step", "Band"]
+
+
+class Band(NamedTuple):
+    """A band of the globe: the tile slabs ``first`` .. ``last`` (``z`` indices of the
+    storage tiles, inclusive) whose B-splines, nodes and check points it owns; named
+    by its first slab."""
+
+    first: int
+    last: int
+
+    def owns(self, slabs) -> np.ndarray:
+        """Whether each slab index of ``slabs`` is the band's."""
+        slabs = np.asarray(slabs)
+        return (slabs >= self.first) & (slabs <= self.last)
+
+    def latitudes(self, tile_size: float) -> tuple[float, float]:
+        """(south, north) latitudes (degrees) of the sphere's points in the band."""
+        return band_latitudes(self.first, tile_size)[0], band_latitudes(self.last, tile_size)[1]
 
 
 def uses_bands(params: FitParameters, region: Region) -> bool:
@@ -66,21 +88,21 @@ def uses_bands(params: FitParameters, region: Region) -> bool:
 
 
 def band_indices(params: FitParameters) -> list[int]:
-    """The bands of the globe: every tile slab a B-spline touching the sphere can have
+    """The tile slabs of the globe: every slab a B-spline touching the sphere can have
     its support centre in (centres lie within ``order h0`` of the sphere)."""
     reach = 1.0 + params.order * params.h0
     return list(range(math.floor(-reach / params.tile_size), math.floor(reach / params.tile_size) + 1))
 
 
 def band_latitudes(band: int, tile_size: float) -> tuple[float, float]:
-    """(south, north) latitudes (degrees) of the sphere's points in band ``band``."""
+    """(south, north) latitudes (degrees) of the sphere's points in tile slab ``band``."""
     low = min(1.0, max(-1.0, band * tile_size))
     high = min(1.0, max(-1.0, (band + 1) * tile_size))
     return math.degrees(math.asin(low)), math.degrees(math.asin(high))
 
 
 def band_of_directions(dirs, tile_size: float) -> np.ndarray:
-    """The band of each unit direction (M, 3): the ``z`` index of its storage tile
+    """The tile slab of each unit direction (M, 3): the ``z`` index of its storage tile
     (:func:`~geoidspline.bspline.level.tiles_of_directions`)."""
     return unpack_keys(tiles_of_directions(dirs, tile_size))[:, 2]
 
@@ -123,7 +145,7 @@ class BandResult:
     coefficients), the step its tiles are rounded to, per tile the statistics of its
     nodes and check points on the rounded spline, and its part of the fit's account."""
 
-    band: int
+    band: Band
     levels: list  # [(level, h, keys, coefficients)], owned B-splines only
     value_step_m: float | None  # the step the band's tiles are rounded to (None: not rounded)
     tile_stats: dict  # packed tile key -> (node errors, check errors) of the stored spline
@@ -139,10 +161,10 @@ class BandResult:
     sample_rows: int = 0  # lattice rows the band synthesised (its margin included)
 
 
-def fit_band(source, params: FitParameters, band: int, check_latitude, check_longitude,
+def fit_band(source, params: FitParameters, band: Band, check_latitude, check_longitude,
              rounding: Rounding | None = None, margin_deg: float | None = None, executor=None,
              progress=None) -> BandResult:
-    """Fit band ``band`` of the globe (see the module's docstring).
+    """Fit band ``band`` (:class:`Band`) of the globe (see the module's docstring).
 
     ``rounding``: how the store rounds the band's coefficients (:class:`Rounding`;
     default none), where the band measures its nodes and check points;
@@ -157,7 +179,8 @@ def fit_band(source, params: FitParameters, band: int, check_latitude, check_lon
     started = time.perf_counter()
     progress = as_progress(progress)
     margin = band_margin_deg(params) if margin_deg is None else float(margin_deg)
-    south, north = band_latitudes(band, params.tile_size)
+    band = Band(*band)
+    south, north = band.latitudes(params.tile_size)
     reach = Region(max(-90.0, south - margin), -180.0, min(90.0, north + margin), 180.0)
     h = params.h0
     cells = active_cells(h, reach)
@@ -176,10 +199,10 @@ def fit_band(source, params: FitParameters, band: int, check_latitude, check_lon
                        finer_hint=finer_data_hint(source))
     rows = sample.latitude.size
     del sample, level0, keys, coefficients
-    owned = [cube_of_support_centres(lv.indices, lv.h, lv.order, params.tile_size)[:, 2] == band
+    owned = [band.owns(cube_of_support_centres(lv.indices, lv.h, lv.order, params.tile_size)[:, 2])
              for lv in result.spline.levels]
     # the band's nodes and check points, on the spline as stored
-    mine = band_of_directions(result.node_directions, params.tile_size) == band
+    mine = band.owns(band_of_directions(result.node_directions, params.tile_size))
     node_dirs = result.node_directions[mine]
     fit_errors = result.node_errors[mine]
     step, stored, node_errors, node_bound = band_step(result.spline, owned, node_dirs, fit_errors, rounding, band,
@@ -187,7 +210,7 @@ def fit_band(source, params: FitParameters, band: int, check_latitude, check_lon
     check_latitude = np.asarray(check_latitude, dtype=float)
     check_longitude = np.asarray(check_longitude, dtype=float)
     check_dirs = directions(check_latitude, check_longitude)
-    own_checks = band_of_directions(check_dirs, params.tile_size) == band
+    own_checks = band.owns(band_of_directions(check_dirs, params.tile_size))
     check_lat, check_lon = check_latitude[own_checks], check_longitude[own_checks]
     truth = exact_values(source, check_lat, check_lon, progress)
     check_errors = truth - stored.undulation(check_lat, check_lon) if check_lat.size else np.empty(0)
@@ -206,7 +229,7 @@ def fit_band(source, params: FitParameters, band: int, check_latitude, check_lon
 
 
 def band_step(spline: AmbientSpline, owned, node_dirs, fit_errors, rounding: Rounding | None,
-              band: int | None = None, tile_size: float | None = None):
+              band: Band | None = None, tile_size: float | None = None):
     """(step, stored spline, node errors, largest node error at most) of a band.
 
     The band's own coefficients are rounded to ``rounding.start_step`` halved until its
@@ -229,7 +252,7 @@ def band_step(spline: AmbientSpline, owned, node_dirs, fit_errors, rounding: Rou
         # the slab's edges see owned B-splines only (one spacing more for the floor)
         near = (spline.levels[0].order / 2.0 + 1.0) * max(lv.h for lv in spline.levels)
         z = node_dirs[:, 2]
-        edge = (z < band * tile_size + near) | (z >= (band + 1) * tile_size - near)
+        edge = (z < band.first * tile_size + near) | (z >= (band.last + 1) * tile_size - near)
     others = AmbientSpline([LevelSpline(lv.level, lv.h, lv.order, lv.keys[~m], np.ones(int((~m).sum())))
                             for lv, m in zip(spline.levels, owned)])
     if edge.any():

@@ -64,21 +64,14 @@ def region_nodes(source, region: Region) -> float:
 def plan(source, region: Region, params: FitParameters) -> MemoryPlan:
     """The least memory (bytes) a fit of ``source`` over ``region`` with ``params`` needs
     (a fit made band by band, :mod:`geoidspline.fitting.bands`: its largest band's)."""
-    from .bands import band_indices, band_latitudes, band_margin_deg, uses_bands
+    from .bands import Band, band_indices, uses_bands
     from .choose import region_area
-    from .interpolation import lattice_spacing
     from .hierarchical import BYTES_PER_UNKNOWN, WHOLE_MAX_UNKNOWNS
 
     level0 = coefficient_density(params.order) * region_area(region) / params.h0 ** 2
     if uses_bands(params, region):
-        margin = band_margin_deg(params)
-        reaches = [Region(max(-90.0, s - margin), -180.0, min(90.0, n + margin), 180.0)
-                   for s, n in (band_latitudes(b, params.tile_size) for b in band_indices(params))]
-        band0 = coefficient_density(params.order) * max(region_area(r) for r in reaches) / params.h0 ** 2
-        # rows by full circles of the latitude/longitude lattice
-        spacing = lattice_spacing(source, params.h0, params.sample_spacing_deg)
-        nodes = max((r.north - r.south) / spacing + 1.0 for r in reaches) * 360.0 / spacing
-        need = max(band0 * INTERPOLATION_BYTES_PER_COEFFICIENT, nodes * INTERPOLATION_BYTES_PER_NODE)
+        # a band of one slab each: the least the tile size allows (band_slabs groups more)
+        need, band0, nodes = max(band_need(source, params, Band(b, b)) for b in band_indices(params))
         return MemoryPlan(need, f"the largest band's about {band0:,.0f} level-0 coefficients by quasi-interpolation "
                                 f"and {nodes:,.0f} lattice nodes (of {level0:,.0f} coefficients; tile_size "
                                 f"{params.tile_size:g}: a smaller one makes smaller bands)")
@@ -92,6 +85,45 @@ def plan(source, region: Region, params: FitParameters) -> MemoryPlan:
                           f"level 0's about {level0:,.0f} unknowns of the hierarchical basis"
                           f" and {nodes:,.0f} nodes")
     return MemoryPlan(node_bytes, f"{nodes:,.0f} nodes")
+
+
+def band_need(source, params: FitParameters, band) -> tuple[float, float, float]:
+    """(bytes, level-0 coefficients, lattice nodes) of a band's fit
+    (:class:`~geoidspline.fitting.bands.Band`): its slabs' latitudes and margin, the
+    lattice's rows full circles."""
+    from .bands import band_margin_deg
+    from .choose import region_area
+    from .interpolation import lattice_spacing
+
+    margin = band_margin_deg(params)
+    south, north = band.latitudes(params.tile_size)
+    reach = Region(max(-90.0, south - margin), -180.0, min(90.0, north + margin), 180.0)
+    coefficients = coefficient_density(params.order) * region_area(reach) / params.h0 ** 2
+    spacing = lattice_spacing(source, params.h0, params.sample_spacing_deg)
+    nodes = ((reach.north - reach.south) / spacing + 1.0) * 360.0 / spacing
+    return (max(coefficients * INTERPOLATION_BYTES_PER_COEFFICIENT, nodes * INTERPOLATION_BYTES_PER_NODE),
+            coefficients, nodes)
+
+
+def band_slabs(source, params: FitParameters) -> list:
+    """The bands of a whole-globe fit (:class:`~geoidspline.fitting.bands.Band`): runs
+    of consecutive tile slabs from the south, each as long as its :func:`band_need`
+    stays within the largest one-slab band's (the one :func:`banded_parameters` sized
+    the tiles for, within the memory): near the poles a slab each (their lattice rows
+    are many), near the equator several, so that fewer margins are synthesised and
+    quasi-interpolated twice. A function of the parameters alone, as the tiles are."""
+    from .bands import Band, band_indices
+
+    slabs = band_indices(params)
+    limit = max(band_need(source, params, Band(b, b))[0] for b in slabs)
+    bands = [Band(slabs[0], slabs[0])]
+    for slab in slabs[1:]:
+        longer = Band(bands[-1].first, slab)
+        if band_need(source, params, longer)[0] <= limit:
+            bands[-1] = longer
+        else:
+            bands.append(Band(slab, slab))
+    return bands
 
 
 def check_plan(source, region: Region, params: FitParameters, budget: float | None) -> MemoryPlan:
