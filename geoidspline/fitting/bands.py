@@ -1,11 +1,11 @@
 """A global fit of a model band by band: a bounded working set, each band on its own.
 
-The globe is cut into bands that are slabs of storage tiles (thesis §4: "solve local
-problems and put them together"): band ``k`` owns the B-splines whose support centre
-has ``z`` in ``[k t, (k + 1) t)`` (``t`` = ``FitParameters.tile_size``, the store's tile
-side on the unit sphere, so a band's coefficients are whole tile files) and the data
-nodes and check points whose direction has ``z`` there (the tile a node's statistics go
-to). Slabs of equal height hold equal areas of the sphere (Archimedes), but not equal
+The globe is cut into bands made of slabs of storage tiles (thesis §4: "solve local
+problems and put them together"): the band of slabs ``a .. b`` owns the B-splines whose
+support centre has ``z`` in ``[a t, (b + 1) t)`` (``t`` = ``FitParameters.tile_size``,
+the store's tile side on the unit sphere, so a band's coefficients are whole tile files)
+and the data nodes and check points whose direction has ``z`` there (the tile a node's
+statistics go to). Slabs of equal height hold equal areas of the sphere (Archimedes), but not equal
 lattice rows: a slab near a pole spans many more latitudes, each a full circle of the
 lattice. So a band is a run of consecutive slabs (:class:`Band`): one near the poles,
 several near the equator, as many as the memory allows
@@ -13,7 +13,7 @@ several near the equator, as many as the memory allows
 quasi-interpolate their margins again; a smaller ``tile_size`` gives smaller bands.
 
 A band is fitted by :func:`fit_band`, a pure function of the source, the parameters and
-the band's index, on the latitudes of its slab grown by :func:`band_margin_deg`:
+the band's slabs, on the latitudes of its slabs grown by :func:`band_margin_deg`:
 
 1. the lattice of the synthesis is sampled over those latitudes (and the lookups'
    stencil), level 0 of every B-spline there is quasi-interpolated
@@ -32,8 +32,8 @@ The blocks of an overlay level reach ``(block_cells + 2 margin_cells + order)`` 
 of their level around a coefficient: where a band's margin covers that reach for every
 level (:func:`band_margin_deg` with ``overlay_reach=True``) the overlays are those of one
 whole-globe fit too; the default margin covers level 0's support and the margin of one
-overlay block, and the band decomposition (``tile_size``) is then part of the
-parameters: the same parameters give the same store bit for bit whichever process or
+overlay block, and the band decomposition (``tile_size``, and the slabs grouped,
+which are a function of the parameters) is then part of the parameters: the same parameters give the same store bit for bit whichever process or
 machine fits a band, in whichever order, across an interrupted and resumed fit.
 """
 
