@@ -17,12 +17,11 @@ import numpy as np
 
 from ..sphere.coordinates import directions
 from ..sphere.region import Region
+from ..sphere.sample import lattice_interpolation
+from .check_points import interval_distance
 from .sites import DataNodes
 
-__all__ = ["CATMULL_ROM_CENTRE", "CellCentres", "cell_centre_interval", "cell_centre_nodes"]
-
-#: Catmull-Rom (a = -0.5) weights of the four nodes along an axis at a cell's centre.
-CATMULL_ROM_CENTRE = np.array([-1.0, 9.0, 9.0, -1.0]) / 16.0
+__all__ = ["CellCentres", "cell_centre_interval", "cell_centre_nodes"]
 
 
 def cell_centre_interval(latitude, longitude, values):
@@ -42,18 +41,13 @@ def cell_centre_interval(latitude, longitude, values):
     periodic = abs(longitude[-1] - longitude[0] + dlon - 360.0) < 1e-6
     rows = np.arange(1, nlat - 2)
     cols = np.arange(nlon) if periodic else np.arange(1, nlon - 2)
-    stencil = np.arange(-1, 3)
-    r = rows[:, None] + stencil
-    c = cols[:, None] + stencil
-    if periodic:
-        c %= nlon
-    block = values[r[:, None, :, None], c[None, :, None, :]]  # (rows, cols, 4, 4)
-    bicubic = np.einsum("abij,i,j->ab", block, CATMULL_ROM_CENTRE, CATMULL_ROM_CENTRE)
-    bilinear = block[:, :, 1:3, 1:3].mean(axis=(2, 3))
+    row2, col2 = np.meshgrid(rows, cols, indexing="ij")
+    # the grid's own interpolants (sources.grid.GeoidGrid.undulation) at the cells' middles
+    bicubic = lattice_interpolation(values, row2, 0.5, col2, 0.5, "bicubic", periodic)
+    bilinear = lattice_interpolation(values, row2, 0.5, col2, 0.5, "bilinear", periodic)
     lat = latitude[rows] + 0.5 * (latitude[rows + 1] - latitude[rows])
     lon = longitude[cols] + 0.5 * dlon
     lat2, lon2 = np.meshgrid(lat, lon, indexing="ij")
-    row2, col2 = np.meshgrid(rows, cols, indexing="ij")
     keep = np.isfinite(bicubic) & np.isfinite(bilinear)
     return (lat2[keep], lon2[keep], np.minimum(bicubic, bilinear)[keep], np.maximum(bicubic, bilinear)[keep],
             row2[keep], col2[keep])
@@ -62,14 +56,17 @@ def cell_centre_interval(latitude, longitude, values):
 @dataclass
 class CellCentres(DataNodes):
     """Cell centres as data nodes: ``values`` the middle of the bilinear-bicubic
-    interval, ``half_width`` half its width (metres)."""
+    interval, ``low`` and ``high`` its ends (metres)."""
 
-    half_width: np.ndarray
+    low: np.ndarray
+    high: np.ndarray
 
     def outside(self, spline_values, mask=None) -> np.ndarray:
-        """How far ``spline_values`` (at the centres of ``mask``) lie outside the interval (m)."""
-        mid, half = (self.values, self.half_width) if mask is None else (self.values[mask], self.half_width[mask])
-        return np.maximum(np.abs(spline_values - mid) - half, 0.0)
+        """How far ``spline_values`` (at the centres of ``mask``) lie outside the interval
+        (metres, 0 inside): the measure of the fit's check points
+        (:meth:`~geoidspline.fitting.check_points.CheckPoints.interval_distance`)."""
+        low, high = (self.low, self.high) if mask is None else (self.low[mask], self.high[mask])
+        return interval_distance(spline_values, low, high)
 
 
 def cell_centre_nodes(sample, region: Region) -> CellCentres | None:
@@ -82,4 +79,4 @@ def cell_centre_nodes(sample, region: Region) -> CellCentres | None:
     dlon = np.radians(np.diff(sample.longitude).min())
     return CellCentres(latitude=lat, longitude=lon, values=0.5 * (low + high), directions=directions(lat, lon),
                        in_region=region.contains(lat, lon), row=row, col=col, dlat_rad=float(dlat),
-                       dlon_rad=float(dlon), half_width=0.5 * (high - low))
+                       dlon_rad=float(dlon), low=low, high=high)

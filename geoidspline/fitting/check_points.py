@@ -9,6 +9,9 @@ import numpy as np
 
 from ..sphere.region import Region
 
+__all__ = ["CheckPoints", "check_points", "interval_distance", "random_positions", "random_description",
+           "exact_values"]
+
 
 @dataclass(frozen=True)
 class CheckPoints:
@@ -27,8 +30,12 @@ class CheckPoints:
         """How far ``values`` at the points lie outside :attr:`interval` (0 inside), metres."""
         if self.interval is None:
             return None
-        low, high = self.interval
-        return np.maximum(np.maximum(low - values, values - high), 0.0)
+        return interval_distance(values, *self.interval)
+
+
+def interval_distance(values, low, high) -> np.ndarray:
+    """How far ``values`` lie outside the intervals [``low``, ``high``] (0 inside), metres."""
+    return np.maximum(np.maximum(low - values, values - high), 0.0)
 
 
 #: Exact points a step of the check-point stage synthesises.
