@@ -17,8 +17,7 @@ import numpy as np
 
 from ..sphere.coordinates import directions
 from ..sphere.region import Region
-from ..sphere.sample import lattice_interpolation
-from .check_points import interval_distance
+from ..sphere.sample import interval_distance, lattice_interpolation
 from .sites import DataNodes
 
 __all__ = ["CellCentres", "cell_centre_interval", "cell_centre_nodes"]
@@ -29,7 +28,8 @@ def cell_centre_interval(latitude, longitude, values):
     (low, high) interval of the bilinear and bicubic interpolants there (metres).
 
     A lattice spanning 360 degrees of longitude wraps around; otherwise only cells with
-    a whole stencil inside it count. Returns ``(lat, lon, low, high, row, col)``, the
+    a whole stencil inside it count, except next to a pole (the edge row stands for the
+    rows beyond it). Returns ``(lat, lon, low, high, row, col)``, the
     cell's south-west node's indices in ``row``/``col`` (1-D arrays)."""
     latitude, longitude = np.asarray(latitude, float), np.asarray(longitude, float)
     values = np.asarray(values, float)
@@ -39,7 +39,9 @@ def cell_centre_interval(latitude, longitude, values):
         return empty, empty, empty, empty, empty.astype(np.int64), empty.astype(np.int64)
     dlon = float(np.diff(longitude).min()) if nlon > 1 else 360.0
     periodic = abs(longitude[-1] - longitude[0] + dlon - 360.0) < 1e-6
-    rows = np.arange(1, nlat - 2)
+    # a row at a pole ends the lattice: the cells next to it are valued with the pole row
+    # repeated beyond it, as the grid's own bicubic does (its check points count them)
+    rows = np.arange(0 if latitude[0] <= -90.0 + 1e-9 else 1, nlat - 1 if latitude[-1] >= 90.0 - 1e-9 else nlat - 2)
     cols = np.arange(nlon) if periodic else np.arange(1, nlon - 2)
     row2, col2 = np.meshgrid(rows, cols, indexing="ij")
     # the grid's own interpolants (sources.grid.GeoidGrid.undulation) at the cells' middles

@@ -8,9 +8,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..sphere.region import Region
+from ..sphere.sample import interval_distance
 
-__all__ = ["CheckPoints", "check_points", "interval_distance", "random_positions", "random_description",
-           "exact_values"]
+__all__ = ["CheckPoints", "check_points", "random_positions", "random_description", "exact_values"]
 
 
 @dataclass(frozen=True)
@@ -31,11 +31,6 @@ class CheckPoints:
         if self.interval is None:
             return None
         return interval_distance(values, *self.interval)
-
-
-def interval_distance(values, low, high) -> np.ndarray:
-    """How far ``values`` lie outside the intervals [``low``, ``high``] (0 inside), metres."""
-    return np.maximum(np.maximum(low - values, values - high), 0.0)
 
 
 #: Exact points a step of the check-point stage synthesises.

@@ -402,7 +402,7 @@ def fit_source(source, region: Region | None = None, params: FitParameters | Non
         # handful of nodes: keep at least a few per level-0 cell
         spacing = min(source.lattice_step(None), math.degrees(params.h0) / 4.0)
     sample = sample_nodes(source, clip_to_extent(data_region, source), spacing, as_progress(progress))
-    from .hierarchical import CELL_CENTRES_BY_DEFAULT  # off for now: see its comment
+    from .hierarchical import CELL_CENTRES_BY_DEFAULT
 
     # a grid is known at its nodes only: its cell centres can keep the spline near its interpolants
     grid_centres = CELL_CENTRES_BY_DEFAULT and not hasattr(source, "lattice_step")

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["NodeSample", "catmull_rom_weights", "lattice_interpolation"]
+__all__ = ["NodeSample", "catmull_rom_weights", "lattice_interpolation", "interval_distance"]
 
 
 @dataclass(frozen=True)
@@ -79,3 +79,10 @@ def lattice_interpolation(values, row, row_fraction, col, col_fraction, method: 
             row_sum += wx[b] * v[rows, cols]
         inside += wy[a] * row_sum
     return inside
+
+
+def interval_distance(values, low, high) -> np.ndarray:
+    """How far ``values`` lie outside the intervals [``low``, ``high``] (0 inside), metres:
+    a grid's figure between its nodes, the interval spanned there by its bilinear and
+    bicubic interpolants (its truth is unknown but lies near them)."""
+    return np.maximum(np.maximum(low - values, values - high), 0.0)
