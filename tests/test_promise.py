@@ -303,3 +303,18 @@ def test_a_grid_fit_stays_within_the_tolerance_of_its_interpolants_between_the_n
     la, lo = np.meshgrid(grid.latitude, grid.longitude, indexing="ij")
     inside = region.contains(la, lo)
     assert np.abs(kept.spline.undulation(la[inside], lo[inside]) - values[inside]).max() <= params.node_target_m
+
+
+def test_a_grid_fit_takes_its_cell_centres_by_default():
+    """`fit_source` (what `geoid-fit GRID --tolerance T` runs) keeps the same noisy grid's
+    cell centres within the tolerance of its interpolants' interval, nothing asked."""
+    from geoidspline.fitting.driver import fit_source
+
+    grid = regional_grid(step=0.25, south=-4, north=8, west=6, east=18)
+    values = grid.values + np.random.default_rng(5).uniform(-0.05, 0.05, grid.values.shape)
+    grid = GeoidGrid(grid.latitude, grid.longitude, values, grid.provenance)
+    region = Region(-2.0, 8.0, 6.0, 16.0)
+    params = FitParameters(h0=0.05, max_level=4, tolerance_m=0.01, refinement="hierarchical")
+    result = fit_source(grid, region, params)
+    assert result.node_max_error_m <= params.tolerance_m
+    assert outside_interpolants(result.spline, grid, region).max() <= params.node_target_m
