@@ -71,10 +71,16 @@ class CellCentres(DataNodes):
         return interval_distance(spline_values, low, high)
 
 
-def cell_centre_nodes(sample, region: Region) -> CellCentres | None:
+def cell_centre_nodes(sample, region: Region, reach_deg: float | None = None) -> CellCentres | None:
     """The centres of a grid sample's cells as :class:`DataNodes` valued at the middle
-    of their bilinear-bicubic interval (None when the sample has no whole cell)."""
+    of their bilinear-bicubic interval (None when the sample has no whole cell).
+    ``reach_deg``: only those within this many degrees of the region (the sample reaches
+    a level-0 support beyond it, where no leaf fine enough to take centres lies: over
+    the Andes at 0.5 m, 836,640 centres against 72,000 in the region)."""
     lat, lon, low, high, row, col = cell_centre_interval(sample.latitude, sample.longitude, sample.undulation)
+    if reach_deg is not None:
+        near = region.expanded(reach_deg).contains(lat, lon)
+        lat, lon, low, high, row, col = (a[near] for a in (lat, lon, low, high, row, col))
     if lat.size == 0:
         return None
     dlat = np.radians(np.diff(sample.latitude).min())

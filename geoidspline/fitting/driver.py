@@ -107,14 +107,14 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
                        f"{MIN_H_PER_DATA_SPACING * nodes.spacing_rad:.4g}, or a finer source")
     fallback = None
     if hierarchical:
-        from .hierarchical import BasisTooLarge, fit_hierarchical  # §5.3: one basis over all levels
+        from .hierarchical import BasisTooLarge, centre_reach_deg, fit_hierarchical  # §5.3: one basis over all levels
 
         try:
             centres = None
             if cell_centres and interpolant is None:
                 from .cell_centres import cell_centre_nodes
 
-                centres = cell_centre_nodes(sample, region)
+                centres = cell_centre_nodes(sample, region, centre_reach_deg(params, nodes))
             result = fit_hierarchical(nodes, coverage, region, params, progress, force_tiles, start,
                                       interpolant=interpolant, memory_budget=executor.memory_budget,
                                       centres=centres)

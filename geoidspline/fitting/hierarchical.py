@@ -176,6 +176,13 @@ def leaf_sites(nodes: DataNodes, basis: HierarchicalBasis, params: FitParameters
     return out
 
 
+def centre_reach_deg(params: FitParameters, nodes: DataNodes) -> float:
+    """How far beyond the region (degrees) a cell centre can lie in a leaf that takes
+    centres (:data:`CELL_CENTRE_SPACINGS`): twice the support of the coarsest such level,
+    refined from points in the region (Algorithm 2 may add a level's support more)."""
+    return math.degrees(2.0 * params.order * CELL_CENTRE_SPACINGS * nodes.spacing_rad)
+
+
 def centre_weight_groups(centres, tolerance_m: float, boost=None):
     """``[(weight, centres)]``: the cell centres in classes of weight (powers of 4, at
     most :data:`CELL_CENTRE_WEIGHT_CLASSES` below :data:`CELL_CENTRE_WEIGHT`), times
