@@ -9,10 +9,11 @@ the parameters chosen for the tolerance, in process, with the cell-centre
 pseudo-observations of :mod:`geoidspline.fitting.cell_centres` switched per variant:
 
 - ``nodes``: the nodes only (no pseudo-observations; the fit before issue 21 item 3);
-- ``active`` (the default of the package): cell centres outside the interval join the
-  sites (weight 1) once the nodes are kept, until none is outside;
-- ``active-mark``: the same, the centres also marking their B-splines for refinement;
-- ``all-W``: every cell centre a site of weight W from the first step (no marks).
+- ``centres`` (the package's rule): the leaves of levels finer than
+  ``CELL_CENTRE_SPACINGS`` node spacings take every centre as a site (weight 1), and a
+  centre outside its interval by more than the target marks its B-splines for refinement;
+- ``all-W``: every cell centre a site of weight W on every level from the first step
+  (centres outside still mark).
 
 The check is **independent of the fit**: the GTX file is read with numpy
 (``fit_matrix.read_gtx``), the bilinear (mean of the 4 corners) and Catmull-Rom bicubic
@@ -41,6 +42,8 @@ HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "cell_centres.jsonl"
 ANDES = (-60.0, -90.0, 15.0, -30.0)
 CATMULL_ROM = np.array([-1.0, 9.0, 9.0, -1.0]) / 16.0
+#: the package's CELL_CENTRE_SPACINGS, read before any variant changes it
+SPACINGS = None
 
 
 def centre_intervals(latitude, longitude, values, region):
@@ -76,14 +79,14 @@ def configure(variant):
     """Module switches for a variant (see the module docstring)."""
     from geoidspline.fitting import hierarchical
 
+    global SPACINGS
+    SPACINGS = hierarchical.CELL_CENTRE_SPACINGS if SPACINGS is None else SPACINGS
     hierarchical.CELL_CENTRE_WEIGHT = 1.0
-    hierarchical.CELL_CENTRES_ACTIVE_SET = True
-    hierarchical.CELL_CENTRE_MARKS = variant == "active-mark"
-    use_centres = variant != "nodes"
+    hierarchical.CELL_CENTRE_SPACINGS = SPACINGS
     if variant.startswith("all-"):
         hierarchical.CELL_CENTRE_WEIGHT = float(variant[4:])
-        hierarchical.CELL_CENTRES_ACTIVE_SET = False
-    return use_centres
+        hierarchical.CELL_CENTRE_SPACINGS = float("inf")
+    return variant != "nodes"
 
 
 def run(tolerance, variant, region):
@@ -116,12 +119,12 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("tolerances", nargs="+", type=float)
     parser.add_argument("--variant", action="append", default=None,
-                        help="nodes, active, active-mark, all-W (default: nodes and active)")
+                        help="nodes, centres, all-W (default: nodes and centres)")
     parser.add_argument("--region", nargs=4, type=float, default=ANDES, metavar=("S", "W", "N", "E"))
     parser.add_argument("--no-record", action="store_true")
     args = parser.parse_args(argv)
     for tolerance in args.tolerances:
-        for variant in args.variant or ["nodes", "active"]:
+        for variant in args.variant or ["nodes", "centres"]:
             load = os.getloadavg()[0]
             row = run(tolerance, variant, tuple(args.region))
             row.update({"date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),

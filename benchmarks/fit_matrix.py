@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """The fit matrix of issue 21: does every fit keep its promise?
 
-    python benchmarks/fit_matrix.py ROW [ROW...] [--out-dir DIR] [--list]
+    python benchmarks/fit_matrix.py ROW [ROW...] [--out-dir DIR] [--max-memory GB] [--list]
 
 Each row runs ``geoid-fit SOURCE --tolerance T [--region ...] --store DIR --json -q``
 with nothing else (the parameters chosen for the user) under ``/usr/bin/time`` (peak
@@ -144,11 +144,13 @@ def model_errors(store, model_args, region, count=20_000, seed=1):
     return store.undulation(lat, lon) - synthesis.undulation(lat, lon)
 
 
-def run_row(name, out_dir: Path, python_bin: Path) -> dict:
+def run_row(name, out_dir: Path, python_bin: Path, max_memory_gb=None) -> dict:
     source, region, tolerance, truth = ROWS[name]
     store = out_dir / name.replace(" ", "_")
     cmd = [str(python_bin.parent / "geoid-fit"), *source, "--tolerance", str(tolerance), "--store", str(store),
            "--overwrite", "--json", "-q"]
+    if max_memory_gb is not None:  # a ceiling for the shared machine, not a parameter of the fit
+        cmd += ["--max-memory", str(max_memory_gb)]
     if region:
         cmd[1 + len(source):1 + len(source)] = ["--region", *region]
     timer = shutil.which("time") or "/usr/bin/time"
@@ -200,6 +202,8 @@ def main(argv=None):
     parser.add_argument("--list", action="store_true", help="list the rows and exit")
     parser.add_argument("--out-dir", type=Path, default=None, help="where stores go (default: a temporary dir)")
     parser.add_argument("--no-record", action="store_true", help="do not append to results/fit_matrix.jsonl")
+    parser.add_argument("--max-memory", type=float, default=None, metavar="GB",
+                        help="passed to geoid-fit (on a shared machine; recorded in the row's command)")
     args = parser.parse_args(argv)
     if args.list or not args.rows:
         print("\n".join(ROWS))
@@ -214,7 +218,7 @@ def main(argv=None):
     print("|---|---|---|---|---|---|---|---|---|---|")
     for name in args.rows:
         load = os.getloadavg()[0]
-        row = run_row(name, out_dir, Path(sys.executable))
+        row = run_row(name, out_dir, Path(sys.executable), args.max_memory)
         row.update({"date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
                     "commit": git_commit(REPO), "load_before": round(load, 2),
                     "load_after": round(os.getloadavg()[0], 2), "machine": machine_info()})

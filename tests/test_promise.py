@@ -106,9 +106,9 @@ def test_the_stored_spline_keeps_the_tolerance_the_fit_left_room_for(seed, toler
     for lv in range(levels):
         h = 0.2 / 2 ** lv
         cells = np.unique(np.floor(dirs / h).astype(np.int64), axis=0)
-        from geoidspline.bspline.keys import touching_keys, pack_keys
+        from geoidspline.bspline.keys import touching_keys
 
-        keys = touching_keys(np.unique(pack_keys(cells)), 4)
+        keys = touching_keys(cells, 4)  # the cells (M, 3) themselves: packed keys gave a spline of 0
         parts.append(LevelSpline(lv, h, 4, keys, rng.normal(0, 30.0 / (lv + 1), keys.size)))
     spline = AmbientSpline(parts)
     room = quantisation_reserve(tolerance, levels)
@@ -118,6 +118,33 @@ def test_the_stored_spline_keeps_the_tolerance_the_fit_left_room_for(seed, toler
     np.testing.assert_allclose(stored, errors - quantisation_change(spline, step, dirs), atol=1e-12)
     assert np.abs(stored).max() <= tolerance
     assert step >= 1e-6 and math.isclose(step / 1e-6, round(step / 1e-6), abs_tol=1e-6)
+
+
+def test_the_stored_spline_keeps_the_cell_centres_the_fit_kept():
+    """Points between the nodes with an interval each (a grid's cell centres): the step
+    is also halved until the quantised spline is as far inside (within the tolerance of)
+    every interval as the fit left it; chosen against the nodes alone it is not."""
+    rng = np.random.default_rng(3)
+    lat, lon = rng.uniform(-20, 20, 300), rng.uniform(-20, 20, 300)
+    node_dirs = directions(lat, lon)
+    from geoidspline.bspline.keys import touching_keys
+
+    keys = touching_keys(np.unique(np.floor(node_dirs / 0.05).astype(np.int64), axis=0), 4)
+    spline = AmbientSpline([LevelSpline(0, 0.05, 4, keys, rng.normal(0, 20.0, keys.size))])
+    tolerance = 0.1
+    centre_dirs = directions(rng.uniform(-20, 20, 2000), rng.uniform(-20, 20, 2000))
+    fitted = spline.evaluate_points(centre_dirs)
+    # wide intervals, and 50 single values 99.5 mm above the fit (its figure there, under T)
+    low, high = fitted - 1.0, fitted + 1.0
+    low[:50] = high[:50] = fitted[:50] + 0.0995
+    errors = np.zeros(lat.size)
+    nodes_step, _ = node_safe_step(spline, node_dirs, errors, tolerance)
+    step, stored = node_safe_step(spline, node_dirs, errors, tolerance, between=(centre_dirs, low, high))
+    moved = lambda s: fitted + quantisation_change(spline, s, centre_dirs)  # noqa: E731
+    outside = lambda v: np.maximum(np.maximum(low - v, v - high), 0.0)  # noqa: E731
+    assert outside(moved(nodes_step)).max() > tolerance  # the nodes' step moves a centre out
+    assert step < nodes_step and outside(moved(step)).max() <= tolerance
+    np.testing.assert_allclose(stored, -quantisation_change(spline, step, node_dirs), atol=1e-12)
 
 
 def test_a_fit_aims_a_little_under_its_tolerance_for_the_rounding():
@@ -256,9 +283,10 @@ def outside_interpolants(spline, grid: GeoidGrid, region: Region) -> np.ndarray:
 def test_a_grid_fit_stays_within_the_tolerance_of_its_interpolants_between_the_nodes():
     """Noisy nodes (±5 cm) fitted to 1 cm down to level 4 (h 0.72 x the 0.25° spacing):
     on the nodes alone the spline meets every node and swings 0.58 m off the interval of
-    the grid's bilinear and bicubic interpolants between them; with the cell centres
-    outside that interval as sites, every centre is within the tolerance of it and every
-    node still is within the tolerance."""
+    the grid's bilinear and bicubic interpolants between them; with the cell centres as
+    sites on the levels finer than the nodes determine (and marking where they are
+    outside), every centre is within the tolerance of it and every node still is within
+    the tolerance."""
     from geoidspline.fitting.driver import fit_nodes
 
     grid = regional_grid(step=0.25, south=-4, north=8, west=6, east=18)
@@ -277,3 +305,18 @@ def test_a_grid_fit_stays_within_the_tolerance_of_its_interpolants_between_the_n
     la, lo = np.meshgrid(grid.latitude, grid.longitude, indexing="ij")
     inside = region.contains(la, lo)
     assert np.abs(kept.spline.undulation(la[inside], lo[inside]) - values[inside]).max() <= params.node_target_m
+
+
+def test_a_grid_fit_takes_its_cell_centres_by_default():
+    """`fit_source` (what `geoid-fit GRID --tolerance T` runs) keeps the same noisy grid's
+    cell centres within the tolerance of its interpolants' interval, nothing asked."""
+    from geoidspline.fitting.driver import fit_source
+
+    grid = regional_grid(step=0.25, south=-4, north=8, west=6, east=18)
+    values = grid.values + np.random.default_rng(5).uniform(-0.05, 0.05, grid.values.shape)
+    grid = GeoidGrid(grid.latitude, grid.longitude, values, grid.provenance)
+    region = Region(-2.0, 8.0, 6.0, 16.0)
+    params = FitParameters(h0=0.05, max_level=4, tolerance_m=0.01, refinement="hierarchical")
+    result = fit_source(grid, region, params)
+    assert result.node_max_error_m <= params.tolerance_m
+    assert outside_interpolants(result.spline, grid, region).max() <= params.node_target_m

@@ -17,12 +17,10 @@ import numpy as np
 
 from ..sphere.coordinates import directions
 from ..sphere.region import Region
+from ..sphere.sample import interval_distance, lattice_interpolation
 from .sites import DataNodes
 
-__all__ = ["CATMULL_ROM_CENTRE", "CellCentres", "cell_centre_interval", "cell_centre_nodes"]
-
-#: Catmull-Rom (a = -0.5) weights of the four nodes along an axis at a cell's centre.
-CATMULL_ROM_CENTRE = np.array([-1.0, 9.0, 9.0, -1.0]) / 16.0
+__all__ = ["CellCentres", "cell_centre_interval", "cell_centre_nodes"]
 
 
 def cell_centre_interval(latitude, longitude, values):
@@ -30,7 +28,8 @@ def cell_centre_interval(latitude, longitude, values):
     (low, high) interval of the bilinear and bicubic interpolants there (metres).
 
     A lattice spanning 360 degrees of longitude wraps around; otherwise only cells with
-    a whole stencil inside it count. Returns ``(lat, lon, low, high, row, col)``, the
+    a whole stencil inside it count, except next to a pole (the edge row stands for the
+    rows beyond it). Returns ``(lat, lon, low, high, row, col)``, the
     cell's south-west node's indices in ``row``/``col`` (1-D arrays)."""
     latitude, longitude = np.asarray(latitude, float), np.asarray(longitude, float)
     values = np.asarray(values, float)
@@ -40,20 +39,17 @@ def cell_centre_interval(latitude, longitude, values):
         return empty, empty, empty, empty, empty.astype(np.int64), empty.astype(np.int64)
     dlon = float(np.diff(longitude).min()) if nlon > 1 else 360.0
     periodic = abs(longitude[-1] - longitude[0] + dlon - 360.0) < 1e-6
-    rows = np.arange(1, nlat - 2)
+    # a row at a pole ends the lattice: the cells next to it are valued with the pole row
+    # repeated beyond it, as the grid's own bicubic does (its check points count them)
+    rows = np.arange(0 if latitude[0] <= -90.0 + 1e-9 else 1, nlat - 1 if latitude[-1] >= 90.0 - 1e-9 else nlat - 2)
     cols = np.arange(nlon) if periodic else np.arange(1, nlon - 2)
-    stencil = np.arange(-1, 3)
-    r = rows[:, None] + stencil
-    c = cols[:, None] + stencil
-    if periodic:
-        c %= nlon
-    block = values[r[:, None, :, None], c[None, :, None, :]]  # (rows, cols, 4, 4)
-    bicubic = np.einsum("abij,i,j->ab", block, CATMULL_ROM_CENTRE, CATMULL_ROM_CENTRE)
-    bilinear = block[:, :, 1:3, 1:3].mean(axis=(2, 3))
+    row2, col2 = np.meshgrid(rows, cols, indexing="ij")
+    # the grid's own interpolants (sources.grid.GeoidGrid.undulation) at the cells' middles
+    bicubic = lattice_interpolation(values, row2, 0.5, col2, 0.5, "bicubic", periodic)
+    bilinear = lattice_interpolation(values, row2, 0.5, col2, 0.5, "bilinear", periodic)
     lat = latitude[rows] + 0.5 * (latitude[rows + 1] - latitude[rows])
     lon = longitude[cols] + 0.5 * dlon
     lat2, lon2 = np.meshgrid(lat, lon, indexing="ij")
-    row2, col2 = np.meshgrid(rows, cols, indexing="ij")
     keep = np.isfinite(bicubic) & np.isfinite(bilinear)
     return (lat2[keep], lon2[keep], np.minimum(bicubic, bilinear)[keep], np.maximum(bicubic, bilinear)[keep],
             row2[keep], col2[keep])
@@ -62,24 +58,33 @@ def cell_centre_interval(latitude, longitude, values):
 @dataclass
 class CellCentres(DataNodes):
     """Cell centres as data nodes: ``values`` the middle of the bilinear-bicubic
-    interval, ``half_width`` half its width (metres)."""
+    interval, ``low`` and ``high`` its ends (metres)."""
 
-    half_width: np.ndarray
+    low: np.ndarray
+    high: np.ndarray
 
     def outside(self, spline_values, mask=None) -> np.ndarray:
-        """How far ``spline_values`` (at the centres of ``mask``) lie outside the interval (m)."""
-        mid, half = (self.values, self.half_width) if mask is None else (self.values[mask], self.half_width[mask])
-        return np.maximum(np.abs(spline_values - mid) - half, 0.0)
+        """How far ``spline_values`` (at the centres of ``mask``) lie outside the interval
+        (metres, 0 inside): the measure of the fit's check points
+        (:meth:`~geoidspline.fitting.check_points.CheckPoints.interval_distance`)."""
+        low, high = (self.low, self.high) if mask is None else (self.low[mask], self.high[mask])
+        return interval_distance(spline_values, low, high)
 
 
-def cell_centre_nodes(sample, region: Region) -> CellCentres | None:
+def cell_centre_nodes(sample, region: Region, reach_deg: float | None = None) -> CellCentres | None:
     """The centres of a grid sample's cells as :class:`DataNodes` valued at the middle
-    of their bilinear-bicubic interval (None when the sample has no whole cell)."""
+    of their bilinear-bicubic interval (None when the sample has no whole cell).
+    ``reach_deg``: only those within this many degrees of the region (the sample reaches
+    a level-0 support beyond it, where no leaf fine enough to take centres lies: over
+    the Andes at 0.5 m, 836,640 centres against 72,000 in the region)."""
     lat, lon, low, high, row, col = cell_centre_interval(sample.latitude, sample.longitude, sample.undulation)
+    if reach_deg is not None:
+        near = region.expanded(reach_deg).contains(lat, lon)
+        lat, lon, low, high, row, col = (a[near] for a in (lat, lon, low, high, row, col))
     if lat.size == 0:
         return None
     dlat = np.radians(np.diff(sample.latitude).min())
     dlon = np.radians(np.diff(sample.longitude).min())
     return CellCentres(latitude=lat, longitude=lon, values=0.5 * (low + high), directions=directions(lat, lon),
                        in_region=region.contains(lat, lon), row=row, col=col, dlat_rad=float(dlat),
-                       dlon_rad=float(dlon), half_width=0.5 * (high - low))
+                       dlon_rad=float(dlon), low=low, high=high)

@@ -8,6 +8,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..sphere.region import Region
+from ..sphere.sample import interval_distance
+
+__all__ = ["CheckPoints", "check_points", "random_positions", "random_description", "exact_values"]
 
 
 @dataclass(frozen=True)
@@ -27,8 +30,7 @@ class CheckPoints:
         """How far ``values`` at the points lie outside :attr:`interval` (0 inside), metres."""
         if self.interval is None:
             return None
-        low, high = self.interval
-        return np.maximum(np.maximum(low - values, values - high), 0.0)
+        return interval_distance(values, *self.interval)
 
 
 #: Exact points a step of the check-point stage synthesises.

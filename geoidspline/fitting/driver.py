@@ -107,14 +107,14 @@ def fit_nodes(sample, region: Region, params: FitParameters, refinement=None, pr
                        f"{MIN_H_PER_DATA_SPACING * nodes.spacing_rad:.4g}, or a finer source")
     fallback = None
     if hierarchical:
-        from .hierarchical import BasisTooLarge, fit_hierarchical  # §5.3: one basis over all levels
+        from .hierarchical import BasisTooLarge, centre_reach_deg, fit_hierarchical  # §5.3: one basis over all levels
 
         try:
             centres = None
             if cell_centres and interpolant is None:
                 from .cell_centres import cell_centre_nodes
 
-                centres = cell_centre_nodes(sample, region)
+                centres = cell_centre_nodes(sample, region, centre_reach_deg(params, nodes))
             result = fit_hierarchical(nodes, coverage, region, params, progress, force_tiles, start,
                                       interpolant=interpolant, memory_budget=executor.memory_budget,
                                       centres=centres)
@@ -402,7 +402,7 @@ def fit_source(source, region: Region | None = None, params: FitParameters | Non
         # handful of nodes: keep at least a few per level-0 cell
         spacing = min(source.lattice_step(None), math.degrees(params.h0) / 4.0)
     sample = sample_nodes(source, clip_to_extent(data_region, source), spacing, as_progress(progress))
-    from .hierarchical import CELL_CENTRES_BY_DEFAULT  # off for now: see its comment
+    from .hierarchical import CELL_CENTRES_BY_DEFAULT
 
     # a grid is known at its nodes only: its cell centres can keep the spline near its interpolants
     grid_centres = CELL_CENTRES_BY_DEFAULT and not hasattr(source, "lattice_step")

@@ -89,6 +89,11 @@ WHOLE_MAX_UNKNOWNS = 20_000
 SCHWARZ_BLOCK = 0.1
 SCHWARZ_OVERLAP = 0.0
 
+#: Most unknowns in one local problem: a cube holding more (a level as fine as the
+#: nodes over a whole cube: Andes at 0.01 m with the cell centres) is split in eight,
+#: since its dense factor costs the cube of its size.
+SCHWARZ_MAX_UNKNOWNS = 2_000
+
 #: Conjugate gradients stop when the fitted values at the sites are within this
 #: fraction of the tolerance (RMS over the sites) of the whole problem's solution.
 SOLVE_FRACTION = 0.01
@@ -104,26 +109,38 @@ MAX_ITERATIONS = 1_000
 BYTES_PER_UNKNOWN = 6_500
 
 #: Cell centres of a grid (:mod:`geoidspline.fitting.cell_centres`) as sites: their weight
-#: relative to a node's; whether only those found outside the interval join the sites
-#: (once the nodes are kept or can be refined no further), rather than every centre from
-#: the first step; whether those also mark their B-splines for refinement.
-#: Measured in benchmarks/README.md ("Between the nodes").
+#: relative to a node's.
 CELL_CENTRE_WEIGHT = 1.0
-CELL_CENTRES_ACTIVE_SET = True
-CELL_CENTRE_MARKS = False
 
-#: Rounds in which centres found outside the interval may join the sites. Each round
-#: solves the whole basis again; uncapped, Andes at 0.01 m ran for over 15 minutes
-#: (against 55 s with the nodes alone) while its centres still moved: the fit stops
-#: adding centres after this many and reports the cell-centre figure it reached.
-CELL_CENTRE_ROUNDS = 4
+#: The leaves of a level whose spacing is below this many node spacings take every cell
+#: centre in them as a site from the level's first step: there the nodes alone leave the
+#: B-splines free between them (about as many B-splines as nodes) and the spline swings
+#: (Andes 0.1 m: 0.167 m off the interval at level 4, h = 1.43 node spacings). Coarser
+#: levels are decided by the nodes; where their spline still leaves a centre's interval
+#: by more than the tolerance, the centre marks its B-splines for refinement as a node
+#: does, and the finer leaves take their centres. Measured in benchmarks/README.md
+#: ("Between the nodes").
+CELL_CENTRE_SPACINGS = 2.0
+
+#: A centre's weight is :data:`CELL_CENTRE_WEIGHT` times ``(T / (T + w))²``, ``w`` half
+#: its interval's width: its residual counted in the room it has (a node's is T, a
+#: centre's T beyond its interval's ends), so that a wide interval (a steep feature,
+#: where the two interpolants disagree) does not pull the spline from the nodes to its
+#: middle. Rounded down to a power of 4, at most this many classes (each class is one
+#: more assembly of the normal equations).
+CELL_CENTRE_WEIGHT_CLASSES = 4
+
+#: When nothing more can be refined and centres are still outside their interval by
+#: more than the target (where nodes and centres pull apart at the finest level: Andes
+#: 0.01 m, 12 of 72,000 at 1.6 T), their weight is multiplied by this and the basis fitted
+#: again, at most :data:`CELL_CENTRE_BOOSTS` times (the nodes' promise still first).
+CELL_CENTRE_BOOST = 16.0
+CELL_CENTRE_BOOSTS = 2
 
 #: Whether a grid fit (:func:`geoidspline.fitting.driver.fit_source`) takes its cell
-#: centres by default. Off: at 0.1 m over the Andes they cost 2.9 x the time for the
-#: centres' figure 0.167 -> 0.104 m, and at 0.01 m the fit ran over 10 minutes (55 s
-#: without them) and ended no better; measured in benchmarks/README.md ("Between the
-#: nodes"). ``fit_nodes(..., cell_centres=True)`` asks for them.
-CELL_CENTRES_BY_DEFAULT = False
+#: centres by default: on, every row of issue 21's matrix measured with them in
+#: benchmarks/README.md ("Between the nodes"). ``fit_nodes(..., cell_centres=...)`` chooses.
+CELL_CENTRES_BY_DEFAULT = True
 
 #: Ridge relative to the mean diagonal of AᵀA: keeps B-splines no site sees decided.
 RIDGE = 1e-10
@@ -136,14 +153,15 @@ class BasisTooLarge(FitError):
     (:func:`geoidspline.fitting.driver.fit_nodes` then fits by overlays instead)."""
 
 
-def leaf_sites(nodes: DataNodes, basis: HierarchicalBasis, params: FitParameters):
+def leaf_sites(nodes: DataNodes, basis: HierarchicalBasis, params: FitParameters, levels=None):
     """One ``(points, node index)`` pair per level: rays through the nodes thinned at
     that level's spacing, at its radii, inside its leaves and outside every finer
-    active support (there a finer B-spline would reach into the leaf)."""
+    active support (there a finer B-spline would reach into the leaf). ``levels``: a
+    bool per level, False leaving that level without sites (default: every level)."""
     out = []
     for lv in range(basis.levels):
         h = basis.spacing(lv)
-        if basis.leaves[lv].size == 0:
+        if basis.leaves[lv].size == 0 or (levels is not None and not levels[lv]):
             out.append((np.empty((0, 3)), np.empty(0, np.int64)))
             continue
         ray_mask = nodes.thinned(h, params.rays_per_cell)
@@ -156,6 +174,26 @@ def leaf_sites(nodes: DataNodes, basis: HierarchicalBasis, params: FitParameters
                 keep &= ~isin_sorted(cells, covered_cell_keys(basis.active[finer], basis.order))
         out.append((points[keep], node_of_site[keep]))
     return out
+
+
+def centre_reach_deg(params: FitParameters, nodes: DataNodes) -> float:
+    """How far beyond the region (degrees) a cell centre can lie in a leaf that takes
+    centres (:data:`CELL_CENTRE_SPACINGS`): twice the support of the coarsest such level,
+    refined from points in the region (Algorithm 2 may add a level's support more)."""
+    return math.degrees(2.0 * params.order * CELL_CENTRE_SPACINGS * nodes.spacing_rad)
+
+
+def centre_weight_groups(centres, tolerance_m: float, boost=None):
+    """``[(weight, centres)]``: the cell centres in classes of weight (powers of 4, at
+    most :data:`CELL_CENTRE_WEIGHT_CLASSES` below :data:`CELL_CENTRE_WEIGHT`), times
+    ``boost`` (a factor per centre, :data:`CELL_CENTRE_BOOST`), the empty ones left out."""
+    half_width = 0.5 * (centres.high - centres.low)
+    share = (tolerance_m / (tolerance_m + half_width)) ** 2
+    steps = -np.clip(np.floor(-np.log(share) / np.log(4.0)), 0, CELL_CENTRE_WEIGHT_CLASSES - 1)
+    if boost is not None:
+        steps = steps + np.round(np.log(boost) / np.log(4.0))
+    steps = steps.astype(int)
+    return [(CELL_CENTRE_WEIGHT * 4.0 ** float(k), centres.subset(steps == k)) for k in np.unique(steps)]
 
 
 def _penalty(basis: HierarchicalBasis, diagonal, weight):
@@ -192,13 +230,10 @@ class SymmetricMatrix:
 
 def _system(basis: HierarchicalBasis, points, values, regularization, extra=None):
     """The whole problem's matrix (AᵀA + penalty + ridge, a :class:`SymmetricMatrix`) and Aᵀv.
-    ``extra``: ``(points, values, weight)`` of sites weighted ``weight`` (per level, as
-    ``points`` and ``values``); the penalty scales with the nodes' diagonal alone."""
-    matrix, rhs = normal_matrix(basis, [(p, v) for p, v in zip(points, values)])
+    ``extra``: groups ``(points, values, weight)`` of sites weighted ``weight`` (per level,
+    as ``points`` and ``values``); the penalty scales with the diagonal of all sites."""
+    matrix, rhs = normal_matrix(basis, [(p, v) for p, v in zip(points, values)], extra or ())
     diagonal = matrix.diagonal()
-    if extra is not None:
-        more, more_rhs = normal_matrix(basis, [(p, v) for p, v in zip(extra[0], extra[1])])
-        matrix, rhs = matrix + extra[2] * more, rhs + extra[2] * more_rhs
     matrix = matrix + sp.triu(_penalty(basis, diagonal, regularization), format="csc")
     scale = float(diagonal[diagonal > 0].mean()) if np.any(diagonal > 0) else 1.0
     matrix = matrix + sp.identity(basis.coefficient_count, format="csc") * (RIDGE * scale)
@@ -256,7 +291,7 @@ def solve_basis(basis: HierarchicalBasis, points, values, params: FitParameters,
     t0 = time.perf_counter()
     system, rhs = _system(basis, points, values, params.regularization, extra)
     t1 = time.perf_counter()
-    index_sets = schwarz_blocks(basis, SCHWARZ_BLOCK, SCHWARZ_OVERLAP)
+    index_sets = schwarz_blocks(basis, SCHWARZ_BLOCK, SCHWARZ_OVERLAP, SCHWARZ_MAX_UNKNOWNS)
     with progress.stage(name, len(index_sets), "block") as advance:
         precondition = SchwarzPreconditioner(system, index_sets, advance)
     t2 = time.perf_counter()
@@ -296,11 +331,12 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
     gives each step's coefficients, on its basis (``shell``), instead of least squares.
     ``memory_budget`` (bytes): a step whose whole problem would need more is not built
     (:class:`BasisTooLarge`). ``centres``: a grid's cell centres
-    (:class:`~geoidspline.fitting.cell_centres.CellCentres`); once the nodes are within
-    the tolerance or can be refined no further, the centres of the region where the
-    spline lies more than the tolerance outside their interval join the sites (weight
-    :data:`CELL_CENTRE_WEIGHT`) and the basis is fitted again (refined again where nodes
-    rise above the tolerance), until no centre is outside or none is added.
+    (:class:`~geoidspline.fitting.cell_centres.CellCentres`): the leaves of levels finer
+    than :data:`CELL_CENTRE_SPACINGS` node spacings take every centre in them as a site
+    (weight :data:`CELL_CENTRE_WEIGHT`, valued at the middle of its interval), and a
+    centre of the region where the spline lies more than the nodes' target outside its
+    interval marks its B-splines for refinement as a node above the target does; the fit
+    stops when neither is left or nothing more can be refined.
     """
     start = time.perf_counter() if start is None else start
     progress = as_progress(progress)
@@ -317,11 +353,11 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
     converged = data_limited = False
     if centres is not None:
         centre_dirs = centres.directions[centres.in_region]
-        # the centres fitted as sites: an active set that only grows, or all of them
-        fitted_centres = np.full(centres.values.size, not CELL_CENTRES_ACTIVE_SET)
+        centre_groups = centre_weight_groups(centres, params.tolerance_m)
+        boost, boosts = np.ones(centres.values.size), 0
         centre_index = np.flatnonzero(centres.in_region)
-    kept = None
-    rounds = 0  # of cell centres joining the sites
+    kept = None  # the last spline keeping every node, while the centres are still being fitted
+    centre_max = None
     while True:
         t0 = time.perf_counter()
         step = len(reports)
@@ -330,17 +366,12 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
             points, values = [p for p, _ in sites], [nodes.values[i] for _, i in sites]
             x0 = carry_over(*previous, basis) if previous is not None else None
             extra = None
-            if centres is not None:
-                # leaves of a level finer than the nodes take every centre (the nodes alone
-                # leave such B-splines free between them); coarser ones those found outside
-                fine = [basis.spacing(lv) < nodes.spacing_rad for lv in range(basis.levels)]
-                some = leaf_sites(centres.subset(fitted_centres), basis, params)
-                every = leaf_sites(centres, basis, params) if any(fine) else some
-                chosen = [(every if f else some)[lv] for lv, f in enumerate(fine)]
-                subset_values = centres.values[fitted_centres]
-                extra = ([p for p, _ in chosen],
-                         [(centres.values if f else subset_values)[i] for f, (_, i) in zip(fine, chosen)],
-                         CELL_CENTRE_WEIGHT)
+            fine = [basis.spacing(lv) < CELL_CENTRE_SPACINGS * nodes.spacing_rad for lv in range(basis.levels)]
+            if centres is not None and any(fine):
+                extra = []
+                for weight, group in centre_groups:
+                    chosen = leaf_sites(group, basis, params, fine)
+                    extra.append(([p for p, _ in chosen], [group.values[i] for _, i in chosen], weight))
             coefs, solved = solve_basis(basis, points, values, params, force_tiles, progress,
                                         f"hierarchical step {step} ({basis.coefficient_count:,} unknowns)", x0,
                                         memory_budget, extra)
@@ -352,6 +383,14 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
         spline = AmbientSpline(basis.level_splines(coefs))
         errors = region_values - spline.evaluate_points(region_dirs)
         above = np.abs(errors) > params.node_target_m
+        marks = region_dirs[above]
+        if centres is not None:
+            outside = centres.outside(spline.evaluate_points(centre_dirs), centres.in_region)
+            centre_above = outside > params.node_target_m
+            centre_max = float(outside.max(initial=0.0))
+            marks = np.concatenate([marks, centre_dirs[centre_above]])
+            if not above.any():
+                kept = (spline, errors, basis, len(reports) + 1)
         top = basis.levels - 1
         reports.append(LevelReport(
             level=top, h=basis.spacing(top), coefficients=basis.coefficient_count,
@@ -361,35 +400,23 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
             seconds=time.perf_counter() - t0,
         ))
         log.info("hierarchical step %d: levels 0-%d, %d coefficients (%s), max |error| %.4f m, %d nodes above "
-                 "%.4g m (%.1f s)", step, top, basis.coefficient_count,
+                 "%.4g m%s (%.1f s)", step, top, basis.coefficient_count,
                  "/".join(str(a.size) for a in basis.active), reports[-1].max_error_m, int(above.sum()),
-                 params.node_target_m, reports[-1].seconds)
-        if centres is not None and not above.any():
-            kept = (spline, errors, basis, len(reports))  # the last spline keeping every node
-        refined = strategy.refine(basis, region_dirs[above], max_level=finest) if above.any() else basis
-        grew = False
-        if centres is not None and (refined is basis or not CELL_CENTRES_ACTIVE_SET):
-            # the nodes are kept or can be refined no further: the cell centres outside
-            # the interval join the sites (marking their B-splines only with CELL_CENTRE_MARKS:
-            # finer B-splines there swing between the nodes elsewhere)
-            outside = centres.outside(spline.evaluate_points(centre_dirs), centres.in_region)
-            out = outside > params.node_target_m
-            log.info("hierarchical step %d: cell centres at most %.4f m outside the interval, %d above %.4g m",
-                     step, float(outside.max(initial=0.0)), int(out.sum()), params.node_target_m)
-            grew = rounds < CELL_CENTRE_ROUNDS and bool((out & ~fitted_centres[centre_index]).any())
-            if grew:
-                rounds += 1
-                fitted_centres[centre_index[out]] = True
-            if CELL_CENTRE_MARKS and out.any():
-                refined = strategy.refine(basis, np.concatenate([region_dirs[above], centre_dirs[out]]),
-                                          max_level=finest)
-            if not above.any() and not out.any():
-                converged = True
-                break
-        elif not above.any():
+                 params.node_target_m, "" if centres is None else
+                 f"; cell centres at most {centre_max:.4f} m outside the interval, {int(centre_above.sum())} above",
+                 reports[-1].seconds)
+        if not marks.shape[0]:
             converged = True
             break
-        if refined is basis and not grew:
+        refined = strategy.refine(basis, marks, max_level=finest)
+        if refined is basis and centres is not None and not above.any() and centre_above.any() \
+                and boosts < CELL_CENTRE_BOOSTS:
+            # nodes and centres pull apart where nothing can be refined: the centres outside weigh more
+            boosts += 1
+            boost[centre_index[centre_above]] *= CELL_CENTRE_BOOST
+            centre_groups = centre_weight_groups(centres, params.tolerance_m, boost)
+            continue
+        if refined is basis:
             data_limited = finest < params.max_level
             converged = not above.any()
             break
@@ -415,24 +442,41 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
 # The whole problem by conjugate gradients, preconditioned by overlapping local solves
 
 
-def schwarz_blocks(basis: HierarchicalBasis, size: float, overlap: float):
+def schwarz_blocks(basis: HierarchicalBasis, size: float, overlap: float, max_unknowns: int | None = None):
     """Index sets (into the vector of all levels) of overlapping subdomains: per cube of
     side ``size`` holding a support centre, every active B-spline whose support meets the
-    cube grown by ``overlap`` (unit-sphere units)."""
+    cube grown by ``overlap`` (unit-sphere units). A cube whose set would hold more than
+    ``max_unknowns`` is split in eight (again while that is so, down to the finest
+    support's width), each part holding a support centre a subdomain of its own: the
+    dense factor of a subdomain costs the cube of its size."""
     n = basis.order
     lo = np.concatenate([unpack_keys(k) * basis.spacing(lv) for lv, k in enumerate(basis.active)])
     width = np.concatenate([np.full(k.size, n * basis.spacing(lv)) for lv, k in enumerate(basis.active)])
     hi = lo + width[:, None]
-    sorted_bins, order = _binned(lo + width[:, None] / 2.0, size)
+    centre = lo + width[:, None] / 2.0
+    sorted_bins, order = _binned(centre, size)
     blocks = np.unique(sorted_bins)
     reach = int(math.ceil((n * basis.spacing(0) / 2.0 + overlap) / size))
     near = cube_offsets(-reach, reach)
+    smallest = n * basis.spacing(basis.levels - 1)
+    octants = cube_offsets(0, 1)
     out = []
+
+    def add(box_lo, side, candidates):
+        box_hi = box_lo + side
+        members = candidates[np.all((lo[candidates] < box_hi + overlap) & (hi[candidates] > box_lo - overlap), axis=1)]
+        if max_unknowns is None or members.size <= max_unknowns or side / 2.0 < smallest:
+            out.append(members)
+            return
+        inside = members[np.all((centre[members] >= box_lo) & (centre[members] < box_hi), axis=1)]
+        part = np.floor((centre[inside] - box_lo) / (side / 2.0)).clip(0, 1).astype(np.int64)
+        for octant in octants:
+            if np.any(np.all(part == octant, axis=1)):
+                add(box_lo + octant * (side / 2.0), side / 2.0, members)
+
     for key in blocks:
         block = unpack_keys(np.array([key]))[0]
-        box_lo, box_hi = block * size - overlap, (block + 1) * size + overlap
-        cand = _gather(sorted_bins, order, pack_keys(block[None] + near))
-        out.append(cand[np.all((lo[cand] < box_hi) & (hi[cand] > box_lo), axis=1)])
+        add(block * size, size, _gather(sorted_bins, order, pack_keys(block[None] + near)))
     return out
 
 

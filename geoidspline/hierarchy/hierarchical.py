@@ -595,9 +595,12 @@ def _upper_of_congruence(upper, r, total):
     return pieces
 
 
-def normal_matrix(basis: HierarchicalBasis, sites):
+def normal_matrix(basis: HierarchicalBasis, sites, weighted=()):
     """The upper triangle (CSC, diagonal included) of AᵀA over all levels, and Aᵀv, for
     ``sites``: one ``(points, values)`` pair per level, the points inside that level's leaves.
+    ``weighted``: more sites in groups ``(points per level, values per level, weight)``,
+    their sums weighted (AᵀWA, AᵀWv) and added to their level's before it is put on the
+    hierarchical basis (one congruence per level, whatever the groups).
 
     Each level's AᵀA on the B-splines touching its leaves comes from the single-level
     kernel (:func:`level_normal_matrix`), then ``Rᵀ (AᵀA) R`` with the level's expansion R
@@ -610,11 +613,20 @@ def normal_matrix(basis: HierarchicalBasis, sites):
     rhs = np.zeros(total)
     pieces = []
     for lv, (points, values) in enumerate(sites):
-        if points.shape[0] == 0 or basis.leaves[lv].size == 0:
+        groups = [(points, values, 1.0)] + [(p[lv], v[lv], w) for p, v, w in weighted]
+        groups = [g for g in groups if g[0].shape[0]]
+        if not groups or basis.leaves[lv].size == 0:
             continue
         x, r = level_expansion(basis, lv)
-        upper, b = level_normal_matrix(np.ascontiguousarray(points, dtype=float),
-                                       np.ascontiguousarray(values, dtype=float), basis.spacing(lv), basis.order, x)
+        upper = b = None
+        for group_points, group_values, weight in groups:
+            more, more_b = level_normal_matrix(np.ascontiguousarray(group_points, dtype=float),
+                                               np.ascontiguousarray(group_values, dtype=float), basis.spacing(lv),
+                                               basis.order, x)
+            if weight != 1.0:
+                more, more_b = more * weight, more_b * weight
+            upper, b = (more, more_b) if upper is None else (upper + more, b + more_b)
+            del more
         rhs += r.T @ b
         level_pieces = _upper_of_congruence(upper, r, total)
         del upper

@@ -12,6 +12,7 @@ import numpy as np
 
 from ..errors import CoordinateError, InputFileError, ParameterError
 from ..sphere.region import Region
+from ..sphere.sample import lattice_interpolation
 from .base import NodeSample, Provenance
 
 __all__ = ["GeoidGrid"]
@@ -24,24 +25,6 @@ NODE_TOL_DEG = 1e-9
 #: Tolerance (degrees) on the lattice: coordinates may deviate this much from
 #: ``origin + k * spacing`` (float64 round-off on up to ~1e5 nodes).
 _LATTICE_TOL_DEG = 1e-9
-
-
-def _cubic_weights(t):
-    """Catmull-Rom (cubic convolution, a = -0.5) weights of nodes -1, 0, 1, 2 at t in [0, 1].
-
-    Returns an array of shape (4,) + t.shape. The weights sum to 1 and reproduce
-    polynomials up to degree 2 exactly on a uniform lattice.
-    """
-    t2 = t * t
-    t3 = t2 * t
-    return np.stack(
-        [
-            0.5 * (-t3 + 2.0 * t2 - t),
-            0.5 * (3.0 * t3 - 5.0 * t2 + 2.0),
-            0.5 * (-3.0 * t3 + 4.0 * t2 + t),
-            0.5 * (t3 - t2),
-        ]
-    )
 
 
 class GeoidGrid:
@@ -257,26 +240,7 @@ class GeoidGrid:
         else:
             j = np.minimum(np.floor(x).astype(np.intp), nlon - 2)
         fx = x - j
-        v = self.values
-        if method == "bilinear":
-            j1 = (j + 1) % nlon if self._periodic else j + 1
-            # Same expression order as GeographicLib's Geoid (bilinear branch).
-            a = (1.0 - fx) * v[i, j] + fx * v[i, j1]
-            b = (1.0 - fx) * v[i + 1, j] + fx * v[i + 1, j1]
-            inside = (1.0 - fy) * a + fy * b
-        else:
-            wy = _cubic_weights(fy)
-            wx = _cubic_weights(fx)
-            inside = np.zeros(i.shape)
-            # 16 gathers of one value per point keep memory at O(points).
-            for a in range(4):
-                rows = np.clip(i + (a - 1), 0, nlat - 1)  # clamp at the edge rows
-                row_sum = np.zeros(i.shape)
-                for b in range(4):
-                    cols = j + (b - 1)
-                    cols = cols % nlon if self._periodic else np.clip(cols, 0, nlon - 1)
-                    row_sum += wx[b] * v[rows, cols]
-                inside += wy[a] * row_sum
+        inside = lattice_interpolation(self.values, i, fy, j, fx, method, self._periodic)
         result = np.full(lat.shape, np.nan)
         result[ok] = inside
         if shape == ():

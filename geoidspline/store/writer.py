@@ -480,7 +480,8 @@ def write_store(path, result, provenance, check=None,
     format (netCDF4 tiles, float64 values), kept for tests of older stores; format 2
     quantises the coefficients with ``value_step_m`` (default
     :func:`~geoidspline.store.codec.node_safe_step`: the largest step at which the stored
-    spline still meets the tolerance asked for at every node); the node and check-point
+    spline still meets the tolerance asked for at every node, and keeps a grid's check
+    points within the tolerance, or the fit's own figure, of their interval); the node and check-point
     errors in the manifest are those of the stored (quantised) spline (``accuracy.
     fit_node_max_error_m`` keeps the fit's), each within ``value_error_bound_m`` of the fit's.
     ``check``: points that were not fit sites (``latitude``, ``longitude``, ``truth``
@@ -520,8 +521,12 @@ def _fit_manifest(root, result, provenance, check, previous, version, extra, att
             step = value_step_m
             node_errors = node_errors - quantisation_change(spline, step, result.node_directions)
         else:
+            # a grid's cell centres keep their figure too: the store, not only the fit
+            interval = getattr(check, "interval", None) if check is not None else None
+            between = None if interval is None else (directions(check.latitude, check.longitude), *interval)
             step, node_errors = node_safe_step(spline, result.node_directions, node_errors,
-                                               tolerance_asked({"tolerance_m": params.tolerance_m, **(extra or {})}))
+                                               tolerance_asked({"tolerance_m": params.tolerance_m, **(extra or {})}),
+                                               between=between)
         quantisation = quantisation_meta(step, len(spline.levels))
         stored = quantised_spline(spline, step)
     node_tile = tiles_of_directions(result.node_directions, params.tile_size)
