@@ -1,0 +1,148 @@
+/* Store codec, format 3: the radial-foot prediction of one tile level's quantised values
+ * (geoidspline/store/codec.py, radial_code), for encoding (residuals from values) and
+ * decoding (values from residuals) by the same code, so both predict alike bit for bit.
+ *
+ * Slab order: rows sorted by their index along the axis a nearest the level's mean radial
+ * direction (the largest |sum of 2 P|, P = index + order/2 the support centre in
+ * spacings; the first such axis), then by the other two axes b < c. A row at P is
+ * predicted from slab P_a - 1 at its radial foot P - P / P_a (bilinear, weights in 1/256
+ * of a spacing, normalised over the four nodes present), else by the previous row when
+ * that is the same (a, b) column at c - 1, else by 0. Integers only. Every node and the
+ * previous row come before the row in slab order: one pass decodes. */
+#include <stdlib.h>
+
+#include "gs_common.h"
+
+#define FRACTION 256 /* the foot's fixed point: 1/256 of a spacing */
+
+/* floor(x / y) for y != 0 */
+GS_INLINE int64_t floor_div(int64_t x, int64_t y)
+{
+    int64_t q = x / y;
+    return (x % y != 0 && ((x < 0) != (y < 0))) ? q - 1 : q;
+}
+
+GS_INLINE int64_t unpack(int64_t key, int axis)
+{
+    return ((key >> ((2 - axis) * GS_KEY_BITS)) & GS_KEY_MASK) - GS_KEY_OFFSET;
+}
+
+/* First position in sorted keys[lo..hi) whose key is >= value, searched outwards from
+ * *hint (the last answer: the feet of successive rows are near one another). */
+GS_INLINE int64_t lower_bound_near(const int64_t *keys, int64_t lo, int64_t hi, int64_t value, int64_t *hint)
+{
+    int64_t at = *hint < lo ? lo : (*hint > hi ? hi : *hint);
+    int64_t step = 1, left, right;
+    if (at < hi && keys[at] < value) { /* the answer is after at: gallop right */
+        left = at + 1;
+        while (left + step - 1 < hi && keys[left + step - 1] < value) {
+            left += step;
+            step <<= 1;
+        }
+        right = left + step - 1 < hi ? left + step - 1 : hi;
+    } else { /* the answer is at or before at: gallop left */
+        right = at;
+        while (right - step >= lo && keys[right - step] >= value) {
+            right -= step;
+            step <<= 1;
+        }
+        left = right - step + 1 > lo ? right - step + 1 : lo;
+    }
+    at = left + gs_lower_bound(keys + left, right - left, value);
+    *hint = at;
+    return at;
+}
+
+/* keys: the level's n sorted packed keys; values int64 holding int32. decode: values from
+ * residuals (values written); else residuals from values (residuals written). Returns 0, or
+ * -1 when memory ran out. */
+GS_EXPORT int gs_radial_code(int64_t n, const int64_t *keys, int64_t order, int64_t decode, int64_t *values,
+                             int64_t *residuals)
+{
+    if (n <= 0)
+        return 0;
+    int64_t sum[3] = {0, 0, 0};
+    for (int64_t i = 0; i < n; ++i)
+        for (int d = 0; d < 3; ++d)
+            sum[d] += 2 * unpack(keys[i], d) + order;
+    int a = 0;
+    for (int d = 1; d < 3; ++d)
+        if (llabs(sum[d]) > llabs(sum[a]))
+            a = d;
+    int b = a == 0 ? 1 : 0, c = a == 2 ? 1 : 2;
+    int64_t lo_a = unpack(keys[0], a), hi_a = lo_a;
+    for (int64_t i = 1; i < n; ++i) {
+        int64_t x = unpack(keys[i], a);
+        lo_a = x < lo_a ? x : lo_a;
+        hi_a = x > hi_a ? x : hi_a;
+    }
+    int64_t slabs = hi_a - lo_a + 1;
+    int64_t *start = calloc((size_t)slabs + 1, sizeof *start); /* first row of each slab */
+    int64_t *perm = malloc((size_t)n * sizeof *perm);          /* slab order -> key order */
+    int64_t *slab_keys = malloc((size_t)n * sizeof *slab_keys); /* packed (a, b, c), sorted */
+    if (!start || !perm || !slab_keys) {
+        free(start);
+        free(perm);
+        free(slab_keys);
+        return -1;
+    }
+    /* a stable counting sort by the a index keeps key order, (b, c), within a slab */
+    for (int64_t i = 0; i < n; ++i)
+        start[unpack(keys[i], a) - lo_a + 1]++;
+    for (int64_t s = 0; s < slabs; ++s)
+        start[s + 1] += start[s];
+    for (int64_t i = 0; i < n; ++i) {
+        int64_t s = unpack(keys[i], a) - lo_a;
+        int64_t r = start[s]++;
+        perm[r] = i;
+        slab_keys[r] = gs_pack(unpack(keys[i], a), unpack(keys[i], b), unpack(keys[i], c));
+    }
+    for (int64_t s = slabs; s > 0; --s) /* back to each slab's first row */
+        start[s] = start[s - 1];
+    start[0] = 0;
+
+    int64_t hint[2] = {0, 0};
+    for (int64_t r = 0; r < n; ++r) {
+        int64_t key = slab_keys[r], ia = unpack(key, 0), s = ia - lo_a;
+        int64_t prediction = 0, total = 0, acc = 0;
+        int64_t den = 2 * ia + order;
+        if (s > 0 && den != 0) {
+            int64_t base[2], frac[2];
+            for (int x = 0; x < 2; ++x) {
+                int64_t ix = unpack(key, x + 1);
+                int64_t fixed = floor_div((ix * den - (2 * ix + order)) * FRACTION, den);
+                base[x] = floor_div(fixed, FRACTION);
+                frac[x] = fixed - base[x] * FRACTION;
+            }
+            for (int db = 0; db < 2; ++db) {
+                int64_t nb = base[0] + db, nc = base[1];
+                /* a node off the key range would alias another key: never one */
+                if (nb < -GS_KEY_OFFSET || nb >= GS_KEY_OFFSET || nc < -GS_KEY_OFFSET || nc + 1 >= GS_KEY_OFFSET)
+                    continue;
+                int64_t node = gs_pack(ia - 1, nb, nc), lo = start[s - 1], hi = start[s];
+                int64_t at = lower_bound_near(slab_keys, lo, hi, node, &hint[db]);
+                for (int dc = 0; dc < 2; ++dc, ++node) { /* the node along c is the next key */
+                    int64_t w = (db ? frac[0] : FRACTION - frac[0]) * (dc ? frac[1] : FRACTION - frac[1]);
+                    if (at < hi && slab_keys[at] == node) {
+                        acc += w * values[perm[at]];
+                        total += w;
+                        ++at;
+                    }
+                }
+            }
+        }
+        if (total > 0)
+            prediction = floor_div(2 * acc + total, 2 * total); /* rounded half up */
+        else if (r > 0 && key - slab_keys[r - 1] == 1)
+            prediction = values[perm[r - 1]];
+        int64_t row = perm[r];
+        if (decode) /* values are int32: the sum wraps as the encoder's difference did */
+            values[row] = (int32_t)(uint32_t)(uint64_t)(prediction + residuals[row]);
+        else
+            residuals[row] = values[row] - prediction;
+    }
+    free(start);
+    free(perm);
+    free(slab_keys);
+    return 0;
+}
