@@ -13,12 +13,19 @@
 
 #include "gs_common.h"
 
-#define FRACTION 256 /* the foot's fixed point: 1/256 of a spacing */
+#define FRACTION 256 /* the foot's fixed point: 1/256 of a spacing (2 FRACTION^2 = 2^17) */
 
 /* floor(x / y) for y != 0 */
 GS_INLINE int64_t floor_div(int64_t x, int64_t y)
 {
     int64_t q = x / y;
+    return (x % y != 0 && ((x < 0) != (y < 0))) ? q - 1 : q;
+}
+
+/* floor(x / y) for y != 0, in 32 bits */
+GS_INLINE int32_t floor_div32(int32_t x, int32_t y)
+{
+    int32_t q = x / y;
     return (x % y != 0 && ((x < 0) != (y < 0))) ? q - 1 : q;
 }
 
@@ -109,8 +116,13 @@ GS_EXPORT int gs_radial_code(int64_t n, const int64_t *keys, int64_t order, int6
         if (s > 0 && den != 0) {
             int64_t base[2], frac[2];
             for (int x = 0; x < 2; ++x) {
+                /* foot_x = ix - P_x / P_a = ix - (2 ix + order) / den, in 1/FRACTION, floored:
+                 * ix FRACTION - ceil((2 ix + order) FRACTION / den), whose quotient's
+                 * operands fit 32 bits (|2 ix + order| < 2^22): the faster division */
                 int64_t ix = unpack(key, x + 1);
-                int64_t fixed = floor_div((ix * den - (2 * ix + order)) * FRACTION, den);
+                int32_t num = (int32_t)((2 * ix + order) * FRACTION), d32 = (int32_t)den;
+                int32_t up = -floor_div32(-num, d32);
+                int64_t fixed = ix * FRACTION - up;
                 base[x] = floor_div(fixed, FRACTION);
                 frac[x] = fixed - base[x] * FRACTION;
             }
@@ -131,7 +143,9 @@ GS_EXPORT int gs_radial_code(int64_t n, const int64_t *keys, int64_t order, int6
                 }
             }
         }
-        if (total > 0)
+        if (total == FRACTION * FRACTION) /* all four nodes: a shift (arithmetic: floor) */
+            prediction = (2 * acc + total) >> 17;
+        else if (total > 0)
             prediction = floor_div(2 * acc + total, 2 * total); /* rounded half up */
         else if (r > 0 && key - slab_keys[r - 1] == 1)
             prediction = values[perm[r - 1]];
