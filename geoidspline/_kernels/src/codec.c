@@ -6,9 +6,11 @@
  * direction (the largest |sum of 2 P|, P = index + order/2 the support centre in
  * spacings; the first such axis), then by the other two axes b < c. A row at P is
  * predicted from slab P_a - 1 at its radial foot P - P / P_a (bilinear, weights in 1/256
- * of a spacing, normalised over the four nodes present), else by the previous row when
- * that is the same (a, b) column at c - 1, else by 0. Integers only. Every node and the
- * previous row come before the row in slab order: one pass decodes. */
+ * of a spacing, normalised over the four nodes present) plus, when the previous row is
+ * the same (a, b) column at c - 1 and was predicted from its foot too, that row's value
+ * minus its foot prediction; a row without a foot node by the previous row when that
+ * is the same column at c - 1, else by 0. Integers only. Every node and the previous row
+ * come before the row in slab order: one pass decodes. */
 #include <stdlib.h>
 
 #include "gs_common.h"
@@ -87,10 +89,14 @@ GS_EXPORT int gs_radial_code(int64_t n, const int64_t *keys, int64_t order, int6
     int64_t *start = calloc((size_t)slabs + 1, sizeof *start); /* first row of each slab */
     int64_t *perm = malloc((size_t)n * sizeof *perm);          /* slab order -> key order */
     int64_t *slab_keys = malloc((size_t)n * sizeof *slab_keys); /* packed (a, b, c), sorted */
-    if (!start || !perm || !slab_keys) {
+    int64_t *foot = malloc((size_t)n * sizeof *foot);            /* each row's foot prediction */
+    uint8_t *footed = calloc((size_t)n, 1);                       /* whether it had one */
+    if (!start || !perm || !slab_keys || !foot || !footed) {
         free(start);
         free(perm);
         free(slab_keys);
+        free(foot);
+        free(footed);
         return -1;
     }
     /* a stable counting sort by the a index keeps key order, (b, c), within a slab */
@@ -143,12 +149,21 @@ GS_EXPORT int gs_radial_code(int64_t n, const int64_t *keys, int64_t order, int6
                 }
             }
         }
-        if (total == FRACTION * FRACTION) /* all four nodes: a shift (arithmetic: floor) */
-            prediction = (2 * acc + total) >> 17;
-        else if (total > 0)
-            prediction = floor_div(2 * acc + total, 2 * total); /* rounded half up */
-        else if (r > 0 && key - slab_keys[r - 1] == 1)
+        int has_prev = r > 0 && key - slab_keys[r - 1] == 1;
+        if (total > 0) {
+            if (total == FRACTION * FRACTION) /* all four nodes: a shift (arithmetic: floor) */
+                prediction = (2 * acc + total) >> 17;
+            else
+                prediction = floor_div(2 * acc + total, 2 * total); /* rounded half up */
+            foot[r] = prediction;
+            /* the foot's interpolation error varies slowly along a column: take the
+             * previous row's off too, when that was predicted from its foot */
+            if (has_prev && footed[r - 1])
+                prediction += values[perm[r - 1]] - foot[r - 1];
+            footed[r] = 1;
+        } else if (has_prev) {
             prediction = values[perm[r - 1]];
+        }
         int64_t row = perm[r];
         if (decode) /* values are int32: the sum wraps as the encoder's difference did */
             values[row] = (int32_t)(uint32_t)(uint64_t)(prediction + residuals[row]);
@@ -158,5 +173,7 @@ GS_EXPORT int gs_radial_code(int64_t n, const int64_t *keys, int64_t order, int6
     free(start);
     free(perm);
     free(slab_keys);
+    free(foot);
+    free(footed);
     return 0;
 }
