@@ -113,8 +113,9 @@ def test_radial_residuals_and_values_are_inverse_and_small_on_a_shell():
     idx, values = _shell(h=0.002, order=6)
     keys = np.sort(pack_keys(idx))
     q = codec.quantise(values[np.argsort(pack_keys(idx))], 1e-4)
+    for column in (False, True):
+        assert np.array_equal(codec.radial_values(keys, 6, codec.radial_residuals(keys, 6, q, column), column), q)
     residuals = codec.radial_residuals(keys, 6, q)
-    assert np.array_equal(codec.radial_values(keys, 6, residuals), q)
     # the radial foot predicts a radially constant function far better than the
     # previous value along k does
     along_k = np.diff(q, prepend=0)
@@ -126,6 +127,7 @@ def test_radial_residuals_and_values_are_inverse_and_small_on_a_shell():
     ("value array", "damaged array"),
     ("truncated", "do not add up"),
     ("order", "damaged header"),
+    ("column", "damaged header"),
     ("count", "damaged header|do not add up|header says"),
 ])
 def test_damaged_format_3_bytes_name_the_rule_broken(damage, message):
@@ -143,6 +145,8 @@ def test_damaged_format_3_bytes_name_the_rule_broken(damage, message):
     else:
         if damage == "order":
             header["order"] = 99
+        elif damage == "column":
+            header["levels"][0]["column"] = 1
         else:
             header["levels"][0]["coefficients"] = -5
         head = json.dumps(header, separators=(",", ":")).encode()

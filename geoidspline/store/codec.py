@@ -33,8 +33,8 @@ size and checksum: the layout numcodecs' ``Delta(int32)``, ``Shuffle(4)`` and
 written and which this module reads; format 3's value array is zigzagged instead of
 delta-coded (numcodecs itself is not used: its import scans
 every installed package's entry points, 40-90 ms of a cold one-point query). A tile file is its format's signature (``MAGICS``), a 4-byte little-endian header length,
-a UTF-8 JSON header (tile, step, per-level coefficient and run counts, the encoded
-arrays' byte counts) and the encoded arrays. Why not netCDF4/HDF5 as in format 1: an
+a UTF-8 JSON header (tile, step, per-level coefficient and run counts and, format 3,
+whether the level's column term is used; the encoded arrays' byte counts) and the encoded arrays. Why not netCDF4/HDF5 as in format 1: an
 HDF5 file with four compressed variables costs about 17.7 kB before any data (measured
 with netCDF4 1.7.5, HDF5 1.14), more than the data of a 10,000-coefficient tile; this
 container costs about 300 bytes.
@@ -240,7 +240,7 @@ def keys_of_runs(start_keys, lengths):
 # -- format 3: values predicted along the radius -------------------------------------------
 
 
-def radial_residuals(keys, order, values):
+def radial_residuals(keys, order, values, column=True):
     """Format 3's prediction residuals (int64) of one level's quantised ``values`` (int32
     range, in the order of its sorted packed ``keys``; ``order``: the spline's).
 
@@ -250,9 +250,13 @@ def radial_residuals(keys, order, values):
     before it along the axis ``a`` nearest the radial direction, at its *radial foot*:
     the point of that plane on the ray from the origin through its support centre ``P``
     (``P - P / P_a`` in spacings; bilinear between the plane's four nodes around it,
-    weights in 1/256 of a spacing, normalised over the nodes present). Where the plane
-    has none of them (the shell's first layer along ``a``), the prediction is the
-    previous coefficient along the last axis in the same column, else 0. Integers only,
+    weights in 1/256 of a spacing, normalised over the nodes present), plus (``column``)
+    the previous coefficient's own foot error when it is the one before along the last
+    axis in the same column (the interpolation error varies slowly along a column; where
+    the step is far below the coefficients' noise this adds noise instead, so the
+    encoder chooses per level: :func:`_encode_values`). Where the plane
+    has none of the foot's nodes (the shell's first layer along ``a``), the prediction is
+    that previous coefficient, else 0. Integers only,
     so encoder and decoder agree bit for bit on every machine; C (one pass, each
     coefficient after those it is predicted from): :mod:`geoidspline._kernels.codec`.
     """
@@ -260,25 +264,39 @@ def radial_residuals(keys, order, values):
 
     q = np.ascontiguousarray(values, dtype=np.int64)
     out = np.empty_like(q)
-    radial_code(keys, order, False, q, out)
+    radial_code(keys, order, column, False, q, out)
     return out
 
 
-def radial_values(keys, order, residuals):
+def radial_values(keys, order, residuals, column=True):
     """Inverse of :func:`radial_residuals`: the values (int64 in int32 range)."""
     from .._kernels.codec import radial_code
 
     r = np.ascontiguousarray(residuals, dtype=np.int64)
     out = np.zeros_like(r)
-    radial_code(keys, order, True, out, r)
+    radial_code(keys, order, column, True, out, r)
     return out
 
 
+def _entropy_bits(values):
+    """Zero-order entropy (bits) of an integer array."""
+    _, counts = np.unique(values, return_counts=True)
+    return float(-(counts * np.log2(counts / values.size)).sum()) if values.size else 0.0
+
+
 def _encode_values(level_keys, level_q, order, tile_format):
+    """(value array's bytes, per level: whether format 3's column term is used)."""
     if tile_format == 2:
-        return _delta_encode(np.concatenate(level_q) if level_q else np.zeros(0), np.int32)
-    parts = [radial_residuals(k, order, q) for k, q in zip(level_keys, level_q)]
-    return _shuffle_compress(_zigzag(np.concatenate(parts) if parts else np.zeros(0, np.int64)))
+        return _delta_encode(np.concatenate(level_q) if level_q else np.zeros(0), np.int32), []
+    parts, columns = [], []
+    for keys, q in zip(level_keys, level_q):
+        # the smaller of the two predictions by their zero-order entropy (what the
+        # shuffle and Zstandard then approach), without compressing twice
+        both = [radial_residuals(keys, order, q, column) for column in (False, True)]
+        column = _entropy_bits(both[1]) < _entropy_bits(both[0])
+        parts.append(both[column])
+        columns.append(bool(column))
+    return _shuffle_compress(_zigzag(np.concatenate(parts) if parts else np.zeros(0, np.int64))), columns
 
 
 def encode_tile(tile, levels, indices, values, step, record=None, tile_format=TILE_FORMAT) -> bytes:
@@ -307,11 +325,14 @@ def encode_tile(tile, levels, indices, values, step, record=None, tile_format=TI
     start_keys = np.concatenate(starts_all) if starts_all else np.zeros(0, np.int64)
     lengths = np.concatenate(lengths_all) if lengths_all else np.zeros(0, np.int64)
     spline_order = int((record or {}).get("order", 0))
+    value_blob, columns = _encode_values(level_keys, level_q, spline_order, tile_format)
+    for meta, column in zip(level_meta, columns):
+        meta["column"] = column
     blobs = {
         # i, j, k columns one after the other: each changes slowly from run to run
         "run_start": _delta_encode(_keys.unpack_keys(start_keys).T.ravel(), np.int32),
         "run_length": _delta_encode(lengths, np.int32),
-        "value": _encode_values(level_keys, level_q, spline_order, tile_format),
+        "value": value_blob,
     }
     header = {
         "tile": [int(v) for v in tile],
@@ -324,6 +345,12 @@ def encode_tile(tile, levels, indices, values, step, record=None, tile_format=TI
     }
     head = json.dumps(header, separators=(",", ":")).encode("utf-8")
     return b"".join([MAGICS[tile_format], struct.pack("<I", len(head)), head, *blobs.values()])
+
+
+def _flag(value) -> bool:
+    if not isinstance(value, bool):
+        raise TypeError(f"a level's column flag is {value!r}, not true or false")
+    return value
 
 
 def tile_format_of(data):
@@ -357,6 +384,7 @@ def decode_tile(data):
         arrays = {name: int(count) for name, count in header["arrays"]}
         step = float(header["value_step_m"])
         level_meta = [(int(m["level"]), int(m["coefficients"]), int(m["runs"])) for m in header["levels"]]
+        columns = [_flag(m["column"]) for m in header["levels"]] if tile_format == 3 else []
         spline_order = int(header.get("order", 0))
     except (ValueError, KeyError, TypeError) as exc:
         raise ValueError(f"has a damaged header ({exc})") from None
@@ -384,13 +412,13 @@ def decode_tile(data):
     start_keys = _keys.pack_keys(start)
     out = {}
     run_at = coef_at = 0
-    for level, count, runs in level_meta:
+    for at_level, (level, count, runs) in enumerate(level_meta):
         keys = keys_of_runs(start_keys[run_at:run_at + runs], lengths[run_at:run_at + runs])
         if keys.size != count or (keys.size > 1 and not np.all(keys[1:] > keys[:-1])):
             raise ValueError(f"level {level}'s runs are not in increasing key order")
         values = q[coef_at:coef_at + count]
         if tile_format == 3:
-            values = radial_values(keys, spline_order, values)
+            values = radial_values(keys, spline_order, values, columns[at_level])
         out[level] = (keys, values.astype(np.int32) * step)
         run_at += runs
         coef_at += count

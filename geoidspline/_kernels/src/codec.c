@@ -8,7 +8,8 @@
  * predicted from slab P_a - 1 at its radial foot P - P / P_a (bilinear, weights in 1/256
  * of a spacing, normalised over the four nodes present) plus, when the previous row is
  * the same (a, b) column at c - 1 and was predicted from its foot too, that row's value
- * minus its foot prediction; a row without a foot node by the previous row when that
+ * minus its foot prediction (when column is set: this helps where the coefficients are
+ * smooth at the step, and adds noise where the step is far below their noise); a row without a foot node by the previous row when that
  * is the same column at c - 1, else by 0. Integers only. Every node and the previous row
  * come before the row in slab order: one pass decodes. */
 #include <stdlib.h>
@@ -62,11 +63,12 @@ GS_INLINE int64_t lower_bound_near(const int64_t *keys, int64_t lo, int64_t hi, 
     return at;
 }
 
-/* keys: the level's n sorted packed keys; values int64 holding int32. decode: values from
+/* keys: the level's n sorted packed keys; values int64 holding int32; column: the
+ * previous row's foot error is predicted too. decode: values from
  * residuals (values written); else residuals from values (residuals written). Returns 0, or
  * -1 when memory ran out. */
-GS_EXPORT int gs_radial_code(int64_t n, const int64_t *keys, int64_t order, int64_t decode, int64_t *values,
-                             int64_t *residuals)
+GS_EXPORT int gs_radial_code(int64_t n, const int64_t *keys, int64_t order, int64_t column, int64_t decode,
+                             int64_t *values, int64_t *residuals)
 {
     if (n <= 0)
         return 0;
@@ -158,7 +160,7 @@ GS_EXPORT int gs_radial_code(int64_t n, const int64_t *keys, int64_t order, int6
             foot[r] = prediction;
             /* the foot's interpolation error varies slowly along a column: take the
              * previous row's off too, when that was predicted from its foot */
-            if (has_prev && footed[r - 1])
+            if (column && has_prev && footed[r - 1])
                 prediction += values[perm[r - 1]] - foot[r - 1];
             footed[r] = 1;
         } else if (has_prev) {
