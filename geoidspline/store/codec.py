@@ -14,7 +14,7 @@ A tile's coefficients, level by level and in key order (i, j, k), are stored as
   in the lattice plane before it (:func:`radial_residuals`: the coefficients sample a
   function constant along the radius) and zigzags the residuals; format 2 (``MAGIC``,
   still read, and written for ``format_version=2``) predicts by the previous value in
-  key order. Format 3 is 21-37 % smaller on level-0 tiles of EGM96 and EGM2008 stores
+  key order. Format 3 is 24-38 % smaller on level-0 tiles of EGM96 and EGM2008 stores
   (benchmarks/README.md, "Store codec").
 
 Quantisation error bound: every coefficient moves by at most ``step / 2``. The B-splines
