@@ -5,8 +5,9 @@
  * Slab order: rows sorted by their index along the axis a nearest the level's mean radial
  * direction (the largest |sum of 2 P|, P = index + order/2 the support centre in
  * spacings; the first such axis), then by the other two axes b < c. A row at P is
- * predicted from slab P_a - 1 at its radial foot P - P / P_a (bilinear, weights in 1/256
- * of a spacing, normalised over the four nodes present) plus, when the previous row is
+ * predicted from slab P_a - 1 at its radial foot P - P / P_a (bicubic, Catmull-Rom, where
+ * the 16 nodes around it are there, else bilinear normalised over the four nodes present;
+ * the foot in 1/256 of a spacing) plus, when the previous row is
  * the same (a, b) column at c - 1 and was predicted from its foot too, that row's value
  * minus its foot prediction (when column is set: this helps where the coefficients are
  * smooth at the step, and adds noise where the step is far below their noise); a row without a foot node by the previous row when that
@@ -30,6 +31,17 @@ GS_INLINE int32_t floor_div32(int32_t x, int32_t y)
 {
     int32_t q = x / y;
     return (x % y != 0 && ((x < 0) != (y < 0))) ? q - 1 : q;
+}
+
+/* Catmull-Rom weights w[0..3] of the nodes -1, 0, 1, 2 at t = f / FRACTION, in 1/4096
+ * (rounded from their exact values in 1/(2 FRACTION^3) = 2^-25; negative ones too). */
+GS_INLINE void catmull_rom(int64_t f, int64_t *w)
+{
+    const int64_t F = FRACTION, f2 = f * f, f3 = f2 * f;
+    const int64_t exact[4] = {-f3 + 2 * F * f2 - F * F * f, 3 * f3 - 5 * F * f2 + 2 * F * F * F,
+                              -3 * f3 + 4 * F * f2 + F * F * f, f3 - F * f2};
+    for (int m = 0; m < 4; ++m)
+        w[m] = floor_div(exact[m] + (1 << 12), 1 << 13);
 }
 
 GS_INLINE int64_t unpack(int64_t key, int axis)
@@ -116,7 +128,7 @@ GS_EXPORT int gs_radial_code(int64_t n, const int64_t *keys, int64_t order, int6
         start[s] = start[s - 1];
     start[0] = 0;
 
-    int64_t hint[2] = {0, 0};
+    int64_t hint[4] = {0, 0, 0, 0};
     for (int64_t r = 0; r < n; ++r) {
         int64_t key = slab_keys[r], ia = unpack(key, 0), s = ia - lo_a;
         int64_t prediction = 0, total = 0, acc = 0;
@@ -134,19 +146,50 @@ GS_EXPORT int gs_radial_code(int64_t n, const int64_t *keys, int64_t order, int6
                 base[x] = floor_div(fixed, FRACTION);
                 frac[x] = fixed - base[x] * FRACTION;
             }
-            for (int db = 0; db < 2; ++db) {
-                int64_t nb = base[0] + db, nc = base[1];
+            int64_t lo = start[s - 1], hi = start[s];
+            /* bicubic (Catmull-Rom) where the 4 x 4 nodes around the foot are all there:
+             * it keeps the content near the lattice's Nyquist that bilinear smooths away
+             * (the foot lies up to a spacing aside where no axis dominates) */
+            int64_t wb[4], wc[4], cubic_acc = 0, cubic_total = 0;
+            int complete = 1;
+            catmull_rom(frac[0], wb);
+            catmull_rom(frac[1], wc);
+            for (int db = -1; db <= 2 && complete; ++db) {
+                int64_t nb = base[0] + db, nc = base[1] - 1;
                 /* a node off the key range would alias another key: never one */
-                if (nb < -GS_KEY_OFFSET || nb >= GS_KEY_OFFSET || nc < -GS_KEY_OFFSET || nc + 1 >= GS_KEY_OFFSET)
-                    continue;
-                int64_t node = gs_pack(ia - 1, nb, nc), lo = start[s - 1], hi = start[s];
-                int64_t at = lower_bound_near(slab_keys, lo, hi, node, &hint[db]);
-                for (int dc = 0; dc < 2; ++dc, ++node) { /* the node along c is the next key */
-                    int64_t w = (db ? frac[0] : FRACTION - frac[0]) * (dc ? frac[1] : FRACTION - frac[1]);
-                    if (at < hi && slab_keys[at] == node) {
-                        acc += w * values[perm[at]];
-                        total += w;
-                        ++at;
+                if (nb < -GS_KEY_OFFSET || nb >= GS_KEY_OFFSET || nc < -GS_KEY_OFFSET || nc + 3 >= GS_KEY_OFFSET) {
+                    complete = 0;
+                    break;
+                }
+                int64_t node = gs_pack(ia - 1, nb, nc);
+                int64_t at = lower_bound_near(slab_keys, lo, hi, node, &hint[db + 1]);
+                for (int dc = 0; dc < 4; ++dc, ++node, ++at) { /* the nodes along c are the next keys */
+                    if (at >= hi || slab_keys[at] != node) {
+                        complete = 0;
+                        break;
+                    }
+                    int64_t w = wb[db + 1] * wc[dc];
+                    cubic_acc += w * values[perm[at]];
+                    cubic_total += w;
+                }
+            }
+            if (complete) {
+                acc = cubic_acc;
+                total = cubic_total;
+            } else {
+                for (int db = 0; db < 2; ++db) { /* bilinear, over the nodes present */
+                    int64_t nb = base[0] + db, nc = base[1];
+                    if (nb < -GS_KEY_OFFSET || nb >= GS_KEY_OFFSET || nc < -GS_KEY_OFFSET || nc + 1 >= GS_KEY_OFFSET)
+                        continue;
+                    int64_t node = gs_pack(ia - 1, nb, nc);
+                    int64_t at = lower_bound_near(slab_keys, lo, hi, node, &hint[db + 1]);
+                    for (int dc = 0; dc < 2; ++dc, ++node) {
+                        int64_t w = (db ? frac[0] : FRACTION - frac[0]) * (dc ? frac[1] : FRACTION - frac[1]);
+                        if (at < hi && slab_keys[at] == node) {
+                            acc += w * values[perm[at]];
+                            total += w;
+                            ++at;
+                        }
                     }
                 }
             }
