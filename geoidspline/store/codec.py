@@ -14,7 +14,7 @@ A tile's coefficients, level by level and in key order (i, j, k), are stored as
   in the lattice plane before it (:func:`radial_residuals`: the coefficients sample a
   function constant along the radius) and zigzags the residuals; format 2 (``MAGIC``,
   still read, and written for ``format_version=2``) predicts by the previous value in
-  key order. Format 3 is 24-38 % smaller on level-0 tiles of EGM96 and EGM2008 stores
+  key order. Format 3 is 27-41 % smaller on level-0 tiles of EGM96 and EGM2008 stores
   (benchmarks/README.md, "Store codec").
 
 Quantisation error bound: every coefficient moves by at most ``step / 2``. The B-splines
@@ -68,7 +68,8 @@ TILE_FORMAT = 3
 """The coded tile format written (stores of format 3); format-2 tiles are read as ever."""
 
 CODECS = {2: f"Delta(int32) + Shuffle(4) + Zstd(level={ZSTD_LEVEL}, checksum)",
-          3: f"RadialFoot(bilinear, 1/256) + ZigZag(int32) + Shuffle(4) + Zstd(level={ZSTD_LEVEL}, checksum)"}
+          3: f"RadialFoot(bicubic or bilinear, 1/256; column term per level) + ZigZag(int32) + Shuffle(4) + "
+             f"Zstd(level={ZSTD_LEVEL}, checksum)"}
 """What each format's header states of its value array's coding."""
 
 QUANTISATION_SHARE = 2.0 / 3.0
@@ -249,8 +250,9 @@ def radial_residuals(keys, order, values, column=True):
     support centre's direction), so a coefficient is predicted from the lattice plane
     before it along the axis ``a`` nearest the radial direction, at its *radial foot*:
     the point of that plane on the ray from the origin through its support centre ``P``
-    (``P - P / P_a`` in spacings; bilinear between the plane's four nodes around it,
-    weights in 1/256 of a spacing, normalised over the nodes present), plus (``column``)
+    (``P - P / P_a`` in spacings, placed to 1/256 of a spacing; bicubic, Catmull-Rom,
+    where the plane's 16 nodes around it are there, else bilinear between its four
+    nodes, normalised over those present), plus (``column``)
     the previous coefficient's own foot error when it is the one before along the last
     axis in the same column (the interpolation error varies slowly along a column; where
     the step is far below the coefficients' noise this adds noise instead, so the
