@@ -179,7 +179,7 @@ def main(argv=None):
     context = {"time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "load": os.getloadavg(),
                "cpus": os.cpu_count(), "machine": platform.processor() or platform.machine()}
     try:
-        context["commit"] = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+        context["commit"] = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=False,
                                            cwd=Path(__file__).parent).stdout.strip()
     except OSError:
         pass
