@@ -27,6 +27,7 @@ from geoidspline.errors import StoreCorruptError
 from geoidspline.hierarchy.ambient import AmbientSpline
 from geoidspline.sphere.coordinates import directions
 from geoidspline.store import codec
+from geoidspline.store.format import FORMAT_VERSION
 from geoidspline.store.reader import TileStore
 from geoidspline.store.writer import tile_encoding, write_store
 
@@ -300,7 +301,7 @@ def test_upgrade_rewrites_a_format_1_store_atomically(small_store, v1_store, tmp
     old = _manifest(root)
     record = upgrade_store(root)
     new = _manifest(root)
-    assert (new["format_version"], new["store_version"]) == (2, old["store_version"] + 1)
+    assert (new["format_version"], new["store_version"]) == (FORMAT_VERSION, old["store_version"] + 1)
     assert record["tile_bytes_after"] < record["tile_bytes_before"] / 5
     assert all(e["file"].endswith(".gst") for e in new["tiles"])
     assert all((root / e["file"]).exists() for e in old["tiles"])  # kept for readers of version 1
@@ -315,7 +316,7 @@ def test_upgrade_rewrites_a_format_1_store_atomically(small_store, v1_store, tmp
     step = new["spline"]["value_step_m"]
     assert np.array_equal(store.undulation(lat, lon),
                           codec.quantised_spline(small_store.result.spline, step).undulation(lat, lon))
-    with pytest.raises(StoreError, match="already in store format 2"):
+    with pytest.raises(StoreError, match="already in store format 3"):
         upgrade_store(root)
 
 
@@ -348,5 +349,5 @@ def test_an_upgrade_killed_halfway_leaves_the_format_1_store(small_store, v1_sto
     rng = np.random.default_rng(16)
     lat, lon = rng.uniform(10, 30, 500), rng.uniform(20, 40, 500)
     assert np.array_equal(TileStore.open(root).undulation(lat, lon), small_store.result.spline.undulation(lat, lon))
-    assert upgrade_store(root)["to_format"] == 2
+    assert upgrade_store(root)["to_format"] == FORMAT_VERSION
     assert verify_store(root) == []

@@ -2,6 +2,7 @@
 by :mod:`._clib`); nothing is compiled at run time.
 
 - :mod:`.layout`: the packed key layout (plain integers);
+- :mod:`.codec`: the store codec's radial prediction (format-3 tiles);
 - :mod:`.common`: the B-spline weights (for Python callers and tests);
 - :mod:`.fitting`: the domain test and the normal equations of least squares;
 - :mod:`.interpolation`: the quasi-interpolant's lattice lookups and prefilter;
@@ -20,5 +21,5 @@ Conventions shared by every kernel:
 
 Callers pass well-formed contiguous arrays; the validated APIs live in the packages
 named after each stage. Importing this package imports nothing: the submodules load the
-compiled library, which a one-point query never needs.
+compiled library, which a one-point query needs only to decode format-3 tiles (:mod:`.codec`).
 """

@@ -4,7 +4,7 @@ Coefficient indices are packed into one int64 key, 21 bits an axis, so that sort
 sorts by (i, j, k) and the ``n`` B-splines of one (i, j) column that touch a cell are
 consecutive keys. That makes a sorted key array a compact sparse 3-D index. Packing is
 linear in each index, so an offset along an axis adds ``offset * AXIS_STEPS[axis]`` to a
-key. numpy only: reading a store and small queries never load the compiled kernels.
+key. numpy only: small queries never load the query kernels.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """The tile store on disk (thesis §4.3, §6.1: local tiles put together).
 
 - :mod:`.format`: file names, the manifest schema, tile files (format 2 and 1);
-- :mod:`.codec`: format 2's tile encoding (key runs, quantised values, Zstandard);
+- :mod:`.codec`: the coded tiles of formats 2 and 3 (key runs, quantised predicted values, Zstandard);
 - :mod:`.writer`: the writer lock and the atomic commit;
 - :mod:`.reader`: :class:`~.reader.TileStore`, opened read-only, tiles read lazily;
 - :mod:`.update`: regional updates, rewriting only the tiles they touch;

@@ -1,4 +1,5 @@
-"""Tile codec of store format 2: keys as runs, values quantised, Delta + Zstandard coded.
+"""Tile codecs of store formats 2 and 3: keys as runs, values quantised and predicted,
+Zstandard coded.
 
 A tile's coefficients, level by level and in key order (i, j, k), are stored as
 
@@ -7,8 +8,14 @@ A tile's coefficients, level by level and in key order (i, j, k), are stored as
   and the length of each run. Sorted runs change slowly from one to the next, so the
   three start columns and the lengths are each delta-coded before entropy coding; the keys cost well under a byte per run.
 - **values**: integers ``q = rint(c / step)`` (``step``: :func:`value_step`, stated in
-  the manifest), delta-coded along the key order (neighbours along ``k`` in a run are
-  close for a smooth geoid), byte-shuffled and entropy-coded. Decoding gives ``q · step``.
+  the manifest), each minus a prediction from values before it, byte-shuffled and
+  entropy-coded. Decoding gives ``q · step``, bitwise the same in both formats.
+  Format 3 (``MAGICS[3]``, written now) predicts a coefficient from its *radial foot*
+  in the lattice plane before it (:func:`radial_residuals`: the coefficients sample a
+  function constant along the radius) and zigzags the residuals; format 2 (``MAGIC``,
+  still read, and written for ``format_version=2``) predicts by the previous value in
+  key order. Format 3 is 27-41 % smaller on level-0 tiles of EGM96 and EGM2008 stores
+  (benchmarks/README.md, "Store codec").
 
 Quantisation error bound: every coefficient moves by at most ``step / 2``. The B-splines
 of one level are non-negative and sum to at most 1 at every point (a partition of unity
@@ -23,10 +30,11 @@ neighbours (wrapping in int32) and a byte shuffle of the differences (all first 
 then all second bytes, ...). Each array is one standard Zstandard frame with its content
 size and checksum: the layout numcodecs' ``Delta(int32)``, ``Shuffle(4)`` and
 ``Zstd(level=19, checksum=True)`` write, with which the first format-2 stores were
-written and which this module reads (numcodecs itself is not used: its import scans
-every installed package's entry points, 40-90 ms of a cold one-point query). A tile file is ``MAGIC``, a 4-byte little-endian header length,
-a UTF-8 JSON header (tile, step, per-level coefficient and run counts, the encoded
-arrays' byte counts) and the encoded arrays. Why not netCDF4/HDF5 as in format 1: an
+written and which this module reads; format 3's value array is zigzagged instead of
+delta-coded (numcodecs itself is not used: its import scans
+every installed package's entry points, 40-90 ms of a cold one-point query). A tile file is its format's signature (``MAGICS``), a 4-byte little-endian header length,
+a UTF-8 JSON header (tile, step, per-level coefficient and run counts and, format 3,
+whether the level's column term is used; the encoded arrays' byte counts) and the encoded arrays. Why not netCDF4/HDF5 as in format 1: an
 HDF5 file with four compressed variables costs about 17.7 kB before any data (measured
 with netCDF4 1.7.5, HDF5 1.14), more than the data of a 10,000-coefficient tile; this
 container costs about 300 bytes.
@@ -46,17 +54,30 @@ import numpy as np
 from ..bspline import keys as _keys
 from ..sphere.sample import interval_distance
 
+ZSTD_LEVEL = 19
+"""Zstandard level: tiles are written once and read many times; 19 is ~10 % smaller
+than 3 on coefficient tiles and decodes as fast."""
+
+
 MAGIC = b"GSPLTILE2\n"
 """First bytes of a format-2 tile file (format 1 tiles are netCDF4/HDF5: ``\\x89HDF``)."""
+
+MAGICS = {2: MAGIC, 3: b"GSPLTILE3\n"}
+"""First bytes of a coded tile file of each format (all of one length)."""
+
+TILE_FORMAT = 3
+"""The coded tile format written (stores of format 3); format-2 tiles are read as ever."""
+
+CODECS = {2: f"Delta(int32) + Shuffle(4) + Zstd(level={ZSTD_LEVEL}, checksum)",
+          3: f"RadialFoot(bicubic or bilinear, 1/256; column term per level) + ZigZag(int32) + Shuffle(4) + "
+             f"Zstd(level={ZSTD_LEVEL}, checksum)"}
+"""What each format's header states of its value array's coding."""
 
 QUANTISATION_SHARE = 2.0 / 3.0
 """Share of the fit tolerance that the quantisation may add at most, over all levels
 (a bound; the error it adds at random points is a small fraction of it: rounding errors
 of neighbouring coefficients are independent and the B-splines average them)."""
 
-ZSTD_LEVEL = 19
-"""Zstandard level: tiles are written once and read many times; 19 is ~10 % smaller
-than 3 on coefficient tiles and decodes as fast."""
 
 _HEADER_LIMIT = 1 << 24
 
@@ -167,34 +188,55 @@ def _compressor():
     return zstandard.ZstdCompressor(level=ZSTD_LEVEL, write_checksum=True, write_content_size=True)
 
 
+def _shuffle_compress(words):
+    """Byte shuffle (all first bytes, then all second bytes, ...) and Zstandard of 32-bit
+    words: small numbers' high bytes form long runs of one byte (19 % smaller than
+    Zstandard alone on the 2 mm EGM96 store's deltas)."""
+    shuffled = np.ascontiguousarray(words).view(np.uint8).reshape(-1, 4).T
+    return _compressor().compress(np.ascontiguousarray(shuffled).tobytes())
+
+
+def _shuffle_decompress(blob, count):
+    """Inverse of :func:`_shuffle_compress` (uint32 words); :class:`ValueError` when the
+    bytes are not one array of ``count`` words."""
+    import zstandard
+
+    try:
+        data = zstandard.ZstdDecompressor().decompress(bytes(blob), max_output_size=count * 4)
+    except zstandard.ZstdError as exc:
+        raise ValueError(f"has a damaged array ({exc})") from None
+    if len(data) != count * 4:
+        raise ValueError(f"an array holds {len(data)} bytes, the header says {count} numbers")
+    return np.frombuffer(data, dtype=np.uint8).reshape(4, count).T.copy().view(np.uint32).ravel()
+
+
+def _zigzag(residuals):
+    """int32 (wrapping) to uint32 with the sign in the lowest bit: small magnitudes of
+    either sign become small words, whose high bytes are all 0 (11 % smaller than two's
+    complement after the shuffle, on EGM2008 tiles)."""
+    r = np.asarray(residuals, dtype=np.int64).astype(np.int32)
+    return ((r.astype(np.uint32) << np.uint32(1)) ^ (r >> 31).astype(np.uint32))
+
+
+def _unzigzag(words):
+    """Inverse of :func:`_zigzag` (int64 holding int32 values)."""
+    words = words.astype(np.uint32)
+    return ((words >> np.uint32(1)) ^ (np.uint32(0) - (words & np.uint32(1)))).view(np.int32).astype(np.int64)
+
+
 def _delta_encode(array, dtype):
-    """Delta (wrapping in ``dtype``), byte shuffle, Zstandard: the bytes of one array."""
+    """Format-2 array: delta (wrapping in ``dtype``), byte shuffle, Zstandard."""
     array = np.ascontiguousarray(array, dtype=dtype)
     delta = np.empty_like(array)
     if array.size:
         delta[0] = array[0]
         np.subtract(array[1:], array[:-1], out=delta[1:])
-    # byte shuffle (all first bytes, then all second bytes, ...): the small deltas' high
-    # bytes (0 or 0xFF) form long runs (19 % smaller than Zstandard alone on the 2 mm
-    # EGM96 store's values)
-    shuffled = delta.view(np.uint8).reshape(-1, np.dtype(dtype).itemsize).T
-    return _compressor().compress(np.ascontiguousarray(shuffled).tobytes())
+    return _shuffle_compress(delta.view(np.uint32))
 
 
 def _delta_decode(blob, dtype, count):
-    """Inverse of :func:`_delta_encode`; :class:`ValueError` when the bytes are not one
-    array of ``count`` numbers."""
-    import zstandard
-
-    size = np.dtype(dtype).itemsize
-    try:
-        data = zstandard.ZstdDecompressor().decompress(bytes(blob), max_output_size=count * size)
-    except zstandard.ZstdError as exc:
-        raise ValueError(f"has a damaged array ({exc})") from None
-    if len(data) != count * size:
-        raise ValueError(f"an array holds {len(data)} bytes, the header says {count} numbers")
-    delta = np.frombuffer(data, dtype=np.uint8).reshape(size, count).T.copy().view(dtype).ravel()
-    return np.cumsum(delta, dtype=dtype)
+    """Inverse of :func:`_delta_encode`."""
+    return np.cumsum(_shuffle_decompress(blob, count).view(dtype), dtype=dtype)
 
 
 def runs_of(keys):
@@ -214,55 +256,142 @@ def keys_of_runs(start_keys, lengths):
     return np.repeat(start_keys, lengths) + offsets
 
 
-def encode_tile(tile, levels, indices, values, step, record=None) -> bytes:
-    """A format-2 tile file's bytes from coefficients in any order: ``levels`` (M,),
-    ``indices`` (M, 3) on their level's grid, ``values`` (M,) in metres. ``record``:
-    more header entries (what the tile belongs to: store id, order, h0, tile size)."""
+# -- format 3: values predicted along the radius -------------------------------------------
+
+
+def radial_residuals(keys, order, values, column=True):
+    """Format 3's prediction residuals (int64) of one level's quantised ``values`` (int32
+    range, in the order of its sorted packed ``keys``; ``order``: the spline's).
+
+    The coefficients of a level are samples of a function constant along the radius (a
+    thin shell of the lattice around the unit sphere, each B-spline's value that of its
+    support centre's direction), so a coefficient is predicted from the lattice plane
+    before it along the axis ``a`` nearest the radial direction, at its *radial foot*:
+    the point of that plane on the ray from the origin through its support centre ``P``
+    (``P - P / P_a`` in spacings, placed to 1/256 of a spacing; bicubic, Catmull-Rom,
+    where the plane's 16 nodes around it are there, else bilinear between its four
+    nodes, normalised over those present), plus (``column``)
+    the previous coefficient's own foot error when it is the one before along the last
+    axis in the same column (the interpolation error varies slowly along a column; where
+    the step is far below the coefficients' noise this adds noise instead, so the
+    encoder chooses per level: :func:`_encode_values`). Where the plane
+    has none of the foot's nodes (the shell's first layer along ``a``), the prediction is
+    that previous coefficient, else 0. Integers only,
+    so encoder and decoder agree bit for bit on every machine; C (one pass, each
+    coefficient after those it is predicted from): :mod:`geoidspline._kernels.codec`.
+    """
+    from .._kernels.codec import radial_code
+
+    q = np.ascontiguousarray(values, dtype=np.int64)
+    out = np.empty_like(q)
+    radial_code(keys, order, column, False, q, out)
+    return out
+
+
+def radial_values(keys, order, residuals, column=True):
+    """Inverse of :func:`radial_residuals`: the values (int64 in int32 range)."""
+    from .._kernels.codec import radial_code
+
+    r = np.ascontiguousarray(residuals, dtype=np.int64)
+    out = np.zeros_like(r)
+    radial_code(keys, order, column, True, out, r)
+    return out
+
+
+def _entropy_bits(values):
+    """Zero-order entropy (bits) of an integer array."""
+    _, counts = np.unique(values, return_counts=True)
+    return float(-(counts * np.log2(counts / values.size)).sum()) if values.size else 0.0
+
+
+def _encode_values(level_keys, level_q, order, tile_format):
+    """(value array's bytes, per level: whether format 3's column term is used)."""
+    if tile_format == 2:
+        return _delta_encode(np.concatenate(level_q) if level_q else np.zeros(0), np.int32), []
+    parts, columns = [], []
+    for keys, q in zip(level_keys, level_q):
+        # the smaller of the two predictions by their zero-order entropy (what the
+        # shuffle and Zstandard then approach), without compressing twice
+        both = [radial_residuals(keys, order, q, column) for column in (False, True)]
+        column = _entropy_bits(both[1]) < _entropy_bits(both[0])
+        parts.append(both[column])
+        columns.append(bool(column))
+    return _shuffle_compress(_zigzag(np.concatenate(parts) if parts else np.zeros(0, np.int64))), columns
+
+
+def encode_tile(tile, levels, indices, values, step, record=None, tile_format=TILE_FORMAT) -> bytes:
+    """A tile file's bytes (``tile_format`` 3, or 2 as the first stores were written) from
+    coefficients in any order: ``levels`` (M,), ``indices`` (M, 3) on their level's grid,
+    ``values`` (M,) in metres. ``record``: more header entries (what the tile belongs
+    to: store id, order, h0, tile size); format 3's prediction takes the support
+    centres' positions from its ``order`` (0 without one: the prediction is a little
+    worse, the values the same)."""
     levels = np.asarray(levels, dtype=np.int64)
     keys = _keys.pack_keys(indices)
     order = np.lexsort((keys, levels))
     levels, keys = levels[order], keys[order]
     q = quantise(np.asarray(values, dtype=np.float64)[order], step)
-    level_meta, starts_all, lengths_all = [], [], []
+    if q.size and np.abs(q).max() >= 2**31:
+        raise ValueError(f"a coefficient of {np.abs(values).max()} m does not fit 32 bits at step {step} m")
+    level_meta, starts_all, lengths_all, level_keys, level_q = [], [], [], [], []
     for level in np.unique(levels):
         a, b = np.searchsorted(levels, [level, level + 1])
         starts, lengths = runs_of(keys[a:b])
         starts_all.append(keys[a:b][starts])
         lengths_all.append(lengths)
+        level_keys.append(keys[a:b])
+        level_q.append(q[a:b])
         level_meta.append({"level": int(level), "coefficients": int(b - a), "runs": int(starts.size)})
     start_keys = np.concatenate(starts_all) if starts_all else np.zeros(0, np.int64)
     lengths = np.concatenate(lengths_all) if lengths_all else np.zeros(0, np.int64)
-    if q.size and np.abs(q).max() >= 2**31:
-        raise ValueError(f"a coefficient of {np.abs(values).max()} m does not fit 32 bits at step {step} m")
+    spline_order = int((record or {}).get("order", 0))
+    value_blob, columns = _encode_values(level_keys, level_q, spline_order, tile_format)
+    for meta, column in zip(level_meta, columns):
+        meta["column"] = column
     blobs = {
         # i, j, k columns one after the other: each changes slowly from run to run
         "run_start": _delta_encode(_keys.unpack_keys(start_keys).T.ravel(), np.int32),
         "run_length": _delta_encode(lengths, np.int32),
-        "value": _delta_encode(q, np.int32),
+        "value": value_blob,
     }
     header = {
         "tile": [int(v) for v in tile],
         "value_step_m": float(step),
         "value_units": "m",
         "levels": level_meta,
-        "codec": f"Delta(int32) + Shuffle(4) + Zstd(level={ZSTD_LEVEL}, checksum)",
+        "codec": CODECS[tile_format],
         "arrays": [[name, len(blob)] for name, blob in blobs.items()],
         **(record or {}),
     }
     head = json.dumps(header, separators=(",", ":")).encode("utf-8")
-    return b"".join([MAGIC, struct.pack("<I", len(head)), head, *blobs.values()])
+    return b"".join([MAGICS[tile_format], struct.pack("<I", len(head)), head, *blobs.values()])
 
 
-def is_tile_v2(data) -> bool:
-    return bytes(data[: len(MAGIC)]) == MAGIC
+def _flag(value) -> bool:
+    if not isinstance(value, bool):
+        raise TypeError(f"a level's column flag is {value!r}, not true or false")
+    return value
+
+
+def tile_format_of(data):
+    """The coded tile format (2 or 3) of a tile file's bytes, or None (not a coded tile:
+    format 1's netCDF4, or not a tile)."""
+    head = bytes(data[: len(MAGIC)])
+    return next((version for version, magic in MAGICS.items() if head == magic), None)
+
+
+def is_coded_tile(data) -> bool:
+    """Whether a tile file's bytes are a coded tile (format 2 or 3), not netCDF4."""
+    return tile_format_of(data) is not None
 
 
 def decode_tile(data):
-    """(header, {level: (sorted keys int64, values float64)}) of a format-2 tile's bytes;
-    :class:`ValueError` naming the rule broken when they are not one."""
+    """(header, {level: (sorted keys int64, values float64)}) of a coded tile's bytes
+    (format 2 or 3); :class:`ValueError` naming the rule broken when they are not one."""
     data = memoryview(data)
-    if not is_tile_v2(data):
-        raise ValueError("does not start with the format-2 tile signature")
+    tile_format = tile_format_of(data)
+    if tile_format is None:
+        raise ValueError("does not start with a coded tile's signature (format 2 or 3)")
     at = len(MAGIC)
     if len(data) < at + 4:
         raise ValueError("ends inside its header")
@@ -275,8 +404,12 @@ def decode_tile(data):
         arrays = {name: int(count) for name, count in header["arrays"]}
         step = float(header["value_step_m"])
         level_meta = [(int(m["level"]), int(m["coefficients"]), int(m["runs"])) for m in header["levels"]]
+        columns = [_flag(m["column"]) for m in header["levels"]] if tile_format == 3 else []
+        spline_order = int(header.get("order", 0))
     except (ValueError, KeyError, TypeError) as exc:
         raise ValueError(f"has a damaged header ({exc})") from None
+    if not 0 <= spline_order <= 16:
+        raise ValueError(f"has a damaged header (order {spline_order})")
     at += size
     if at + sum(arrays.values()) != len(data) or set(arrays) != {"run_start", "run_length", "value"}:
         raise ValueError("array sizes in the header do not add up to the file's size")
@@ -286,19 +419,27 @@ def decode_tile(data):
         at += int(count)
     n_runs = sum(m[2] for m in level_meta)
     n_coefs = sum(m[1] for m in level_meta)
+    if min((min(m[1], m[2]) for m in level_meta), default=0) < 0:
+        raise ValueError("has a damaged header (a negative count)")
     start = _delta_decode(blobs["run_start"], np.int32, 3 * n_runs).reshape(3, n_runs).T
     lengths = _delta_decode(blobs["run_length"], np.int32, n_runs).astype(np.int64)
-    q = _delta_decode(blobs["value"], np.int32, n_coefs)
+    if tile_format == 2:
+        q = _delta_decode(blobs["value"], np.int32, n_coefs).astype(np.int64)
+    else:
+        q = _unzigzag(_shuffle_decompress(blobs["value"], n_coefs))
     if np.any(lengths < 1) or int(lengths.sum()) != n_coefs:
         raise ValueError("run lengths do not add up to the coefficient count")
     start_keys = _keys.pack_keys(start)
     out = {}
     run_at = coef_at = 0
-    for level, count, runs in level_meta:
+    for at_level, (level, count, runs) in enumerate(level_meta):
         keys = keys_of_runs(start_keys[run_at:run_at + runs], lengths[run_at:run_at + runs])
         if keys.size != count or (keys.size > 1 and not np.all(keys[1:] > keys[:-1])):
             raise ValueError(f"level {level}'s runs are not in increasing key order")
-        out[level] = (keys, q[coef_at:coef_at + count] * step)
+        values = q[coef_at:coef_at + count]
+        if tile_format == 3:
+            values = radial_values(keys, spline_order, values, columns[at_level])
+        out[level] = (keys, values.astype(np.int32) * step)
         run_at += runs
         coef_at += count
     return header, out

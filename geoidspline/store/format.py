@@ -47,13 +47,13 @@ from .._version import __version__  # noqa: F401 (recorded in manifests)
 from ..bspline.keys import pack_keys, unpack_keys
 from ..bspline.level import cube_of_support_centres
 from ..errors import StoreCorruptError, StoreError, StoreFileMissingError
-from .codec import decode_tile, encode_tile, is_tile_v2, runs_of
+from .codec import TILE_FORMAT, decode_tile, encode_tile, is_coded_tile, runs_of
 
 FORMAT_NAME = "geoidspline-tile-store"
 
 
 #: The format this geoidspline writes; it reads every format from 1 to this one.
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 
 
 MANIFEST = "manifest.json"
@@ -150,7 +150,8 @@ def write_tile_file(path, tile, levels, indices, values, attrs, format_version=F
     """Write one tile file; format 2 quantises with ``attrs["value_step_m"]``."""
     if format_version >= 2:
         record = {key: attrs[key] for key in TILE_RECORD if attrs.get(key) is not None}
-        atomic_write(path, encode_tile(tile, levels, indices, values, attrs["value_step_m"], record))
+        atomic_write(path, encode_tile(tile, levels, indices, values, attrs["value_step_m"], record,
+                                       min(int(format_version), TILE_FORMAT)))
         return
     import netCDF4
 
@@ -284,7 +285,7 @@ def read_tile_levels(path, entry, data, manifest):
     """{level: (sorted packed keys, values in metres)} of a tile file's bytes ``data``
     (either format; format 2 decodes straight to keys, without index triples), checked
     as :func:`read_tile_file` checks it."""
-    if not is_tile_v2(data):
+    if not is_coded_tile(data):
         indices, levels, values = read_tile_file(path, entry, data, manifest)
         out = {}
         for level in np.unique(levels):
@@ -330,7 +331,7 @@ def read_tile_file(path, entry, data, manifest):
     """
     if data is None:
         data = Path(path).read_bytes()
-    if is_tile_v2(data):
+    if is_coded_tile(data):
         out = read_tile_levels(path, entry, data, manifest)
         if not out:
             return np.zeros((0, 3), np.int64), np.zeros(0, np.int64), np.zeros(0)

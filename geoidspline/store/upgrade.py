@@ -66,8 +66,12 @@ def upgrade_store(path) -> dict:
 
 
 def _refuse_current(root, manifest):
-    if manifest["format_version"] >= FORMAT_VERSION and manifest["spline"].get("value_step_m") is not None:
-        raise StoreError(f"{root}: already in store format {manifest['format_version']}")
+    # a quantised store (format 2 or later) is refused: its tiles may hold steps finer than
+    # the manifest's (regional updates), which re-quantising would change; format 3 reads
+    # its format-2 tiles as they are
+    if manifest["spline"].get("value_step_m") is not None:
+        raise StoreError(f"{root}: already in store format {manifest['format_version']} (quantised tiles, "
+                         f"read as they are)")
 
 
 def _upgrade(root, store, attempt):

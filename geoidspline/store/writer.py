@@ -384,9 +384,11 @@ def tolerance_asked(fit: dict) -> float:
 def tile_encoding(manifest) -> tuple[int, dict]:
     """(tile format, tile attributes) with which new tiles of a store are written: its own
     tiles' format and step, so that an update of a format-1 store keeps netCDF4 tiles
-    (its manifest becomes format 2: coverage and integrity; ``--upgrade`` re-encodes)."""
+    (its manifest becomes the current format: coverage and integrity; ``--upgrade``
+    re-encodes) and one of a format-2 store keeps format-2 tiles (format 3 reads both)."""
     step = manifest["spline"].get("value_step_m")
-    return (2, {"value_step_m": step}) if step is not None else (1, {})
+    return (min(int(manifest["format_version"]), FORMAT_VERSION), {"value_step_m": step}) if step is not None \
+        else (1, {})
 
 
 def tile_stats(node_errors, check_errors):
