@@ -14,6 +14,11 @@
 
 #include "gs_common.h"
 
+/* Python's build flags add -fwrapv (defined signed overflow); it keeps GCC from folding
+ * the index arithmetic of the evaluation loops and cost 15 % of a batch's time (2 mm
+ * store). Nothing here relies on signed overflow. */
+#pragma GCC optimize("no-wrapv")
+
 #define BRICK_BITS 4
 #define BRICK_MASK ((1 << BRICK_BITS) - 1)
 #define COL_KBITS 5 /* a column entry: run offset << COL_SHIFT | first local k << COL_KBITS | length */
