@@ -958,20 +958,25 @@ GS_EXPORT void gs_full_columns(const int32_t *cols, int64_t nb, int64_t order, i
             offs[b * side * side + c] = length ? (int32_t)((bc[c] >> COL_SHIFT) - k0) : 0;
             column_mask[c] = length && last >= k0 ? (uint32_t)(((1u << (last + 1)) - 1) & ~((1u << k0) - 1)) : 0;
         }
-        for (int64_t i = 0; i < side; ++i) /* over the order columns along y ... */
-            for (int64_t ly = 0; ly < cells; ++ly) {
-                uint32_t m = ~0u;
-                for (int64_t q = 0; q < order; ++q)
-                    m &= column_mask[i * side + ly + q];
-                row_mask[i * cells + ly] = m;
-            }
-        for (int64_t lx = 0; lx < cells; ++lx) /* ... then along x */
-            for (int64_t ly = 0; ly < cells; ++ly) {
-                uint32_t m = ~0u;
-                for (int64_t p = 0; p < order; ++p)
-                    m &= row_mask[(lx + p) * cells + ly];
-                full[(b * cells + lx) * cells + ly] = (uint16_t)m;
-            }
+        /* over the order columns along y, then along x (inner loops over ly: vectors) */
+        for (int64_t i = 0; i < side; ++i) {
+            uint32_t *m = row_mask + i * cells;
+            for (int64_t ly = 0; ly < cells; ++ly)
+                m[ly] = column_mask[i * side + ly];
+            for (int64_t q = 1; q < order; ++q)
+                for (int64_t ly = 0; ly < cells; ++ly)
+                    m[ly] &= column_mask[i * side + ly + q];
+        }
+        for (int64_t lx = 0; lx < cells; ++lx) {
+            uint32_t m[1 << BRICK_BITS];
+            for (int64_t ly = 0; ly < cells; ++ly)
+                m[ly] = row_mask[lx * cells + ly];
+            for (int64_t p = 1; p < order; ++p)
+                for (int64_t ly = 0; ly < cells; ++ly)
+                    m[ly] &= row_mask[(lx + p) * cells + ly];
+            for (int64_t ly = 0; ly < cells; ++ly)
+                full[(b * cells + lx) * cells + ly] = (uint16_t)m[ly];
+        }
     }
 }
 
