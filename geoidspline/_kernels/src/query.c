@@ -18,6 +18,8 @@
  * the index arithmetic of the evaluation loops and cost 15 % of a batch's time (2 mm
  * store). Nothing here relies on signed overflow. */
 #pragma GCC optimize("no-wrapv")
+/* vectors passed between always-inline functions: no ABI is involved */
+#pragma GCC diagnostic ignored "-Wpsabi"
 
 #define BRICK_BITS 4
 #define BRICK_MASK ((1 << BRICK_BITS) - 1)
@@ -500,11 +502,41 @@ GS_INLINE uint32_t latlon_code(double la, double lo)
     return spread2(j) | (spread2(i) << 1);
 }
 
-/* sin and cos of one angle at once (fdlibm's k_sin.c/k_cos.c polynomials on [-pi/4, pi/4]
+/* Directions are computed 4 points at a time, one vector lane each (GCC's vector
+ * extensions: one vector in the x86-64-v3 clone, two halves in the baseline one); a lane
+ * does the operations a scalar would, in the same order, so the bits do not depend on the
+ * lane or the build. */
+typedef int64_t gs_i4 __attribute__((vector_size(32)));
+
+GS_INLINE gs_v4 v4_splat(double a)
+{
+    return (gs_v4){a, a, a, a};
+}
+
+/* mask ? a : b per lane (mask lanes all ones or all zeros, as comparisons give) */
+GS_INLINE gs_v4 v4_select(gs_i4 mask, gs_v4 a, gs_v4 b)
+{
+    return (gs_v4)((mask & (gs_i4)a) | (~mask & (gs_i4)b));
+}
+
+/* floor per lane, exactly floor() for every double (the sign of a zero included): round
+ * to an integer by adding and removing 2**52 (towards zero from the side of x, where the
+ * spacing of doubles is 1), one less where that rounded up. */
+GS_INLINE gs_v4 v4_floor(gs_v4 x)
+{
+    const gs_v4 big = v4_splat(4503599627370496.0);
+    const gs_i4 sign = {INT64_MIN, INT64_MIN, INT64_MIN, INT64_MIN};
+    gs_v4 rounded = v4_select(x >= 0.0, (x + big) - big, (x - big) + big);
+    gs_v4 whole = v4_select((x < -big) | (x > big), x, rounded); /* beyond 2**52 all are whole */
+    gs_v4 t = v4_select(whole > x, whole - v4_splat(1.0), whole);
+    return (gs_v4)(((gs_i4)t & ~sign) | ((gs_i4)x & sign)); /* floor(x) has the sign of x */
+}
+
+/* sin and cos of one angle per lane (fdlibm's k_sin.c/k_cos.c polynomials on [-pi/4, pi/4]
  * after a Cody-Waite reduction by pi/2), in less time than two libm calls. Absolute error
  * at most 1.2e-16 on [-pi, pi] (below 1e-14 m in N: a unit vector only needs absolute
  * accuracy); |x| <= 2 pi. NaN gives NaN. */
-GS_INLINE void gs_sincos(double x, double *sin_x, double *cos_x)
+GS_INLINE void gs_sincos(gs_v4 x, gs_v4 *sin_x, gs_v4 *cos_x)
 {
     const double pio2_hi = 1.57079632673412561417e+00; /* first 33 bits of pi/2: n * pio2_hi is exact */
     const double pio2_lo = 6.07710050650619224932e-11, two_over_pi = 6.36619772367581382433e-01;
@@ -512,34 +544,30 @@ GS_INLINE void gs_sincos(double x, double *sin_x, double *cos_x)
                  S4 = 2.75573137070700676789e-06, S5 = -2.50507602534068634195e-08, S6 = 1.58969099521155010221e-10;
     const double C1 = 4.16666666666666019037e-02, C2 = -1.38888888888741095749e-03, C3 = 2.48015872894767294178e-05,
                  C4 = -2.75573143513906633035e-07, C5 = 2.08757232129817482790e-09, C6 = -1.13596475577881948265e-11;
-    double n = floor(x * two_over_pi + 0.5);
-    double r = (x - n * pio2_hi) - n * pio2_lo;
-    double z = r * r;
-    double sin_r = r + (z * r) * (S1 + z * (S2 + z * (S3 + z * (S4 + z * (S5 + z * S6)))));
-    double hz = 0.5 * z;
-    double w = 1.0 - hz;
-    double cos_r = w + (((1.0 - w) - hz) + z * (z * (C1 + z * (C2 + z * (C3 + z * (C4 + z * (C5 + z * C6)))))));
-    if (n != n) {
-        *sin_x = *cos_x = n;
-        return;
-    }
-    switch ((int64_t)n & 3) {
-    case 0: *sin_x = sin_r; *cos_x = cos_r; break;
-    case 1: *sin_x = cos_r; *cos_x = -sin_r; break;
-    case 2: *sin_x = -sin_r; *cos_x = -cos_r; break;
-    default: *sin_x = -cos_r; *cos_x = sin_r; break;
-    }
+    gs_v4 n = v4_floor(x * two_over_pi + 0.5);
+    gs_v4 r = (x - n * pio2_hi) - n * pio2_lo;
+    gs_v4 z = r * r;
+    gs_v4 sin_r = r + (z * r) * (S1 + z * (S2 + z * (S3 + z * (S4 + z * (S5 + z * S6)))));
+    gs_v4 hz = 0.5 * z;
+    gs_v4 w = 1.0 - hz;
+    gs_v4 cos_r = w + (((1.0 - w) - hz) + z * (z * (C1 + z * (C2 + z * (C3 + z * (C4 + z * (C5 + z * C6)))))));
+    /* the quadrant n mod 4 (exact: n is small and whole); NaN takes the last case, NaN too */
+    gs_v4 quadrant = n - 4.0 * v4_floor(n * 0.25);
+    gs_i4 q0 = quadrant == 0.0, q1 = quadrant == 1.0, q2 = quadrant == 2.0;
+    *sin_x = v4_select(q0, sin_r, v4_select(q1, cos_r, v4_select(q2, -sin_r, -cos_r)));
+    *cos_x = v4_select(q0, cos_r, v4_select(q1, -sin_r, v4_select(q2, -cos_r, sin_r)));
 }
 
-/* Unit vector of latitude/longitude in degrees: the one formula of every compiled path
- * (unit_vectors, undulation_latlon), so they agree bit for bit. Longitudes are wrapped to
- * [-180, 180) first. */
-GS_INLINE void direction(double latitude, double longitude, double *x, double *y, double *z)
+/* Unit vectors of 4 latitude/longitude pairs in degrees: the one formula of every
+ * compiled path (unit_vectors, undulation_latlon), so they agree bit for bit. Longitudes
+ * are wrapped to [-180, 180) first. */
+GS_INLINE void directions4(const gs_v4 *latitude_, const gs_v4 *longitude_, gs_v4 *x, gs_v4 *y, gs_v4 *z)
 {
-    if (longitude < -180.0 || longitude >= 180.0)
-        longitude -= 360.0 * floor((longitude + 180.0) / 360.0);
+    gs_v4 latitude = *latitude_, longitude = *longitude_;
+    gs_v4 wrapped = longitude - 360.0 * v4_floor((longitude + 180.0) / 360.0);
+    longitude = v4_select((longitude < -180.0) | (longitude >= 180.0), wrapped, longitude);
     const double d2r = 3.141592653589793 / 180.0;
-    double sin_phi, cos_phi, sin_lam, cos_lam;
+    gs_v4 sin_phi, cos_phi, sin_lam, cos_lam;
     gs_sincos(latitude * d2r, &sin_phi, &cos_phi);
     gs_sincos(longitude * d2r, &sin_lam, &cos_lam);
     *x = cos_phi * cos_lam;
@@ -553,16 +581,27 @@ typedef struct {
     int64_t m;
 } unit_job;
 
-static void unit_task(void *ctx, int64_t task)
+GS_HOT static void unit_task(void *ctx, int64_t task)
 {
     const unit_job *J = ctx;
     int64_t lo = task * CHUNK, hi = lo + CHUNK < J->m ? lo + CHUNK : J->m;
-    for (int64_t s = lo; s < hi; ++s)
-        direction(J->latitude[s], J->longitude[s], &J->out[3 * s], &J->out[3 * s + 1], &J->out[3 * s + 2]);
+    for (int64_t s = lo; s < hi; s += 4) {
+        gs_v4 la, lo_, x, y, z;
+        for (int i = 0; i < 4; ++i) { /* past the end: the last point again */
+            la[i] = J->latitude[s + i < hi ? s + i : hi - 1];
+            lo_[i] = J->longitude[s + i < hi ? s + i : hi - 1];
+        }
+        directions4(&la, &lo_, &x, &y, &z);
+        for (int i = 0; i < 4 && s + i < hi; ++i) {
+            J->out[3 * (s + i)] = x[i];
+            J->out[3 * (s + i) + 1] = y[i];
+            J->out[3 * (s + i) + 2] = z[i];
+        }
+    }
 }
 
 /* Directions (m, 3) (cos phi cos lambda, cos phi sin lambda, sin phi) of latitude and
- * longitude in degrees (direction()). */
+ * longitude in degrees (directions4()). */
 GS_EXPORT void gs_unit_vectors(const double *latitude, const double *longitude, int64_t m, double *out,
                                int64_t nthreads)
 {
@@ -664,11 +703,13 @@ typedef struct {
 
 /* Locate a point on the sphere as point_sum does (the same products, so the same weights)
  * and ask the memory for the rows of the folded table it will read (full columns). */
-GS_INLINE void latlon_locate(const gs_spline *S, const int order, double latitude, double longitude, located *L,
+GS_INLINE void latlon_locate(const gs_spline *S, const int order, double x_, double y_, double z_, located *L,
                              int64_t *last_key, int64_t *last_brick)
 {
     const int64_t side = (1 << BRICK_BITS) + order - 1;
-    direction(latitude, longitude, &L->x, &L->y, &L->z);
+    L->x = x_;
+    L->y = y_;
+    L->z = z_;
     L->brick = -1;
     L->lev = -1;
     if (!(L->x == L->x && L->z == L->z))
@@ -712,6 +753,7 @@ GS_INLINE void latlon_range(const latlon_job *J, const int order, int64_t lo, in
     const gs_spline *S = J->S;
     int64_t last_key[S->nlev], last_brick[S->nlev], sum_key[S->nlev], sum_brick[S->nlev];
     located ring[LL_AHEAD];
+    gs_v4 dx, dy, dz; /* directions of the points from p - (p - lo) % 4 on */
     reset_cache(S->nlev, last_key, last_brick);
     reset_cache(S->nlev, sum_key, sum_brick);
     for (int64_t p = lo; p < hi + LL_AHEAD - 1; ++p) {
@@ -720,8 +762,17 @@ GS_INLINE void latlon_range(const latlon_job *J, const int order, int64_t lo, in
             __builtin_prefetch(&J->longitude[KEY_AT(J->sorted[p + 16])]);
         }
         if (p < hi) {
-            int64_t at = KEY_AT(J->sorted[p]);
-            latlon_locate(S, order, J->latitude[at], J->longitude[at], &ring[p % LL_AHEAD], last_key, last_brick);
+            int64_t i = (p - lo) % 4;
+            if (i == 0) { /* the next 4 points' directions at once */
+                gs_v4 la, lo_;
+                for (int k = 0; k < 4; ++k) {
+                    int64_t at = KEY_AT(J->sorted[p + k < hi ? p + k : hi - 1]);
+                    la[k] = J->latitude[at];
+                    lo_[k] = J->longitude[at];
+                }
+                directions4(&la, &lo_, &dx, &dy, &dz);
+            }
+            latlon_locate(S, order, dx[i], dy[i], dz[i], &ring[p % LL_AHEAD], last_key, last_brick);
         }
         int64_t e = p - (LL_AHEAD - 1); /* summed now */
         if (e < lo)
