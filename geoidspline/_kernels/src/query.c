@@ -827,7 +827,8 @@ GS_HOT static void latlon_evaluate(void *ctx, int64_t task)
  * 2. exclusive prefix sums over (bucket, block): a stable order by bucket;
  * 3. per block: each point's (code, position) scattered in that order; then each bucket
  *    sorted by the low bits of the code (latlon_refine);
- * 4. per chunk of the sorted points: direction and value, in that order;
+ * 4. per chunk of the sorted points, in that order: directions (4 at a time), each point
+ *    located LL_AHEAD - 1 points before it is summed (its rows prefetched; latlon_range);
  * 5. per block: each value written to its point's place (writing it from step 4 is
  *    slower: scattered stores in the hot loop).
  * A point's value does not depend on the order, blocks or threads, and equals
