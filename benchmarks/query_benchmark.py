@@ -23,8 +23,8 @@ variants are timed in turn ``--repeat`` times (interleaved, so load from other p
 hits all alike); the figures are medians of wall time / N in ns per point, and the
 ratios pyproj / ours come from the same run.
 
-Roofline note: per point and evaluated table, an order-n query reads n² column entries
-(4 B) and n³ coefficients (8 B), and does n³ multiplies and n³ adds on z lanes, n²
+Roofline note: per point and evaluated table, an order-n query reads n² column offsets
+(4 B), one entry of the table's full-column map (2 B) and n³ coefficients (8 B), and does n³ multiplies and n³ adds on z lanes, n²
 products of weights, 2n for the last dot product, about 15n for the three axes' weights
 and about 60 for the direction (two sin/cos pairs): printed with the measured ns/pt, the
 achieved GFLOP/s and the compute limit of one core (8 double flops a cycle with AVX2
@@ -72,7 +72,7 @@ def cpu_mhz():
 def roofline(order, ns_per_point, mhz):
     n = order
     flops = 2 * n**3 + n**2 + 2 * n + 3 * 15 * n + 60
-    bytes_ = 8 * n**3 + 4 * n**2
+    bytes_ = 8 * n**3 + 4 * n**2 + 2
     out = {"order": n, "flops_per_point": flops, "bytes_per_point": bytes_, "ns_per_point": ns_per_point,
            "achieved_gflops": flops / ns_per_point, "achieved_gbytes_s": bytes_ / ns_per_point}
     if mhz:

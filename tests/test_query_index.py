@@ -171,6 +171,7 @@ def test_points_in_the_band_read_only_the_folded_tables():
     before_near = spline.evaluate_points(near, nderiv=2)
     before_far = spline.evaluate_points(far)
     spline.index.own_cols[:] = 0
+    spline.index.own_full[:] = 0  # and its full-column map: every own column now reads as empty
     np.testing.assert_array_equal(spline.evaluate_points(near, nderiv=2), before_near)
     assert np.abs(spline.evaluate_points(far) - before_far).max() > 1e-3
 
@@ -412,4 +413,55 @@ def test_a_pickled_index_evaluates_the_same():
     with pytest.raises(TypeError, match="values"):
         _kernels.Spline.of(4, copy.inv_hs, copy.band_lo2, copy.band_hi2, copy.presence, copy.slots,
                            copy.slot_start, copy.slot_mask, copy.fold_base, copy.fold_cols, copy.own_base,
-                           copy.own_cols, copy.values.astype(np.float32))
+                           copy.own_cols, copy.values.astype(np.float32), copy.fold_offs, copy.fold_full,
+                           copy.own_offs, copy.own_full)
+
+
+def full_columns_by_definition(cols, order):
+    """numpy reference of _kernels.full_columns: per column (run offset - first k), and per
+    cell column of a brick the lz whose order² columns all hold k = lz .. lz + order - 1."""
+    cells = 1 << _kernels.BRICK_BITS
+    length = cols & ((1 << _kernels.COL_KBITS) - 1)
+    k0 = (cols >> _kernels.COL_KBITS) & ((1 << _kernels.COL_KBITS) - 1)
+    offs = np.where(length > 0, (cols >> _kernels.COL_SHIFT) - k0, 0)
+    full = np.zeros((cols.shape[0], cells, cells), np.uint16)
+    for lz in range(cells):
+        holds = (length > 0) & (k0 <= lz) & (lz + order <= k0 + length)  # (B, side, side)
+        every = np.ones((cols.shape[0], cells, cells), bool)
+        for p in range(order):
+            for q in range(order):
+                every &= holds[:, p:p + cells, q:q + cells]
+        full |= (every.astype(np.uint16) << lz)
+    return offs, full
+
+
+@pytest.mark.parametrize("order", [4, 6, 3])
+def test_full_column_maps_follow_their_definition(order):
+    index = AmbientSpline(random_overlays(71, order=order, nlevels=3)).index
+    for cols, offs, full in ((index.fold_cols, index.fold_offs, index.fold_full),
+                             (index.own_cols, index.own_offs, index.own_full)):
+        want_offs, want_full = full_columns_by_definition(cols, order)
+        np.testing.assert_array_equal(offs, want_offs)
+        np.testing.assert_array_equal(full, want_full)
+        assert 0 < np.count_nonzero(full) < full.size  # both paths occur
+
+
+@pytest.mark.parametrize("order", [4, 6])
+def test_full_columns_give_the_bits_of_decoded_columns(order):
+    """The evaluation reads a cell's columns through the full-column map where it allows
+    (no decoding), else decodes each column entry: with the maps emptied every point takes
+    the decoding path, and every value, gradient and Hessian is bitwise the same, on and
+    off the sphere and in latitude/longitude batches."""
+    levels = random_overlays(72, order=order, nlevels=3)
+    spline = AmbientSpline(levels)
+    rng = np.random.default_rng(73)
+    points = np.concatenate(list(point_sets(rng, levels, count=2000).values()))
+    lat = np.degrees(np.arcsin(rng.uniform(-1, 1, 60_000)))
+    lon = rng.uniform(-180, 180, 60_000)
+    fast = [spline.evaluate_points(points, nderiv=d) for d in (0, 1, 2)] + [spline.undulation(lat, lon)]
+    spline.index.fold_full[:] = 0
+    spline.index.own_full[:] = 0
+    decoded = [spline.evaluate_points(points, nderiv=d) for d in (0, 1, 2)] + [spline.undulation(lat, lon)]
+    for a, b in zip(fast, decoded):
+        np.testing.assert_array_equal(a, b)
+    assert np.abs(fast[3]).max() > 1.0

@@ -42,19 +42,23 @@ class Spline(ctypes.Structure):
                 ("inv_hs", PTR), ("band_lo2", PTR), ("band_hi2", PTR), ("presence", PTR),
                 ("slots", PTR), ("slot_start", PTR), ("slot_mask", PTR),
                 ("fold_base", PTR), ("own_base", PTR), ("fold_cols", PTR), ("own_cols", PTR),
-                ("values", PTR)]
+                ("values", PTR), ("fold_offs", PTR), ("own_offs", PTR), ("fold_full", PTR), ("own_full", PTR)]
 
     @classmethod
     def of(cls, order, inv_hs, band_lo2, band_hi2, presence, slots, slot_start, slot_mask, fold_base, fold_cols,
-           own_base, own_cols, values) -> "Spline":
+           own_base, own_cols, values, fold_offs, fold_full, own_offs, own_full) -> "Spline":
         """``presence`` (levels, PRESENCE_SIDE³) uint8; ``slots`` (capacity, 2) int64;
-        ``fold_cols``/``own_cols`` (bricks, side, side) int32; the rest per level or per
-        brick (int64) and ``values`` float64. Every array must be C-contiguous already."""
+        ``fold_cols``/``own_cols`` and ``fold_offs``/``own_offs`` (bricks, side, side) int32,
+        ``fold_full``/``own_full`` (bricks, 2**BRICK_BITS, 2**BRICK_BITS) uint16 (see
+        :func:`full_columns`); the rest per level or per brick (int64) and ``values``
+        float64. Every array must be C-contiguous already."""
         arrays = dict(inv_hs=(inv_hs, np.float64), band_lo2=(band_lo2, np.float64),
                       band_hi2=(band_hi2, np.float64), presence=(presence, np.uint8), slots=(slots, np.int64),
                       slot_start=(slot_start, np.int64), slot_mask=(slot_mask, np.int64),
                       fold_base=(fold_base, np.int64), own_base=(own_base, np.int64),
-                      fold_cols=(fold_cols, np.int32), own_cols=(own_cols, np.int32), values=(values, np.float64))
+                      fold_cols=(fold_cols, np.int32), own_cols=(own_cols, np.int32), values=(values, np.float64),
+                      fold_offs=(fold_offs, np.int32), own_offs=(own_offs, np.int32),
+                      fold_full=(fold_full, np.uint16), own_full=(own_full, np.uint16))
         for name, (array, dtype) in arrays.items():
             if array.dtype != np.dtype(dtype) or not array.flags.c_contiguous:
                 raise TypeError(f"{name} must be a C-contiguous {np.dtype(dtype)} array (got {array.dtype})")
@@ -73,6 +77,7 @@ _build_hash = function("gs_build_hash", PTR, I64, PTR, I64)
 _brick_row_entries = function("gs_brick_row_entries", PTR, I64, I64, I64, I64, I64, PTR, PTR, PTR, PTR, PTR, PTR,
                               restype=I64)
 _own_table_row = function("gs_own_table_row", PTR, I64, PTR, PTR, PTR, I64, PTR, PTR, PTR, restype=I64)
+_full_columns = function("gs_full_columns", PTR, I64, I64, PTR, PTR)
 _subdivide_bricks = function("gs_subdivide_bricks", PTR, I64, PTR, PTR, PTR, I64, PTR, I64, I64)
 
 
@@ -132,6 +137,24 @@ def own_table_row(brick_start, local, coef_index, coefficients, side):
     values = np.zeros(total)
     _own_table_row(*args, ptr(base), ptr(cols), ptr(values))
     return base, cols, values
+
+
+def full_columns(cols, order):
+    """The full-column maps of a table from its column entries ``cols`` (B, side, side)
+    int32: ``(offs (B, side, side) int32, full (B, 2**BRICK_BITS, 2**BRICK_BITS) uint16)``.
+
+    ``offs``: per column, its run's offset from the brick's base minus its first local k
+    (local k of a non-empty column is at ``values[base + offs + k]``); ``full``: per cell
+    column (lx, ly) of a brick, bit lz set when all ``order²`` columns ``(lx + p, ly + q)``
+    hold local k = lz .. lz + order - 1, so that a point in cell (lx, ly, lz) reads them
+    without decoding (the evaluation's fast path; the same products in the same order).
+    """
+    cols = c_in(cols, np.int32)
+    cells = 1 << BRICK_BITS
+    offs = np.empty(cols.shape, np.int32)
+    full = np.empty((cols.shape[0], cells, cells), np.uint16)
+    _full_columns(ptr(cols), cols.shape[0], int(order), ptr(offs), ptr(full))
+    return offs, full
 
 
 def build_hash(keys):

@@ -307,6 +307,8 @@ class BrickIndex:
         fold_cols = [self.own_cols[p[0]:p[1]] if isinstance(p, tuple) else p for p in fold_cols]
         self.fold_cols = cat(fold_cols, np.int32, (0, side, side))
         self.values = cat(values, np.float64, 0)
+        self.fold_offs, self.fold_full = _qk.full_columns(self.fold_cols, order)
+        self.own_offs, self.own_full = _qk.full_columns(self.own_cols, order)
         n = _qk.PRESENCE_SIDE
         self.presence = np.stack(presence) if presence else np.zeros((0, n, n, n), np.uint8)
         self._spline = None
@@ -317,7 +319,8 @@ class BrickIndex:
         if self._spline is None:
             self._spline = _qk.Spline.of(self.order, self.inv_hs, self.band_lo2, self.band_hi2, self.presence,
                                          self.slots, self.slot_start, self.slot_mask, self.fold_base,
-                                         self.fold_cols, self.own_base, self.own_cols, self.values)
+                                         self.fold_cols, self.own_base, self.own_cols, self.values,
+                                         self.fold_offs, self.fold_full, self.own_offs, self.own_full)
         return self._spline
 
     def __getstate__(self):
@@ -409,7 +412,8 @@ class BrickIndex:
     @property
     def nbytes(self) -> int:
         return sum(a.nbytes for a in (self.slots, self.fold_base, self.fold_cols, self.own_base, self.own_cols,
-                                      self.values, self.presence))
+                                      self.values, self.presence, self.fold_offs, self.fold_full,
+                                      self.own_offs, self.own_full))
 
     def add_to(self, points, out, nderiv=0):
         """Add the spline (nderiv 0) or value and derivatives (1, 2) at points (M, 3) to out.

@@ -14,6 +14,13 @@
 
 #include "gs_common.h"
 
+/* Python's build flags add -fwrapv (defined signed overflow); it keeps GCC from folding
+ * the index arithmetic of the evaluation loops and cost 15 % of a batch's time (2 mm
+ * store). Nothing here relies on signed overflow. */
+#pragma GCC optimize("no-wrapv")
+/* vectors passed between always-inline functions: no ABI is involved */
+#pragma GCC diagnostic ignored "-Wpsabi"
+
 #define BRICK_BITS 4
 #define BRICK_MASK ((1 << BRICK_BITS) - 1)
 #define COL_KBITS 5 /* a column entry: run offset << COL_SHIFT | first local k << COL_KBITS | length */
@@ -23,6 +30,9 @@
 #define PRESENCE_SIDE 20
 #define HASH_MULT 0x9E3779B97F4A7C15ULL
 #define CHUNK 4096 /* points per task of the evaluation loops */
+#ifndef LL_AHEAD
+#define LL_AHEAD 8 /* the latitude/longitude loop locates a point this many points before summing it */
+#endif
 
 #if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && !defined(GS_NO_CLONES)
 #define GS_HOT __attribute__((target_clones("arch=x86-64-v3", "default")))
@@ -41,6 +51,8 @@ typedef struct {
     const int64_t *fold_base, *own_base;        /* per brick: first value of its table */
     const int32_t *fold_cols, *own_cols;        /* (bricks, side, side) column entries */
     const double *values;
+    const int32_t *fold_offs, *own_offs;        /* (bricks, side, side) per column: run offset - first k */
+    const uint16_t *fold_full, *own_full;       /* (bricks, S, S) per cell column: bit lz = all columns full */
 } gs_spline;
 
 /* ---- the brick hash --------------------------------------------------------------- */
@@ -96,23 +108,30 @@ GS_INLINE int present(const gs_spline *S, int64_t lev, double x, double y, doubl
 
 /* Lanes: order doubles (one per z index r) held in vector registers, 4 to a vector, then
  * a pair, then one; GCC's vector extensions, so every lane is its own scalar sum (the
- * same bits in the baseline and x86-64-v3 builds). */
+ * same bits in the baseline and x86-64-v3 builds). When order % 4 == 2 (order 6), the
+ * pair is the top half of a last vector of 4 lanes overlapping the one before (lanes
+ * order - 4 .. order - 1): each column is then two loads of 4 and the y weight's
+ * broadcast serves both (lanes order - 4, order - 3 are summed twice, their second sum
+ * unused). */
 typedef double gs_v4 __attribute__((vector_size(32)));
 typedef double gs_v2 __attribute__((vector_size(16)));
 typedef struct {
     gs_v4 v[GS_MAX_ORDER / 4];
+    gs_v4 over; /* LANE_OVER: lanes order - 4 .. order - 1 */
     gs_v2 pair;
     double one;
 } lanes;
 
 #define LANE_V(order) ((order) / 4)
-#define LANE_PAIR(order) (((order) % 4) >= 2)
+#define LANE_OVER(order) (((order) % 4) == 2 && (order) > 4)
+#define LANE_PAIR(order) (((order) % 4) >= 2 && !LANE_OVER(order))
 #define LANE_ONE(order) (((order) % 2) == 1)
 
 GS_INLINE void lanes_zero(const int order, lanes *a)
 {
     for (int k = 0; k < LANE_V(order); ++k)
         a->v[k] = (gs_v4){0.0, 0.0, 0.0, 0.0};
+    a->over = (gs_v4){0.0, 0.0, 0.0, 0.0};
     a->pair = (gs_v2){0.0, 0.0};
     a->one = 0.0;
 }
@@ -124,6 +143,11 @@ GS_INLINE void lanes_axpy(const int order, lanes *a, double w, const double *c)
         gs_v4 x;
         memcpy(&x, c + 4 * k, sizeof x);
         a->v[k] += w * x;
+    }
+    if (LANE_OVER(order)) {
+        gs_v4 x;
+        memcpy(&x, c + order - 4, sizeof x);
+        a->over += w * x;
     }
     if (LANE_PAIR(order)) {
         gs_v2 x;
@@ -139,6 +163,8 @@ GS_INLINE void lanes_add(const int order, lanes *a, double w, const lanes *b)
 {
     for (int k = 0; k < LANE_V(order); ++k)
         a->v[k] += w * b->v[k];
+    if (LANE_OVER(order))
+        a->over += w * b->over;
     if (LANE_PAIR(order))
         a->pair += w * b->pair;
     if (LANE_ONE(order))
@@ -152,6 +178,10 @@ GS_INLINE double lanes_dot(const int order, const lanes *a, const double *w)
     for (int k = 0; k < LANE_V(order); ++k)
         for (int j = 0; j < 4; ++j)
             s += w[4 * k + j] * a->v[k][j];
+    if (LANE_OVER(order)) {
+        s += w[order - 2] * a->over[2];
+        s += w[order - 1] * a->over[3];
+    }
     if (LANE_PAIR(order)) {
         s += w[4 * LANE_V(order)] * a->pair[0];
         s += w[4 * LANE_V(order) + 1] * a->pair[1];
@@ -161,21 +191,44 @@ GS_INLINE double lanes_dot(const int order, const lanes *a, const double *w)
     return s;
 }
 
+/* The first of the order coefficients k = lz .. lz + order - 1 of column entry packed
+ * (a run of length coefficients from local k0 at values + run offset), or pad filled with
+ * them and zeros where the run does not reach; NULL when the column is empty. */
+GS_INLINE const double *column_run(const int order, const double *values, int32_t packed, int64_t lz, double *pad)
+{
+    int64_t length = packed & COL_KMASK;
+    if (length == 0)
+        return NULL;
+    int64_t start = lz - ((packed >> COL_KBITS) & COL_KMASK);
+    int64_t offset = (int64_t)(packed >> COL_SHIFT) + start;
+    if (start >= 0 && start + order <= length)
+        return values + offset;
+    for (int r = 0; r < order; ++r)
+        pad[r] = (start + r >= 0 && start + r < length) ? values[offset + r] : 0.0;
+    return pad;
+}
+
 /* Add one brick table's spline (and derivatives) at a point into result.
  *
  * The table's column (p, q) is a run of coefficients along z. Sums go per z lane r,
  * separably: B_p[r] = sum_q wy_q c_pqr, A[r] = sum_p wx_p B_p[r], then value = sum_r
  * wz_r A[r] (and the same with derivative weights): a column is order contiguous doubles
- * added into vector lanes, rows p are independent chains (short add latencies). A column
- * whose run does not hold all order coefficients (a band's edge) is read through a
- * zero-padded copy. */
-GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, const double *wx, const double *wy,
-                         const double *wz, int64_t base, const int32_t *cols, int64_t brick, int64_t lx, int64_t ly,
-                         int64_t lz, double inv_h, double *result)
+ * added into vector lanes, rows p are independent chains (short add latencies).
+ *
+ * full (a constant): the point's cell column has its bit lz set in the table's full map,
+ * so every one of the order^2 columns holds k = lz .. lz + order - 1 and the column
+ * (p, q) starts at values + offs[p][q] + lz: no decoding and no branch per column (most
+ * points: a folded table covers its band whole). Otherwise each column is decoded from
+ * its entry (column_run), an empty one skipped, one cut by the run's end read through a
+ * zero-padded copy. Both add the same products in the same order (the same bits). */
+GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, const int full, const double *wx,
+                         const double *wy, const double *wz, int64_t base, const int32_t *cols, const int32_t *offs,
+                         int64_t brick, int64_t lx, int64_t ly, int64_t lz, double inv_h, double *result)
 {
     const int64_t side = (1 << BRICK_BITS) + order - 1;
-    const int32_t *col0 = cols + (brick * side + lx) * side + ly;
+    const int64_t col_at = (brick * side + lx) * side + ly;
     const double *values = S->values + base;
+    const double *values_lz = values + lz;
     /* A per derivative (x, y): 00 value; 10 01 first; 20 02 11 second */
     lanes a00, a10, a01, a20, a02, a11;
     double pad[GS_MAX_ORDER];
@@ -190,7 +243,6 @@ GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, 
         lanes_zero(order, &a11);
     }
     for (int p = 0; p < order; ++p) {
-        const int32_t *row = col0 + p * side;
         lanes b0, b1, b2; /* B_p with the y weights of derivative 0, 1, 2 */
         lanes_zero(order, &b0);
         if (nderiv >= 1)
@@ -198,19 +250,13 @@ GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, 
         if (nderiv >= 2)
             lanes_zero(order, &b2);
         for (int q = 0; q < order; ++q) {
-            int32_t packed = row[q];
-            int64_t length = packed & COL_KMASK;
-            if (length == 0)
-                continue;
-            int64_t start = lz - ((packed >> COL_KBITS) & COL_KMASK);
-            int64_t offset = (int64_t)(packed >> COL_SHIFT) + start;
             const double *c;
-            if (start >= 0 && start + order <= length) {
-                c = values + offset;
+            if (full) {
+                c = values_lz + offs[col_at + p * side + q];
             } else {
-                for (int r = 0; r < order; ++r)
-                    pad[r] = (start + r >= 0 && start + r < length) ? values[offset + r] : 0.0;
-                c = pad;
+                c = column_run(order, values, cols[col_at + p * side + q], lz, pad);
+                if (c == NULL)
+                    continue;
             }
             lanes_axpy(order, &b0, wy[q], c);
             if (nderiv >= 1)
@@ -246,6 +292,34 @@ GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, 
     }
 }
 
+/* One brick table at a point: the full-column sum where the table's full map allows it,
+ * the decoding one otherwise. */
+GS_INLINE void brick_sum(const gs_spline *S, const int order, const int nderiv, const double *wx, const double *wy,
+                         const double *wz, int64_t base, const int32_t *cols, const int32_t *offs,
+                         const uint16_t *full, int64_t brick, int64_t lx, int64_t ly, int64_t lz, double inv_h,
+                         double *result)
+{
+    if ((full[(brick << (2 * BRICK_BITS)) + (lx << BRICK_BITS) + ly] >> lz) & 1)
+        table_sum(S, order, nderiv, 1, wx, wy, wz, base, cols, offs, brick, lx, ly, lz, inv_h, result);
+    else
+        table_sum(S, order, nderiv, 0, wx, wy, wz, base, cols, offs, brick, lx, ly, lz, inv_h, result);
+}
+
+/* The brick of level lev holding cell (ax, ay, az) of the point (x, y, z), or -1; last_key
+ * and last_brick (per level) remember the last brick looked up. */
+GS_INLINE int64_t brick_at(const gs_spline *S, int64_t lev, double x, double y, double z, int64_t ax, int64_t ay,
+                           int64_t az, int64_t *last_key, int64_t *last_brick)
+{
+    int64_t key = gs_pack(ax >> BRICK_BITS, ay >> BRICK_BITS, az >> BRICK_BITS);
+    if (key == last_key[lev])
+        return last_brick[lev];
+    int64_t brick = present(S, lev, x, y, z) ? hash_find(S->slots + 2 * S->slot_start[lev], S->slot_mask[lev], key)
+                                             : -1;
+    last_key[lev] = key;
+    last_brick[lev] = brick;
+    return brick;
+}
+
 /* Add the spline (and derivatives) at a finite point into result (zeroed by the caller).
  *
  * From the finest level down, the first level with a brick at the point whose band holds
@@ -265,16 +339,7 @@ GS_INLINE void point_sum(const gs_spline *S, const int order, const int nderiv, 
         double fx = x * inv_h, fy = y * inv_h, fz = z * inv_h;
         double flx = floor(fx), fly = floor(fy), flz = floor(fz);
         int64_t ax = (int64_t)flx, ay = (int64_t)fly, az = (int64_t)flz;
-        int64_t key = gs_pack(ax >> BRICK_BITS, ay >> BRICK_BITS, az >> BRICK_BITS);
-        int64_t brick;
-        if (key == last_key[lev]) {
-            brick = last_brick[lev];
-        } else {
-            brick = present(S, lev, x, y, z) ? hash_find(S->slots + 2 * S->slot_start[lev], S->slot_mask[lev], key)
-                                             : -1;
-            last_key[lev] = key;
-            last_brick[lev] = brick;
-        }
+        int64_t brick = brick_at(S, lev, x, y, z, ax, ay, az, last_key, last_brick);
         if (brick < 0)
             continue;
         gs_weights(fx - flx, order, nderiv, wx, order);
@@ -282,11 +347,12 @@ GS_INLINE void point_sum(const gs_spline *S, const int order, const int nderiv, 
         gs_weights(fz - flz, order, nderiv, wz, order);
         int64_t lx = ax & BRICK_MASK, ly = ay & BRICK_MASK, lz = az & BRICK_MASK;
         if (S->band_lo2[lev] <= r2 && r2 <= S->band_hi2[lev]) {
-            table_sum(S, order, nderiv, wx, wy, wz, S->fold_base[brick], S->fold_cols, brick, lx, ly, lz, inv_h,
-                      result);
+            brick_sum(S, order, nderiv, wx, wy, wz, S->fold_base[brick], S->fold_cols, S->fold_offs, S->fold_full,
+                      brick, lx, ly, lz, inv_h, result);
             break;
         }
-        table_sum(S, order, nderiv, wx, wy, wz, S->own_base[brick], S->own_cols, brick, lx, ly, lz, inv_h, result);
+        brick_sum(S, order, nderiv, wx, wy, wz, S->own_base[brick], S->own_cols, S->own_offs, S->own_full, brick, lx,
+                  ly, lz, inv_h, result);
     }
 }
 
@@ -436,11 +502,41 @@ GS_INLINE uint32_t latlon_code(double la, double lo)
     return spread2(j) | (spread2(i) << 1);
 }
 
-/* sin and cos of one angle at once (fdlibm's k_sin.c/k_cos.c polynomials on [-pi/4, pi/4]
+/* Directions are computed 4 points at a time, one vector lane each (GCC's vector
+ * extensions: one vector in the x86-64-v3 clone, two halves in the baseline one); a lane
+ * does the operations a scalar would, in the same order, so the bits do not depend on the
+ * lane or the build. */
+typedef int64_t gs_i4 __attribute__((vector_size(32)));
+
+GS_INLINE gs_v4 v4_splat(double a)
+{
+    return (gs_v4){a, a, a, a};
+}
+
+/* mask ? a : b per lane (mask lanes all ones or all zeros, as comparisons give) */
+GS_INLINE gs_v4 v4_select(gs_i4 mask, gs_v4 a, gs_v4 b)
+{
+    return (gs_v4)((mask & (gs_i4)a) | (~mask & (gs_i4)b));
+}
+
+/* floor per lane, exactly floor() for every double (the sign of a zero included): round
+ * to an integer by adding and removing 2**52 (towards zero from the side of x, where the
+ * spacing of doubles is 1), one less where that rounded up. */
+GS_INLINE gs_v4 v4_floor(gs_v4 x)
+{
+    const gs_v4 big = v4_splat(4503599627370496.0);
+    const gs_i4 sign = {INT64_MIN, INT64_MIN, INT64_MIN, INT64_MIN};
+    gs_v4 rounded = v4_select(x >= 0.0, (x + big) - big, (x - big) + big);
+    gs_v4 whole = v4_select((x < -big) | (x > big), x, rounded); /* beyond 2**52 all are whole */
+    gs_v4 t = v4_select(whole > x, whole - v4_splat(1.0), whole);
+    return (gs_v4)(((gs_i4)t & ~sign) | ((gs_i4)x & sign)); /* floor(x) has the sign of x */
+}
+
+/* sin and cos of one angle per lane (fdlibm's k_sin.c/k_cos.c polynomials on [-pi/4, pi/4]
  * after a Cody-Waite reduction by pi/2), in less time than two libm calls. Absolute error
  * at most 1.2e-16 on [-pi, pi] (below 1e-14 m in N: a unit vector only needs absolute
  * accuracy); |x| <= 2 pi. NaN gives NaN. */
-GS_INLINE void gs_sincos(double x, double *sin_x, double *cos_x)
+GS_INLINE void gs_sincos(gs_v4 x, gs_v4 *sin_x, gs_v4 *cos_x)
 {
     const double pio2_hi = 1.57079632673412561417e+00; /* first 33 bits of pi/2: n * pio2_hi is exact */
     const double pio2_lo = 6.07710050650619224932e-11, two_over_pi = 6.36619772367581382433e-01;
@@ -448,34 +544,30 @@ GS_INLINE void gs_sincos(double x, double *sin_x, double *cos_x)
                  S4 = 2.75573137070700676789e-06, S5 = -2.50507602534068634195e-08, S6 = 1.58969099521155010221e-10;
     const double C1 = 4.16666666666666019037e-02, C2 = -1.38888888888741095749e-03, C3 = 2.48015872894767294178e-05,
                  C4 = -2.75573143513906633035e-07, C5 = 2.08757232129817482790e-09, C6 = -1.13596475577881948265e-11;
-    double n = floor(x * two_over_pi + 0.5);
-    double r = (x - n * pio2_hi) - n * pio2_lo;
-    double z = r * r;
-    double sin_r = r + (z * r) * (S1 + z * (S2 + z * (S3 + z * (S4 + z * (S5 + z * S6)))));
-    double hz = 0.5 * z;
-    double w = 1.0 - hz;
-    double cos_r = w + (((1.0 - w) - hz) + z * (z * (C1 + z * (C2 + z * (C3 + z * (C4 + z * (C5 + z * C6)))))));
-    if (n != n) {
-        *sin_x = *cos_x = n;
-        return;
-    }
-    switch ((int64_t)n & 3) {
-    case 0: *sin_x = sin_r; *cos_x = cos_r; break;
-    case 1: *sin_x = cos_r; *cos_x = -sin_r; break;
-    case 2: *sin_x = -sin_r; *cos_x = -cos_r; break;
-    default: *sin_x = -cos_r; *cos_x = sin_r; break;
-    }
+    gs_v4 n = v4_floor(x * two_over_pi + 0.5);
+    gs_v4 r = (x - n * pio2_hi) - n * pio2_lo;
+    gs_v4 z = r * r;
+    gs_v4 sin_r = r + (z * r) * (S1 + z * (S2 + z * (S3 + z * (S4 + z * (S5 + z * S6)))));
+    gs_v4 hz = 0.5 * z;
+    gs_v4 w = 1.0 - hz;
+    gs_v4 cos_r = w + (((1.0 - w) - hz) + z * (z * (C1 + z * (C2 + z * (C3 + z * (C4 + z * (C5 + z * C6)))))));
+    /* the quadrant n mod 4 (exact: n is small and whole); NaN takes the last case, NaN too */
+    gs_v4 quadrant = n - 4.0 * v4_floor(n * 0.25);
+    gs_i4 q0 = quadrant == 0.0, q1 = quadrant == 1.0, q2 = quadrant == 2.0;
+    *sin_x = v4_select(q0, sin_r, v4_select(q1, cos_r, v4_select(q2, -sin_r, -cos_r)));
+    *cos_x = v4_select(q0, cos_r, v4_select(q1, -sin_r, v4_select(q2, -cos_r, sin_r)));
 }
 
-/* Unit vector of latitude/longitude in degrees: the one formula of every compiled path
- * (unit_vectors, undulation_latlon), so they agree bit for bit. Longitudes are wrapped to
- * [-180, 180) first. */
-GS_INLINE void direction(double latitude, double longitude, double *x, double *y, double *z)
+/* Unit vectors of 4 latitude/longitude pairs in degrees: the one formula of every
+ * compiled path (unit_vectors, undulation_latlon), so they agree bit for bit. Longitudes
+ * are wrapped to [-180, 180) first. */
+GS_INLINE void directions4(const gs_v4 *latitude_, const gs_v4 *longitude_, gs_v4 *x, gs_v4 *y, gs_v4 *z)
 {
-    if (longitude < -180.0 || longitude >= 180.0)
-        longitude -= 360.0 * floor((longitude + 180.0) / 360.0);
+    gs_v4 latitude = *latitude_, longitude = *longitude_;
+    gs_v4 wrapped = longitude - 360.0 * v4_floor((longitude + 180.0) / 360.0);
+    longitude = v4_select((longitude < -180.0) | (longitude >= 180.0), wrapped, longitude);
     const double d2r = 3.141592653589793 / 180.0;
-    double sin_phi, cos_phi, sin_lam, cos_lam;
+    gs_v4 sin_phi, cos_phi, sin_lam, cos_lam;
     gs_sincos(latitude * d2r, &sin_phi, &cos_phi);
     gs_sincos(longitude * d2r, &sin_lam, &cos_lam);
     *x = cos_phi * cos_lam;
@@ -489,16 +581,27 @@ typedef struct {
     int64_t m;
 } unit_job;
 
-static void unit_task(void *ctx, int64_t task)
+GS_HOT static void unit_task(void *ctx, int64_t task)
 {
     const unit_job *J = ctx;
     int64_t lo = task * CHUNK, hi = lo + CHUNK < J->m ? lo + CHUNK : J->m;
-    for (int64_t s = lo; s < hi; ++s)
-        direction(J->latitude[s], J->longitude[s], &J->out[3 * s], &J->out[3 * s + 1], &J->out[3 * s + 2]);
+    for (int64_t s = lo; s < hi; s += 4) {
+        gs_v4 la, lo_, x, y, z;
+        for (int i = 0; i < 4; ++i) { /* past the end: the last point again */
+            la[i] = J->latitude[s + i < hi ? s + i : hi - 1];
+            lo_[i] = J->longitude[s + i < hi ? s + i : hi - 1];
+        }
+        directions4(&la, &lo_, &x, &y, &z);
+        for (int i = 0; i < 4 && s + i < hi; ++i) {
+            J->out[3 * (s + i)] = x[i];
+            J->out[3 * (s + i) + 1] = y[i];
+            J->out[3 * (s + i) + 2] = z[i];
+        }
+    }
 }
 
 /* Directions (m, 3) (cos phi cos lambda, cos phi sin lambda, sin phi) of latitude and
- * longitude in degrees (direction()). */
+ * longitude in degrees (directions4()). */
 GS_EXPORT void gs_unit_vectors(const double *latitude, const double *longitude, int64_t m, double *out,
                                int64_t nthreads)
 {
@@ -589,26 +692,106 @@ static void latlon_refine(void *ctx, int64_t task)
     }
 }
 
+/* A point of the latitude/longitude loop between locating it and summing it: its
+ * direction and, when the first level with a brick at it holds it in its band (points on
+ * the sphere: always but at the edges of coverage), that brick (else brick -1: point_sum
+ * then does the whole descent). */
+typedef struct {
+    double x, y, z, t[3]; /* direction; position in the cell of the brick's level */
+    int64_t lev, brick, lx, ly, lz;
+} located;
+
+/* Locate a point on the sphere as point_sum does (the same products, so the same weights)
+ * and ask the memory for the rows of the folded table it will read (full columns). */
+GS_INLINE void latlon_locate(const gs_spline *S, const int order, double x_, double y_, double z_, located *L,
+                             int64_t *last_key, int64_t *last_brick)
+{
+    const int64_t side = (1 << BRICK_BITS) + order - 1;
+    L->x = x_;
+    L->y = y_;
+    L->z = z_;
+    L->brick = -1;
+    L->lev = -1;
+    if (!(L->x == L->x && L->z == L->z))
+        return;
+    double x = L->x, y = L->y, z = L->z, r2 = x * x + y * y + z * z;
+    for (int64_t lev = S->nlev - 1; lev >= 0; --lev) {
+        double inv_h = S->inv_hs[lev];
+        double fx = x * inv_h, fy = y * inv_h, fz = z * inv_h;
+        double flx = floor(fx), fly = floor(fy), flz = floor(fz);
+        int64_t ax = (int64_t)flx, ay = (int64_t)fly, az = (int64_t)flz;
+        int64_t brick = brick_at(S, lev, x, y, z, ax, ay, az, last_key, last_brick);
+        if (brick < 0)
+            continue;
+        L->lev = lev;
+        if (!(S->band_lo2[lev] <= r2 && r2 <= S->band_hi2[lev]))
+            return; /* outside the band: point_sum's descent */
+        L->brick = brick;
+        L->t[0] = fx - flx;
+        L->t[1] = fy - fly;
+        L->t[2] = fz - flz;
+        L->lx = ax & BRICK_MASK;
+        L->ly = ay & BRICK_MASK;
+        L->lz = az & BRICK_MASK;
+        const int32_t *row = S->fold_offs + (brick * side + L->lx) * side + L->ly;
+        const double *v = S->values + S->fold_base[brick] + L->lz;
+        for (int p = 0; p < order; ++p) { /* a row's first and last coefficients */
+            __builtin_prefetch(v + row[p * side]);
+            __builtin_prefetch(v + row[p * side + order - 1] + order - 1);
+        }
+        return;
+    }
+}
+
 /* Values at the points sorted[lo..hi) into ordered[lo..hi): nearby points follow each
- * other, so they read the same coefficients. */
+ * other, so they read the same coefficients. A point is located LL_AHEAD - 1 points
+ * before it is summed, and its coefficients asked for then: the tables do not fit in the
+ * caches, and a point's loads depend on its own location, so summing right away waits for
+ * one point's rows after another's. */
 GS_INLINE void latlon_range(const latlon_job *J, const int order, int64_t lo, int64_t hi)
 {
     const gs_spline *S = J->S;
-    int64_t last_key[S->nlev], last_brick[S->nlev];
+    int64_t last_key[S->nlev], last_brick[S->nlev], sum_key[S->nlev], sum_brick[S->nlev];
+    located ring[LL_AHEAD];
+    gs_v4 dx, dy, dz; /* directions of the points from p - (p - lo) % 4 on */
     reset_cache(S->nlev, last_key, last_brick);
-    for (int64_t p = lo; p < hi; ++p) {
-        double x, y, z, result[1] = {0.0};
+    reset_cache(S->nlev, sum_key, sum_brick);
+    for (int64_t p = lo; p < hi + LL_AHEAD - 1; ++p) {
         if (p + 16 < hi) { /* the coordinates are read out of order: ask for them early */
             __builtin_prefetch(&J->latitude[KEY_AT(J->sorted[p + 16])]);
             __builtin_prefetch(&J->longitude[KEY_AT(J->sorted[p + 16])]);
         }
-        int64_t at = KEY_AT(J->sorted[p]);
-        direction(J->latitude[at], J->longitude[at], &x, &y, &z);
-        if (x == x && z == z) {
-            point_sum(S, order, 0, x, y, z, last_key, last_brick, result);
-            J->ordered[p] = result[0];
+        if (p < hi) {
+            int64_t i = (p - lo) % 4;
+            if (i == 0) { /* the next 4 points' directions at once */
+                gs_v4 la, lo_;
+                for (int k = 0; k < 4; ++k) {
+                    int64_t at = KEY_AT(J->sorted[p + k < hi ? p + k : hi - 1]);
+                    la[k] = J->latitude[at];
+                    lo_[k] = J->longitude[at];
+                }
+                directions4(&la, &lo_, &dx, &dy, &dz);
+            }
+            latlon_locate(S, order, dx[i], dy[i], dz[i], &ring[p % LL_AHEAD], last_key, last_brick);
+        }
+        int64_t e = p - (LL_AHEAD - 1); /* summed now */
+        if (e < lo)
+            continue;
+        const located *L = &ring[e % LL_AHEAD];
+        double result[1] = {0.0};
+        if (L->brick >= 0) {
+            double wx[GS_MAX_ORDER], wy[GS_MAX_ORDER], wz[GS_MAX_ORDER];
+            gs_weights(L->t[0], order, 0, wx, order);
+            gs_weights(L->t[1], order, 0, wy, order);
+            gs_weights(L->t[2], order, 0, wz, order);
+            brick_sum(S, order, 0, wx, wy, wz, S->fold_base[L->brick], S->fold_cols, S->fold_offs, S->fold_full,
+                      L->brick, L->lx, L->ly, L->lz, S->inv_hs[L->lev], result);
+            J->ordered[e] = result[0];
+        } else if (L->lev >= 0) {
+            point_sum(S, order, 0, L->x, L->y, L->z, sum_key, sum_brick, result);
+            J->ordered[e] = result[0];
         } else {
-            J->ordered[p] = NAN;
+            J->ordered[e] = L->x == L->x && L->z == L->z ? 0.0 : NAN; /* no brick at the point: 0 */
         }
     }
 }
@@ -644,7 +827,8 @@ GS_HOT static void latlon_evaluate(void *ctx, int64_t task)
  * 2. exclusive prefix sums over (bucket, block): a stable order by bucket;
  * 3. per block: each point's (code, position) scattered in that order; then each bucket
  *    sorted by the low bits of the code (latlon_refine);
- * 4. per chunk of the sorted points: direction and value, in that order;
+ * 4. per chunk of the sorted points, in that order: directions (4 at a time), each point
+ *    located LL_AHEAD - 1 points before it is summed (its rows prefetched; latlon_range);
  * 5. per block: each value written to its point's place (writing it from step 4 is
  *    slower: scattered stores in the hot loop).
  * A point's value does not depend on the order, blocks or threads, and equals
@@ -806,6 +990,46 @@ GS_EXPORT int64_t gs_own_table_row(const int64_t *brick_start, int64_t nb, const
         }
     }
     return at;
+}
+
+/* The full-column maps of a table (gs_spline's *_offs and *_full, see table_sum) from its
+ * column entries cols (nb, side, side): offs, per column, its run's offset minus its first
+ * local k (0 for an empty column), so that local k is at values + base + offs + k; full
+ * (nb, S, S), per cell column (lx, ly), bit lz set when every column (lx + p, ly + q),
+ * p, q < order, holds k = lz .. lz + order - 1 (first k <= lz, lz + order <= first k +
+ * length). */
+GS_EXPORT void gs_full_columns(const int32_t *cols, int64_t nb, int64_t order, int32_t *offs, uint16_t *full)
+{
+    const int64_t cells = 1 << BRICK_BITS, side = cells + order - 1;
+    uint32_t column_mask[(1 << COL_KBITS) * (1 << COL_KBITS)], row_mask[(1 << COL_KBITS) << BRICK_BITS];
+    for (int64_t b = 0; b < nb; ++b) {
+        const int32_t *bc = cols + b * side * side;
+        for (int64_t c = 0; c < side * side; ++c) {
+            int64_t length = bc[c] & COL_KMASK, k0 = (bc[c] >> COL_KBITS) & COL_KMASK;
+            int64_t last = k0 + length - order < cells - 1 ? k0 + length - order : cells - 1; /* last lz */
+            offs[b * side * side + c] = length ? (int32_t)((bc[c] >> COL_SHIFT) - k0) : 0;
+            column_mask[c] = length && last >= k0 ? (uint32_t)(((1u << (last + 1)) - 1) & ~((1u << k0) - 1)) : 0;
+        }
+        /* over the order columns along y, then along x (inner loops over ly: vectors) */
+        for (int64_t i = 0; i < side; ++i) {
+            uint32_t *m = row_mask + i * cells;
+            for (int64_t ly = 0; ly < cells; ++ly)
+                m[ly] = column_mask[i * side + ly];
+            for (int64_t q = 1; q < order; ++q)
+                for (int64_t ly = 0; ly < cells; ++ly)
+                    m[ly] &= column_mask[i * side + ly + q];
+        }
+        for (int64_t lx = 0; lx < cells; ++lx) {
+            uint32_t m[1 << BRICK_BITS];
+            for (int64_t ly = 0; ly < cells; ++ly)
+                m[ly] = row_mask[lx * cells + ly];
+            for (int64_t p = 1; p < order; ++p)
+                for (int64_t ly = 0; ly < cells; ++ly)
+                    m[ly] &= row_mask[(lx + p) * cells + ly];
+            for (int64_t ly = 0; ly < cells; ++ly)
+                full[(b * cells + lx) * cells + ly] = (uint16_t)m[ly];
+        }
+    }
 }
 
 typedef struct {
