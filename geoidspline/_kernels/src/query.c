@@ -305,12 +305,24 @@ GS_INLINE void brick_sum(const gs_spline *S, const int order, const int nderiv, 
         table_sum(S, order, nderiv, 0, wx, wy, wz, base, cols, offs, brick, lx, ly, lz, inv_h, result);
 }
 
-/* The brick of level lev holding cell (ax, ay, az) of the point (x, y, z), or -1; last_key
- * and last_brick (per level) remember the last brick looked up. */
-GS_INLINE int64_t brick_at(const gs_spline *S, int64_t lev, double x, double y, double z, int64_t ax, int64_t ay,
-                           int64_t az, int64_t *last_key, int64_t *last_brick)
+/* The brick of level lev holding the point (x, y, z), or -1; cell gets the point's cell
+ * (ax, ay, az) on the level's lattice and t its position in that cell (fractions of a
+ * spacing): point_sum and latlon_locate locate with these same products, so a point's
+ * weights do not depend on which of them located it. last_key and last_brick (per level)
+ * remember the last brick looked up. */
+GS_INLINE int64_t brick_at(const gs_spline *S, int64_t lev, double x, double y, double z, int64_t cell[3],
+                           double t[3], int64_t *last_key, int64_t *last_brick)
 {
-    int64_t key = gs_pack(ax >> BRICK_BITS, ay >> BRICK_BITS, az >> BRICK_BITS);
+    double inv_h = S->inv_hs[lev];
+    double fx = x * inv_h, fy = y * inv_h, fz = z * inv_h;
+    double flx = floor(fx), fly = floor(fy), flz = floor(fz);
+    cell[0] = (int64_t)flx;
+    cell[1] = (int64_t)fly;
+    cell[2] = (int64_t)flz;
+    t[0] = fx - flx;
+    t[1] = fy - fly;
+    t[2] = fz - flz;
+    int64_t key = gs_pack(cell[0] >> BRICK_BITS, cell[1] >> BRICK_BITS, cell[2] >> BRICK_BITS);
     if (key == last_key[lev])
         return last_brick[lev];
     int64_t brick = present(S, lev, x, y, z) ? hash_find(S->slots + 2 * S->slot_start[lev], S->slot_mask[lev], key)
@@ -334,18 +346,17 @@ GS_INLINE void point_sum(const gs_spline *S, const int order, const int nderiv, 
 {
     double r2 = x * x + y * y + z * z;
     double wx[3 * GS_MAX_ORDER], wy[3 * GS_MAX_ORDER], wz[3 * GS_MAX_ORDER];
+    int64_t cell[3];
+    double t[3];
     for (int64_t lev = S->nlev - 1; lev >= 0; --lev) {
-        double inv_h = S->inv_hs[lev];
-        double fx = x * inv_h, fy = y * inv_h, fz = z * inv_h;
-        double flx = floor(fx), fly = floor(fy), flz = floor(fz);
-        int64_t ax = (int64_t)flx, ay = (int64_t)fly, az = (int64_t)flz;
-        int64_t brick = brick_at(S, lev, x, y, z, ax, ay, az, last_key, last_brick);
+        int64_t brick = brick_at(S, lev, x, y, z, cell, t, last_key, last_brick);
         if (brick < 0)
             continue;
-        gs_weights(fx - flx, order, nderiv, wx, order);
-        gs_weights(fy - fly, order, nderiv, wy, order);
-        gs_weights(fz - flz, order, nderiv, wz, order);
-        int64_t lx = ax & BRICK_MASK, ly = ay & BRICK_MASK, lz = az & BRICK_MASK;
+        double inv_h = S->inv_hs[lev];
+        gs_weights(t[0], order, nderiv, wx, order);
+        gs_weights(t[1], order, nderiv, wy, order);
+        gs_weights(t[2], order, nderiv, wz, order);
+        int64_t lx = cell[0] & BRICK_MASK, ly = cell[1] & BRICK_MASK, lz = cell[2] & BRICK_MASK;
         if (S->band_lo2[lev] <= r2 && r2 <= S->band_hi2[lev]) {
             brick_sum(S, order, nderiv, wx, wy, wz, S->fold_base[brick], S->fold_cols, S->fold_offs, S->fold_full,
                       brick, lx, ly, lz, inv_h, result);
@@ -701,7 +712,7 @@ typedef struct {
     int64_t lev, brick, lx, ly, lz;
 } located;
 
-/* Locate a point on the sphere as point_sum does (the same products, so the same weights)
+/* Locate a point on the sphere as point_sum does (brick_at: the same products, so the same weights)
  * and ask the memory for the rows of the folded table it will read (full columns). */
 GS_INLINE void latlon_locate(const gs_spline *S, const int order, double x_, double y_, double z_, located *L,
                              int64_t *last_key, int64_t *last_brick)
@@ -715,24 +726,18 @@ GS_INLINE void latlon_locate(const gs_spline *S, const int order, double x_, dou
     if (!(L->x == L->x && L->z == L->z))
         return;
     double x = L->x, y = L->y, z = L->z, r2 = x * x + y * y + z * z;
+    int64_t cell[3];
     for (int64_t lev = S->nlev - 1; lev >= 0; --lev) {
-        double inv_h = S->inv_hs[lev];
-        double fx = x * inv_h, fy = y * inv_h, fz = z * inv_h;
-        double flx = floor(fx), fly = floor(fy), flz = floor(fz);
-        int64_t ax = (int64_t)flx, ay = (int64_t)fly, az = (int64_t)flz;
-        int64_t brick = brick_at(S, lev, x, y, z, ax, ay, az, last_key, last_brick);
+        int64_t brick = brick_at(S, lev, x, y, z, cell, L->t, last_key, last_brick);
         if (brick < 0)
             continue;
         L->lev = lev;
         if (!(S->band_lo2[lev] <= r2 && r2 <= S->band_hi2[lev]))
             return; /* outside the band: point_sum's descent */
         L->brick = brick;
-        L->t[0] = fx - flx;
-        L->t[1] = fy - fly;
-        L->t[2] = fz - flz;
-        L->lx = ax & BRICK_MASK;
-        L->ly = ay & BRICK_MASK;
-        L->lz = az & BRICK_MASK;
+        L->lx = cell[0] & BRICK_MASK;
+        L->ly = cell[1] & BRICK_MASK;
+        L->lz = cell[2] & BRICK_MASK;
         const int32_t *row = S->fold_offs + (brick * side + L->lx) * side + L->ly;
         const double *v = S->values + S->fold_base[brick] + L->lz;
         for (int p = 0; p < order; ++p) { /* a row's first and last coefficients */
