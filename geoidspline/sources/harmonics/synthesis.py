@@ -349,20 +349,51 @@ class GeoidSynthesis:
         shape = lat.shape
         lat = np.ascontiguousarray(lat, dtype=np.float64).ravel()
         lon = np.ascontiguousarray(lon, dtype=np.float64).ravel()
-        t, u, r, gamma = self._geometry(lat)
-        q = self.conventions.scale_a / r
         lam = np.radians(np.mod(lon, 360.0))
-        out = np.empty(lat.shape[0])
-        legendre.point_sums(
-            self.max_degree, t, u, q, lam, self._scales(r, gamma, quantity), self._radial,
-            self._CT, self._ST, self._AT, self._BT, out,
-        )
+        rings, ring_of = (np.unique(lat, return_inverse=True) if np.isfinite(lat).all()
+                          else (lat, None))
+        if ring_of is not None and rings.size * self.RING_SHARING <= lat.size:
+            out = self._ring_points(rings, ring_of.ravel(), lam, quantity)
+        else:
+            t, u, r, gamma = self._geometry(lat)
+            q = self.conventions.scale_a / r
+            out = np.empty(lat.shape[0])
+            legendre.point_sums(
+                self.max_degree, t, u, q, lam, self._scales(r, gamma, quantity), self._radial,
+                self._CT, self._ST, self._AT, self._BT, out,
+            )
         if quantity == "N":
             out += self.zero_degree_term_m
         if quantity != "T":
             _check_range(out, lat, lon, self.provenance.source, "N" if quantity == "N" else "zeta")
         out = out.reshape(shape)
         return float(out) if scalar else out
+
+    #: Points a latitude must hold on average for :meth:`_points` to sum each latitude's
+    #: Legendre functions once (a ring's row sums cost about one point's synthesis;
+    #: check points come 10 a latitude, :func:`geoidspline.fitting.check_points.random_positions`).
+    RING_SHARING = 2
+    #: Points whose longitude sums one step of :meth:`_ring_points` takes (its cos/sin tables).
+    _RING_CHUNK = 2_000
+
+    def _ring_points(self, rings, ring_of, lam, quantity):
+        """Values at points on few latitudes: ``rings`` (sorted geodetic latitudes,
+        degrees), point i on ring ``ring_of[i]`` at longitude ``lam[i]`` (radians): each
+        ring's sums A_m, B_m once (the lattice's row sums), then Σ_m A_m cos mλ + B_m sin mλ
+        a point (the point synthesis's sum, within rounding)."""
+        t, u, r, gamma = self._geometry(rings)
+        A = np.empty((rings.size, self.max_degree + 1))
+        B = np.empty((rings.size, self.max_degree + 1))
+        legendre.row_sums(self.max_degree, t, u, self.conventions.scale_a / r, self._scales(r, gamma, quantity),
+                          self._radial, self._CT, self._ST, self._AT, self._BT, A, B)
+        orders = np.arange(self.max_degree + 1, dtype=np.float64)
+        out = np.empty(lam.size)
+        for start in range(0, lam.size, self._RING_CHUNK):
+            part = slice(start, min(lam.size, start + self._RING_CHUNK))
+            angle = lam[part, None] * orders[None, :]
+            rows = ring_of[part]
+            out[part] = np.einsum("ij,ij->i", A[rows], np.cos(angle)) + np.einsum("ij,ij->i", B[rows], np.sin(angle))
+        return out
 
     # ------------------------------------------------------------------ public values
     def undulation(self, latitude, longitude):
