@@ -340,3 +340,22 @@ def test_overlays_at_the_poles_fit_both_sides_of_the_sphere(toy24):
     err = np.abs(model.undulation(lat, lon) - refined.spline.undulation(lat, lon))
     assert refined.levels[1].coefficients > 0
     assert err.max() < 2 * tolerance
+
+
+def test_model_check_points_come_in_rings_uniform_in_area():
+    """A model's check points: RING_POINTS a random latitude (uniform in sin), each with
+    its own random longitude over the region; the count asked for, whatever it is; the
+    same points for the same seed."""
+    from geoidspline.fitting.check_points import RING_POINTS, random_positions
+
+    region = Region(-30.0, 100.0, 60.0, 130.0)
+    lat, lon = random_positions(region, 25, seed=4)
+    assert lat.size == lon.size == 25 and RING_POINTS == 10
+    assert [np.unique(lat[a:a + 10]).size for a in (0, 10, 20)] == [1, 1, 1]
+    assert np.unique(lat).size == 3 and np.unique(lon).size == 25
+    assert lat.min() >= -30.0 and lat.max() <= 60.0 and lon.min() >= 100.0 and lon.max() <= 130.0
+    again = random_positions(region, 25, seed=4)
+    np.testing.assert_array_equal(again[0], lat)
+    np.testing.assert_array_equal(again[1], lon)
+    z = np.sin(np.radians(random_positions(GLOBAL, 20_000, seed=0)[0][::10]))
+    assert np.histogram(z, bins=4, range=(-1, 1))[0].min() > 400  # 2,000 rings, 500 a bin expected

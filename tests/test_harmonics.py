@@ -1061,3 +1061,31 @@ def test_lattice_engine_from_the_environment(monkeypatch):
 
     with pytest.raises(ParameterError, match="GEOIDSPLINE_LATTICE_ENGINE must be 'exact' or 'sht', got 'fast'"):
         GeoidSynthesis(model)
+
+
+def test_points_sharing_latitudes_are_summed_once_a_latitude(monkeypatch):
+    """Points on few latitudes (check points come 10 a latitude) take each latitude's
+    Legendre sums once (the lattice's row sums), then the longitude sum a point: the
+    point synthesis's values within rounding, poles, a correction and every quantity
+    included; points on as many latitudes as there are points keep the point synthesis."""
+    model = white_model(200)
+    rng = np.random.default_rng(5)
+    Cc = np.tril(rng.normal(size=(201, 201))) * 1e-3
+    Sc = np.tril(rng.normal(size=(201, 201))) * 1e-3
+    Sc[:, 0] = 0.0
+    syn = GeoidSynthesis(model, CorrectionModel("zeta", 200, Cc, Sc, unit_m=1.0), preset="nga-hsynth")
+    lat = np.repeat([-90.0, -41.3, 0.0, 12.5, 89.99, 90.0], 10)
+    lon = rng.uniform(-180.0, 180.0, lat.size)
+    each = {name: np.array([getattr(syn, name)(a, b) for a, b in zip(lat, lon)])  # one point a call
+            for name in ("undulation", "height_anomaly", "disturbing_potential")}
+
+    def no_point_sums(*args):
+        raise AssertionError("the point synthesis ran for points on shared latitudes")
+
+    monkeypatch.setattr(legendre, "point_sums", no_point_sums)
+    for name, values in each.items():
+        rings = getattr(syn, name)(lat, lon)
+        assert np.abs(values).max() > 1.0
+        assert np.abs(rings - values).max() <= 1e-12 * np.abs(values).max()
+    with pytest.raises(AssertionError, match="point synthesis ran"):
+        syn.undulation(rng.uniform(-90, 90, 20), rng.uniform(-180, 180, 20))  # 20 latitudes for 20 points
