@@ -272,3 +272,20 @@ def test_the_stores_node_figures_hold_for_the_store_read_back(model, tmp_path):
     assert errors.size == manifest["accuracy"]["nodes"]
     assert np.abs(errors).max() <= manifest["accuracy"]["node_max_error_m"] <= 0.15
     assert np.sqrt(np.mean(errors ** 2)) == pytest.approx(manifest["accuracy"]["node_rms_error_m"], rel=3e-3)
+
+
+def test_a_whole_globe_samples_its_lattice_by_ducc0_when_installed(model, monkeypatch):
+    """A banded fit reads a copy of the model whose lattices ducc0 computes (each group
+    of rows once for the bands that share it); the caller's model keeps its engine, and
+    GEOIDSPLINE_LATTICE_ENGINE, when set, decides."""
+    pytest.importorskip("ducc0")
+    from geoidspline.api.banded import global_lattice_engine
+
+    monkeypatch.delenv("GEOIDSPLINE_LATTICE_ENGINE", raising=False)
+    assert model.lattice_engine == "exact"
+    fast = global_lattice_engine(model)
+    assert fast.lattice_engine == "sht" and model.lattice_engine == "exact" and fast.model is model.model
+    region = Region(-10.0, -180.0, 10.0, 180.0)
+    assert np.abs(fast.nodes(region, 2.5).undulation - model.nodes(region, 2.5).undulation).max() < 1e-9
+    monkeypatch.setenv("GEOIDSPLINE_LATTICE_ENGINE", "exact")
+    assert global_lattice_engine(model) is model
