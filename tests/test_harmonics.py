@@ -1089,3 +1089,17 @@ def test_points_sharing_latitudes_are_summed_once_a_latitude(monkeypatch):
         assert np.abs(rings - values).max() <= 1e-12 * np.abs(values).max()
     with pytest.raises(AssertionError, match="point synthesis ran"):
         syn.undulation(rng.uniform(-90, 90, 20), rng.uniform(-180, 180, 20))  # 20 latitudes for 20 points
+
+
+def test_points_on_shared_latitudes_in_chunks_of_rings_and_points(monkeypatch):
+    """Rings and points taken a few at a time give the values of one step."""
+    syn = GeoidSynthesis(white_model(60), preset="nga-hsynth")
+    rng = np.random.default_rng(8)
+    lat = rng.choice(rng.uniform(-90.0, 90.0, 37), 400)
+    lon = rng.uniform(-180.0, 180.0, 400)
+    whole = syn.undulation(lat, lon)
+    monkeypatch.setattr(GeoidSynthesis, "_RING_CHUNK", 5)
+    monkeypatch.setattr(GeoidSynthesis, "_RING_POINT_CHUNK", 7)
+    np.testing.assert_array_equal(syn.undulation(lat, lon), whole)
+    monkeypatch.setattr(GeoidSynthesis, "RING_SHARING", 10**6)  # the point synthesis
+    assert np.abs(syn.undulation(lat, lon) - whole).max() <= 1e-12 * np.abs(whole).max()

@@ -373,26 +373,34 @@ class GeoidSynthesis:
     #: Legendre functions once (a ring's row sums cost about one point's synthesis;
     #: check points come 10 a latitude, :func:`geoidspline.fitting.check_points.random_positions`).
     RING_SHARING = 2
-    #: Points whose longitude sums one step of :meth:`_ring_points` takes (its cos/sin tables).
-    _RING_CHUNK = 2_000
+    #: Latitudes (rings) whose sums one step of :meth:`_ring_points` holds, and points
+    #: whose longitude sums it takes at a time (their cos/sin tables): tens of MB at degree 2190.
+    _RING_CHUNK = 1_000
+    _RING_POINT_CHUNK = 2_000
 
     def _ring_points(self, rings, ring_of, lam, quantity):
         """Values at points on few latitudes: ``rings`` (sorted geodetic latitudes,
         degrees), point i on ring ``ring_of[i]`` at longitude ``lam[i]`` (radians): each
         ring's sums A_m, B_m once (the lattice's row sums), then Σ_m A_m cos mλ + B_m sin mλ
         a point (the point synthesis's sum, within rounding)."""
-        t, u, r, gamma = self._geometry(rings)
-        A = np.empty((rings.size, self.max_degree + 1))
-        B = np.empty((rings.size, self.max_degree + 1))
-        legendre.row_sums(self.max_degree, t, u, self.conventions.scale_a / r, self._scales(r, gamma, quantity),
-                          self._radial, self._CT, self._ST, self._AT, self._BT, A, B)
         orders = np.arange(self.max_degree + 1, dtype=np.float64)
+        by_ring = np.argsort(ring_of, kind="stable")
+        firsts = np.searchsorted(ring_of[by_ring], np.arange(rings.size + 1))
         out = np.empty(lam.size)
-        for start in range(0, lam.size, self._RING_CHUNK):
-            part = slice(start, min(lam.size, start + self._RING_CHUNK))
-            angle = lam[part, None] * orders[None, :]
-            rows = ring_of[part]
-            out[part] = np.einsum("ij,ij->i", A[rows], np.cos(angle)) + np.einsum("ij,ij->i", B[rows], np.sin(angle))
+        for first in range(0, rings.size, self._RING_CHUNK):
+            last = min(rings.size, first + self._RING_CHUNK)
+            t, u, r, gamma = self._geometry(rings[first:last])
+            A = np.empty((last - first, self.max_degree + 1))
+            B = np.empty((last - first, self.max_degree + 1))
+            legendre.row_sums(self.max_degree, t, u, self.conventions.scale_a / r, self._scales(r, gamma, quantity),
+                              self._radial, self._CT, self._ST, self._AT, self._BT, A, B)
+            points = by_ring[firsts[first]:firsts[last]]
+            for a in range(0, points.size, self._RING_POINT_CHUNK):
+                part = points[a:a + self._RING_POINT_CHUNK]
+                angle = lam[part, None] * orders[None, :]
+                rows = ring_of[part] - first
+                out[part] = (np.einsum("ij,ij->i", A[rows], np.cos(angle))
+                             + np.einsum("ij,ij->i", B[rows], np.sin(angle)))
         return out
 
     # ------------------------------------------------------------------ public values
