@@ -26,6 +26,7 @@ change speed only).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import ctypes
 import datetime as dt
 import io
@@ -45,6 +46,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy as np  # noqa: E402
 from _common import git_commit, machine_info  # noqa: E402
 from query_benchmark import EUROPE, random_points  # noqa: E402
+from query_speed import SEED  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 SOURCE_DIR = "geoidspline/_kernels/src"
@@ -87,26 +89,12 @@ def build_library(root: Path, extra_cflags: list[str]) -> Path:
     here = os.getcwd()
     os.chdir(root)  # the sources are relative to the tree's root
     try:
-        with open(os.devnull, "w") as quiet, _redirect(quiet):
+        with open(os.devnull, "w") as quiet, contextlib.redirect_stdout(quiet):  # setuptools' command lines
             cmd.run()
     finally:
         os.chdir(here)
     (built,) = (root / "lib").rglob("_libkernels*.so")
     return built
-
-
-class _redirect:
-    """Send the compiler's command lines (printed by setuptools) to a file."""
-
-    def __init__(self, stream):
-        self.stream = stream
-
-    def __enter__(self):
-        self.saved = sys.stdout
-        sys.stdout = self.stream
-
-    def __exit__(self, *exc):
-        sys.stdout = self.saved
 
 
 def kernel(library: Path):
@@ -144,7 +132,7 @@ def main(argv=None):
             libs[side] = kernel(build_library(root, flags.split()))
             print(f"{side}: {labels[side]}, built in {time.perf_counter() - t0:.1f} s")
         batches = {"global": random_points(args.points),
-                   "regional": random_points(args.points, region=EUROPE, seed=random_points.__defaults__[0] + 1)}
+                   "regional": random_points(args.points, SEED + 1, EUROPE)}  # query_benchmark.py's batches
         report = {"date": dt.datetime.now(dt.timezone.utc).replace(microsecond=0).isoformat(),
                   "machine": machine_info(), "a": labels["A"], "b": labels["B"], "threads": args.threads,
                   "points": args.points, "repeat": args.repeat, "stores": []}
@@ -177,10 +165,10 @@ def main(argv=None):
                        "b_over_a": med["B"] / med["A"], "bitwise_equal": equal, "load": load,
                        "max_abs_diff": float(np.nanmax(np.abs(outs["A"] - outs["B"])))}
                 report["stores"].append(row)
+                same = "yes" if equal else f"NO, max {row['max_abs_diff']:.3g}"
                 print(f"| {store.name} | {name} | {med['A']:.1f} ({min(samples['A']):.1f}..{max(samples['A']):.1f}) "
                       f"| {med['B']:.1f} ({min(samples['B']):.1f}..{max(samples['B']):.1f}) | "
-                      f"{med['B'] / med['A']:.3f} | {'yes' if equal else 'NO, max ' + format(row['max_abs_diff'], '.3g')}"
-                      f" | {load[0]:.1f}..{load[1]:.1f} |")
+                      f"{med['B'] / med['A']:.3f} | {same} | {load[0]:.1f}..{load[1]:.1f} |")
         if args.json:
             args.json.write_text(json.dumps(report, indent=1))
     finally:
