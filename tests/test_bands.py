@@ -307,3 +307,34 @@ def test_a_bands_rounding_is_corrected_at_the_nodes_it_takes_over_the_tolerance(
     truth = fit_errors + spline.evaluate_points(dirs)
     np.testing.assert_allclose(errors, truth - stored.evaluate_points(dirs), atol=1e-12)
     assert np.abs(errors).max() <= tolerance
+
+
+def test_a_node_its_neighbours_rounding_takes_over_does_not_halve_a_bands_step():
+    """A node at a band's edge that the neighbour's rounding alone takes over the tolerance
+    (its own values exact) is reported, not chased: halving the band's own step cannot
+    bring it back, and the step stays the one its other nodes need."""
+    from geoidspline.bspline.keys import touching_keys
+    from geoidspline.bspline.level import LevelSpline, cube_of_support_centres
+    from geoidspline.fitting.bands import Rounding, band_step
+    from geoidspline.hierarchy.ambient import AmbientSpline
+    from geoidspline.sphere.coordinates import directions
+    from geoidspline.store.codec import stored_values
+
+    rng = np.random.default_rng(6)
+    h, order, start, tolerance = 0.05, 4, 0.2, 0.1
+    dirs = directions(rng.uniform(70, 84, 2000), rng.uniform(-10, 10, 2000))  # z 0.94-0.99, by the edge at 1
+    keys = touching_keys(np.unique(np.floor(dirs / h).astype(np.int64), axis=0), order)
+    spline = AmbientSpline([LevelSpline(0, h, order, keys, rng.normal(0.0, 1.0, keys.size))])
+    owned = [cube_of_support_centres(spline.levels[0].indices, h, order, 1.0)[:, 2] == 0]
+    assert 0 < owned[0].sum() < keys.size
+    lv = spline.levels[0]
+    theirs = AmbientSpline([LevelSpline(0, h, order, lv.keys[~owned[0]],
+                                        stored_values(lv.coefficients[~owned[0]], start) - lv.coefficients[~owned[0]])])
+    moved = theirs.evaluate_points(dirs)  # the neighbour's change if it keeps the start step
+    node = int(np.argmax(np.abs(moved)))
+    fit_errors = np.zeros(dirs.shape[0])
+    fit_errors[node] = -np.sign(moved[node]) * (tolerance - 0.5 * abs(moved[node]))
+    step, _, _, largest = band_step(spline, owned, dirs, fit_errors, Rounding(start, tolerance, stored_values),
+                                    Band(0, 0), 1.0)
+    assert largest > tolerance  # reported as it is
+    assert step >= start / 8  # not halved towards 1 µm for it

@@ -300,6 +300,16 @@ def band_step(spline: AmbientSpline, owned, node_dirs, fit_errors, rounding: Rou
     fit_max = float(np.abs(fit_errors).max()) if fit_errors.size else 0.0
     target = max(float(rounding.tolerance_m), fit_max + EVALUATION_ROUNDING_M)
 
+    # edge nodes over the target with the band's own values exact: no step of its own
+    # brings them within it (its neighbours' roundings alone take them over), so the
+    # search goes by the other nodes and the largest error reports them
+    hopeless = np.zeros(node_dirs.shape[0], dtype=bool)
+    if edge_dirs.size and fit_errors.size:
+        own_exact = np.abs(fit_errors[edge]) + bound
+        for moved in neighbour_changes:
+            own_exact = np.maximum(own_exact, np.abs(fit_errors[edge] - moved))
+        hopeless[edge] = own_exact + bound_overlays + EVALUATION_ROUNDING_M > target
+
     def measured(rounded):
         """(node errors, each node's largest error at most) of the band's rounded values."""
         change = AmbientSpline([LevelSpline(lv.level, lv.h, lv.order, lv.keys[m], r - lv.coefficients[m])
@@ -321,11 +331,11 @@ def band_step(spline: AmbientSpline, owned, node_dirs, fit_errors, rounding: Rou
         for nudges in range(NUDGE_ROUNDS + 1):
             errors, worst = measured(rounded)
             largest = float(worst.max()) if worst.size else 0.0
-            if largest <= target or nudges == NUDGE_ROUNDS \
-                    or not _nudge(first, owned[0], movable, rounded[0], step, rounding, node_dirs[worst > target],
-                                  errors[worst > target]):
+            over = (worst > target) & ~hopeless
+            if not over.any() or nudges == NUDGE_ROUNDS \
+                    or not _nudge(first, owned[0], movable, rounded[0], step, rounding, node_dirs[over], errors[over]):
                 break
-        if largest <= target or step / 2.0 < 1e-6:
+        if not over.any() or step / 2.0 < 1e-6:
             stored = AmbientSpline([LevelSpline(lv.level, lv.h, lv.order, lv.keys, _owned_replaced(lv.coefficients, m, r))
                                     for lv, m, r in zip(spline.levels, owned, rounded)])
             return step, stored, errors, largest
