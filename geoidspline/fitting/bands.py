@@ -348,28 +348,46 @@ def _owned_replaced(values, owned, rounded):
     return out
 
 
+NUDGE_NODES_MAX = 100_000
+"""More nodes over the target than this at a step: the step is halved without correcting
+its rounding (a correction moves a B-spline for a node; this many are no correction)."""
+
+
 def _nudge(level, owned, movable, rounded, step, rounding, dirs, errors) -> bool:
     """Move, by one step towards the truth, the rounded value (``rounded``, the owned
-    coefficients' of ``level``, changed in place) of the B-spline whose support centre
-    is nearest each node of ``dirs`` (its largest one there: a tensor B-spline peaks at
-    its centre) with the stored spline's error ``errors`` (truth − stored), where that
-    B-spline is the band's, ``movable`` (no neighbour band's node sees it: the
-    neighbours check their edges against values rounded to nearest) and its value was
-    rounded away from the truth (so that it stays within one step of the fit's).
-    Whether any value moved."""
+    coefficients' of ``level``, changed in place) of one B-spline for each node of
+    ``dirs`` with the stored spline's error ``errors`` (truth − stored): of those there
+    that are the band's, ``movable`` (no neighbour band's node sees it: the neighbours
+    check their edges against values rounded to nearest) and whose value was rounded
+    away from the truth (so that it stays within one step of the fit's), the one
+    largest at the node. A B-spline moves once a round, for the first node that takes
+    it. Whether any value moved."""
+    from ..bspline.basis import bspline_weights
+
     keys = level.keys[owned]
-    if not dirs.size or not keys.size:
+    if not dirs.size or not keys.size or dirs.shape[0] > NUDGE_NODES_MAX:
         return False
-    nearest = pack_keys(np.rint(dirs / level.h - level.order / 2.0).astype(np.int64))
-    at = np.minimum(np.searchsorted(keys, nearest), keys.size - 1)
-    mine = keys[at] == nearest
-    at, first = np.unique(at[mine], return_index=True)  # a B-spline moves once, for its first node
-    towards = np.sign(errors[mine][first])
-    exact = level.coefficients[owned][at]
-    moved = rounding.round(rounded[at] + towards * step, step)
-    allowed = movable[at] & (towards != 0) & (np.abs(moved - exact) <= step)
-    rounded[at[allowed]] = moved[allowed]
-    return bool(allowed.any())
+    order, exact = level.order, level.coefficients[owned]
+    position = dirs / level.h
+    cell = np.floor(position)
+    per_axis = [bspline_weights(position[:, d] - cell[:, d], order, 0)[0] for d in range(3)]  # (M, order) each
+    weights = (per_axis[0][:, :, None, None] * per_axis[1][:, None, :, None]
+               * per_axis[2][:, None, None, :]).reshape(dirs.shape[0], -1)
+    offsets = np.stack(np.meshgrid(*[np.arange(order)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    candidates = pack_keys((cell.astype(np.int64)[:, None, :] - order + 1 + offsets[None]).reshape(-1, 3))
+    at = np.minimum(np.searchsorted(keys, candidates), keys.size - 1)
+    towards = np.repeat(np.sign(errors), offsets.shape[0])
+    usable = (keys[at] == candidates) & movable[at] & (towards * (rounded[at] - exact[at]) <= 0) & (towards != 0)
+    score = np.where(usable, weights.ravel(), -1.0).reshape(weights.shape)
+    best = np.argmax(score, axis=1)
+    chosen = np.flatnonzero(score[np.arange(best.size), best] > 0)
+    if not chosen.size:
+        return False
+    pick = chosen * offsets.shape[0] + best[chosen]
+    at, first = np.unique(at[pick], return_index=True)  # a B-spline moves once, for its first node
+    moved = rounding.round(rounded[at] + towards[pick][first] * step, step)
+    rounded[at] = moved
+    return True
 
 
 def _tile_stats(owned_levels, node_dirs, node_errors, check_dirs, check_errors, params):
