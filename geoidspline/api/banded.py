@@ -87,8 +87,9 @@ def build_banded_store(source, path, region, params, progress=None, overwrite=Fa
     check_plan(source, region, params, executor.memory_budget)
     margin = band_margin_deg(params) if margin_deg is None else float(margin_deg)
     asked = tolerance_asked({"tolerance_m": params.tolerance_m, **(extra or {})})
-    # the store's step, as a whole-globe write starts from; each band halves it as often
-    # as its own nodes need (tiles of finer steps nest in the store's)
+    # the store's step: 4x the proven bound's (first_step); each band corrects its
+    # rounding at its nodes and halves the step as often as they need (tiles of finer
+    # steps nest in the store's)
     step = first_step(asked, params.max_level + 1)
     rounding = Rounding(step, asked, stored_values)
     check_lat, check_lon = random_positions(region, check_count, CHECK_SEED)

@@ -17,7 +17,9 @@ A tile's coefficients, level by level and in key order (i, j, k), are stored as
   key order. Format 3 is 27-41 % smaller on level-0 tiles of EGM96 and EGM2008 stores
   (benchmarks/README.md, "Store codec").
 
-Quantisation error bound: every coefficient moves by at most ``step / 2``. The B-splines
+Quantisation error bound: every coefficient moves by at most ``step / 2`` (a step where
+a banded fit corrected its rounding at the nodes: :func:`geoidspline.fitting.bands.band_step`,
+whose manifest states the bound that follows). The B-splines
 of one level are non-negative and sum to at most 1 at every point (a partition of unity
 where the level is complete, less where an overlay is partial), so one level's value
 moves by at most ``step / 2`` anywhere, and a store of ``L`` levels by at most
