@@ -338,3 +338,34 @@ def test_a_node_its_neighbours_rounding_takes_over_does_not_halve_a_bands_step()
                                     Band(0, 0), 1.0)
     assert largest > tolerance  # reported as it is
     assert step >= start / 8  # not halved towards 1 µm for it
+
+
+def test_a_bands_step_is_halved_while_its_rounding_lifts_the_rms_above_its_budget():
+    """Every node within the tolerance at the first step, but the rounding's noise lifts
+    the nodes' RMS above ``Rounding.rms_m``: the step is halved until it does not (and
+    without a budget the first step is kept)."""
+    from geoidspline.bspline.keys import touching_keys
+    from geoidspline.bspline.level import LevelSpline, cube_of_support_centres
+    from geoidspline.fitting.bands import Rounding, band_step
+    from geoidspline.hierarchy.ambient import AmbientSpline
+    from geoidspline.sphere.coordinates import directions
+    from geoidspline.store.codec import quantisation_change, stored_values
+
+    rng = np.random.default_rng(7)
+    h, order, start, tolerance = 0.05, 4, 0.2, 0.15
+    dirs = directions(rng.uniform(25, 35, 3000), rng.uniform(-10, 10, 3000))  # no edge
+    keys = touching_keys(np.unique(np.floor(dirs / h).astype(np.int64), axis=0), order)
+    spline = AmbientSpline([LevelSpline(0, h, order, keys, rng.normal(0.0, 1.0, keys.size))])
+    owned = [cube_of_support_centres(spline.levels[0].indices, h, order, 1.0)[:, 2] == 0]
+    fit_errors = np.zeros(dirs.shape[0])
+    noise = float(np.sqrt(np.mean(quantisation_change(spline, start, dirs) ** 2)))
+    assert 0.0 < noise and np.abs(quantisation_change(spline, start, dirs)).max() <= tolerance
+    step, _, errors, _ = band_step(spline, owned, dirs, fit_errors, Rounding(start, tolerance, stored_values),
+                                   Band(0, 0), 1.0)
+    assert step == start
+    budget = 0.4 * noise
+    step, _, errors, largest = band_step(spline, owned, dirs, fit_errors,
+                                         Rounding(start, tolerance, stored_values, budget), Band(0, 0), 1.0)
+    assert step <= start / 4  # the rounding noise goes as the step
+    assert np.sqrt(np.mean(errors ** 2)) <= budget and largest <= tolerance
+    assert np.sqrt(np.mean(quantisation_change(spline, 2 * step, dirs) ** 2)) > budget  # halved no further than needed

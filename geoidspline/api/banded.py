@@ -68,7 +68,7 @@ def build_banded_store(source, path, region, params, progress=None, overwrite=Fa
     :func:`~geoidspline.api.build_store` does (the result's ``spline`` is None: the
     store holds it, read it with :func:`~geoidspline.api.open_store`)."""
     from ..bspline.level import LevelSpline
-    from ..fitting.bands import Rounding, band_margin_deg
+    from ..fitting.bands import ROUNDING_RMS_OVER_TOLERANCE, Rounding, band_margin_deg
     from ..fitting.check_points import random_positions
     from ..fitting.executors import Executor
     from ..fitting.memory import band_slabs, banded_parameters, check_plan
@@ -91,7 +91,7 @@ def build_banded_store(source, path, region, params, progress=None, overwrite=Fa
     # rounding at its nodes and halves the step as often as they need (tiles of finer
     # steps nest in the store's)
     step = first_step(asked, params.max_level + 1)
-    rounding = Rounding(step, asked, stored_values)
+    rounding = Rounding(step, asked, stored_values, ROUNDING_RMS_OVER_TOLERANCE * asked)
     check_lat, check_lon = random_positions(region, check_count, CHECK_SEED)
     bands = band_slabs(source, params)
     identity = json.loads(json.dumps({

@@ -137,6 +137,7 @@ class Rounding(NamedTuple):
     start_step: float
     tolerance_m: float
     round: object
+    rms_m: float | None = None  # the stored spline's RMS error at the nodes at most (None: not checked)
 
 
 @dataclass
@@ -233,6 +234,19 @@ NUDGE_ROUNDS = 3
 """How many times a band corrects its rounding at the nodes that it takes over the
 tolerance (:func:`_nudge`) before it halves its step (:func:`band_step`)."""
 
+ROUNDING_RMS_OVER_TOLERANCE = 0.1
+"""A banded model fit's stored spline keeps its RMS error at the nodes within this share
+of the tolerance (:attr:`Rounding.rms_m`; or within 1.1 times the fit's own RMS where
+that is larger): a step that keeps every node within the tolerance is still halved when
+its rounding noise alone would lift the RMS above it. Issue 22 asks 0.1 mm RMS of a
+1 mm global EGM2008 store; four times ``value_step``'s step kept the maxima but raised
+the RMS of a 1 cm EGM2008 store from 0.86 to 1.82 mm and of the EGM96 2 mm store from
+0.11 to 0.38 mm (benchmarks/README.md, "Store codec")."""
+
+ROUNDING_RMS_GROWTH = 1.1
+"""Where the fit's own RMS at the nodes is above ``rms_m``, the rounding may raise it by
+this factor (:func:`band_step`)."""
+
 NEIGHBOUR_STEPS_CHECKED = 3
 """How many of a neighbour band's possible steps (``start_step``, halved) a band's edge
 nodes are checked against exactly (:func:`band_step`); finer ones are bounded."""
@@ -265,7 +279,9 @@ def band_step(spline: AmbientSpline, owned, node_dirs, fit_errors, rounding: Rou
     the nodes it takes over the target (:func:`_nudge`: a few B-splines' values one step
     the other way; at four times ``value_step``'s step, 9 of the 14.7 M coefficients of
     a global EGM2008 1 cm band moved and its 20 nodes over 1 cm came within it). A
-    stored coefficient is then within one step of the fit's, not half a step."""
+    stored coefficient is then within one step of the fit's, not half a step. A step is
+    also halved while the nodes' RMS error is above ``rounding.rms_m``
+    (:data:`ROUNDING_RMS_OVER_TOLERANCE`)."""
     if rounding is None:
         return None, spline, fit_errors, float(np.abs(fit_errors).max()) if fit_errors.size else 0.0
     start = float(rounding.start_step)
@@ -325,6 +341,10 @@ def band_step(spline: AmbientSpline, owned, node_dirs, fit_errors, rounding: Rou
             worst[edge] = edge_worst + bound_overlays
         return errors, worst + EVALUATION_ROUNDING_M
 
+    rms_target = None
+    if rounding.rms_m is not None and fit_errors.size:
+        rms_target = max(float(rounding.rms_m), ROUNDING_RMS_GROWTH * float(np.sqrt(np.mean(fit_errors ** 2))))
+
     step = start
     while True:
         rounded = [rounding.round(lv.coefficients[m], step) for lv, m in zip(spline.levels, owned)]
@@ -335,7 +355,8 @@ def band_step(spline: AmbientSpline, owned, node_dirs, fit_errors, rounding: Rou
             if not over.any() or nudges == NUDGE_ROUNDS \
                     or not _nudge(first, owned[0], movable, rounded[0], step, rounding, node_dirs[over], errors[over]):
                 break
-        if not over.any() or step / 2.0 < 1e-6:
+        noisy = rms_target is not None and float(np.sqrt(np.mean(errors ** 2))) > rms_target
+        if (not over.any() and not noisy) or step / 2.0 < 1e-6:
             stored = AmbientSpline([LevelSpline(lv.level, lv.h, lv.order, lv.keys, _owned_replaced(lv.coefficients, m, r))
                                     for lv, m, r in zip(spline.levels, owned, rounded)])
             return step, stored, errors, largest
