@@ -341,9 +341,10 @@ def band_step(spline: AmbientSpline, owned, node_dirs, fit_errors, rounding: Rou
             worst[edge] = edge_worst + bound_overlays
         return errors, worst + EVALUATION_ROUNDING_M
 
+    fit_ms = float(np.mean(fit_errors ** 2)) if fit_errors.size else 0.0
     rms_target = None
     if rounding.rms_m is not None and fit_errors.size:
-        rms_target = max(float(rounding.rms_m), ROUNDING_RMS_GROWTH * float(np.sqrt(np.mean(fit_errors ** 2))))
+        rms_target = max(float(rounding.rms_m), ROUNDING_RMS_GROWTH * np.sqrt(fit_ms))
 
     step = start
     while True:
@@ -352,15 +353,26 @@ def band_step(spline: AmbientSpline, owned, node_dirs, fit_errors, rounding: Rou
             errors, worst = measured(rounded)
             largest = float(worst.max()) if worst.size else 0.0
             over = (worst > target) & ~hopeless
-            if not over.any() or nudges == NUDGE_ROUNDS \
+            stored_ms = float(np.mean(errors ** 2)) if errors.size else 0.0
+            noisy = rms_target is not None and stored_ms > rms_target ** 2
+            # a step too noisy is halved whatever the nudges do (they move a few B-splines)
+            if noisy or not over.any() or nudges == NUDGE_ROUNDS \
                     or not _nudge(first, owned[0], movable, rounded[0], step, rounding, node_dirs[over], errors[over]):
                 break
-        noisy = rms_target is not None and float(np.sqrt(np.mean(errors ** 2))) > rms_target
         if (not over.any() and not noisy) or step / 2.0 < 1e-6:
             stored = AmbientSpline([LevelSpline(lv.level, lv.h, lv.order, lv.keys, _owned_replaced(lv.coefficients, m, r))
                                     for lv, m, r in zip(spline.levels, owned, rounded)])
             return step, stored, errors, largest
-        step /= 2.0
+        halvings = 1
+        if noisy:
+            # the rounding's noise is independent of the fit's errors and goes as the step:
+            # go straight to the step it predicts (the next pass checks it)
+            noise = np.sqrt(max(stored_ms - fit_ms, 0.0))
+            room = np.sqrt(max(rms_target ** 2 - fit_ms, 1e-300))
+            halvings = max(1, int(np.ceil(np.log2(noise / room))))
+            while halvings > 1 and step / 2.0 ** halvings < 1e-6:
+                halvings -= 1
+        step /= 2.0 ** halvings
 
 
 def _owned_replaced(values, owned, rounded):
