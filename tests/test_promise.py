@@ -228,6 +228,35 @@ def test_the_completion_passes_take_what_the_hierarchical_refinement_left():
     assert err.max() == pytest.approx(done.node_max_error_m, rel=1e-9)
 
 
+def test_the_completion_passes_take_the_cell_centres_the_refinement_left_outside():
+    """The noisy grid fitted with its cell centres down to level 3 leaves nodes above 1 cm
+    and centres up to 2.3 cm outside the interpolants' interval; local passes at level 4
+    on the nodes alone meet every node and leave the centres there (2.4 cm), passes
+    that take the centres as sites too (valued where the spline enters its interval)
+    bring nodes and centres within the target."""
+    from geoidspline.fitting.cell_centres import cell_centre_nodes
+    from geoidspline.fitting.hierarchical import centre_reach_deg
+
+    grid = regional_grid(step=0.25, south=-4, north=8, west=6, east=18)
+    values = grid.values + np.random.default_rng(5).uniform(-0.05, 0.05, grid.values.shape)
+    grid = GeoidGrid(grid.latitude, grid.longitude, values, grid.provenance)
+    region = Region(-2.0, 8.0, 6.0, 16.0)
+    sample = grid.nodes(region.expanded(1.0))
+    nodes = DataNodes.from_sample(sample, region)
+    params = FitParameters(h0=0.05, max_level=4, tolerance_m=0.01, refinement="hierarchical")
+    centres = cell_centre_nodes(sample, region, centre_reach_deg(params, nodes))
+    first = fit_hierarchical(nodes, Coverage.from_sample(sample, region), region,
+                             dataclasses.replace(params, max_level=3), centres=centres)
+    assert not first.converged and outside_interpolants(first.spline, grid, region).max() > 2 * params.node_target_m
+    nodes_only = complete_at_finest_level(first, nodes, region, params)
+    assert nodes_only.converged
+    assert outside_interpolants(nodes_only.spline, grid, region).max() > 2 * params.node_target_m
+    done = complete_at_finest_level(first, nodes, region, params, centres=centres)
+    assert done.converged and done.node_max_error_m <= params.node_target_m
+    assert outside_interpolants(done.spline, grid, region).max() <= params.node_target_m
+    assert all(p.level == 4 for p in done.levels[len(first.levels):])
+
+
 def test_a_fit_beyond_the_memory_allowed_is_refused_before_the_work_naming_the_figure(tmp_path):
     params = choose_parameters(model(360), 0.002).parameters
     # the globe is fitted band by band: the largest band is what must fit
