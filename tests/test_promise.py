@@ -349,3 +349,21 @@ def test_a_grid_fit_takes_its_cell_centres_by_default():
     result = fit_source(grid, region, params)
     assert result.node_max_error_m <= params.tolerance_m
     assert outside_interpolants(result.spline, grid, region).max() <= params.node_target_m
+
+
+def test_the_exit_status_counts_the_cell_centres(tmp_path):
+    """The promise holds at the nodes and the cell centres: the noisy grid fitted by
+    overlays (which do not take the centres) meets every node but leaves centres 2.1 cm
+    off the interpolants' interval at 1 cm: exit 3, naming the centres and the option;
+    with the refinement chosen, exit 0 with both figures within 1 cm."""
+    grid = regional_grid(step=0.25, south=-2, north=6, west=8, east=16)
+    values = grid.values + np.random.default_rng(5).uniform(-0.05, 0.05, grid.values.shape)
+    path = write_gtx(tmp_path / "noisy.gtx", GeoidGrid(grid.latitude, grid.longitude, values, grid.provenance))
+    overlays = invoke([path, "--store", tmp_path / "o", "--tolerance", 0.01, "--refinement", "overlays", "-q"])
+    assert overlays.exit_code == 3, overlays.output
+    assert "at the nodes and cell centres NOT kept (cell centres up to 0.021" in overlays.stdout
+    assert "overlays do not fit the cell centres, leave --refinement to be chosen" in overlays.stdout
+    chosen = invoke([path, "--store", tmp_path / "c", "--tolerance", 0.01, "--json", "-q"])
+    assert chosen.exit_code == 0, chosen.output
+    promise = json.loads(chosen.stdout)["promise"]
+    assert promise["kept"] is True and promise["node_max_m"] <= 0.01 and promise["cell_centre_max_m"] <= 0.01
