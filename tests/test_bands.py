@@ -109,7 +109,7 @@ def test_a_banded_store_holds_the_whole_fit_and_measures_it(model, whole, tmp_pa
     for lv in whole.spline.levels:  # the whole fit's coefficients, each rounded to its band's step
         keys, coefs = levels[lv.level]
         assert np.array_equal(keys, lv.keys)
-        assert np.abs(coefs - lv.coefficients).max() <= start / 2
+        assert np.abs(coefs - lv.coefficients).max() <= start  # half a step, a step where nudged
         assert np.all(np.isclose(coefs / min(steps), np.rint(coefs / min(steps)), rtol=0, atol=1e-6))
     assert info["converged"] and info["nodes"] == whole.node_count and info["check_points"] == 2000
     # the store keeps the tolerance at the nodes and the random check points (exact synthesis)
@@ -259,7 +259,7 @@ def test_the_stores_node_figures_hold_for_the_store_read_back(model, tmp_path):
     """Each band measured its nodes with its own rounding and bounded its neighbours' at
     its edges: at every lattice node the store read back is within the node maximum
     its manifest states; its RMS is measured with the neighbours' coefficients
-    unrounded near a band's edges (here a step of 6.7 cm moves it by 0.1 %)."""
+    unrounded near a band's edges (here a step of 26.7 cm moves it by 0.4 %)."""
     params = FitParameters(**{**PARAMS, "tolerance_m": 0.15})  # a coarser step: rounding shows
     build_store(model, tmp_path / "s", params=params, check_count=500)
     manifest = json.loads((tmp_path / "s" / "manifest.json").read_text())
@@ -269,4 +269,103 @@ def test_the_stores_node_figures_hold_for_the_store_read_back(model, tmp_path):
     errors = sample.undulation[keep] - open_store(tmp_path / "s").undulation(lat[keep], lon[keep])
     assert errors.size == manifest["accuracy"]["nodes"]
     assert np.abs(errors).max() <= manifest["accuracy"]["node_max_error_m"] <= 0.15
-    assert np.sqrt(np.mean(errors ** 2)) == pytest.approx(manifest["accuracy"]["node_rms_error_m"], rel=3e-3)
+    assert np.sqrt(np.mean(errors ** 2)) == pytest.approx(manifest["accuracy"]["node_rms_error_m"], rel=6e-3)
+
+
+def test_a_bands_rounding_is_corrected_at_the_nodes_it_takes_over_the_tolerance():
+    """Rounding to the start step takes one node over the tolerance: before halving the
+    step, the band moves the B-spline nearest that node one step the other way; the
+    stored values stay multiples of the step within a step of the fit's, and the node
+    errors returned are those of the stored spline."""
+    from geoidspline.bspline.keys import touching_keys
+    from geoidspline.bspline.level import LevelSpline, cube_of_support_centres
+    from geoidspline.fitting.bands import Rounding, band_step
+    from geoidspline.hierarchy.ambient import AmbientSpline
+    from geoidspline.sphere.coordinates import directions
+    from geoidspline.store.codec import quantisation_change, stored_values
+
+    rng = np.random.default_rng(5)
+    h, order, start, tolerance = 0.05, 4, 0.2, 0.1
+    dirs = directions(rng.uniform(25, 35, 3000), rng.uniform(-10, 10, 3000))  # z 0.42-0.57: no edge
+    keys = touching_keys(np.unique(np.floor(dirs / h).astype(np.int64), axis=0), order)
+    spline = AmbientSpline([LevelSpline(0, h, order, keys, rng.normal(0.0, 1.0, keys.size))])
+    owned = [cube_of_support_centres(spline.levels[0].indices, h, order, 1.0)[:, 2] == 0]
+    assert owned[0].all()
+    change = quantisation_change(spline, start, dirs)
+    worst = int(np.argmax(np.abs(change)))
+    fit_errors = rng.uniform(-0.03, 0.03, dirs.shape[0])
+    # rounded, this node is 5 mm over the tolerance
+    fit_errors[worst] = -np.sign(change[worst]) * (tolerance + 0.005 - abs(change[worst]))
+    assert np.abs(fit_errors - change).max() > tolerance
+    step, stored, errors, largest = band_step(spline, owned, dirs, fit_errors, Rounding(start, tolerance, stored_values),
+                                              Band(0, 0), 1.0)
+    assert step == start and largest <= tolerance  # corrected, not halved
+    exact, kept = spline.levels[0].coefficients, stored.levels[0].coefficients
+    moved = np.abs(kept - stored_values(exact, start)) > 0
+    assert 1 <= moved.sum() <= 10 and np.abs(kept - exact).max() <= start
+    np.testing.assert_array_equal(kept, stored_values(kept, start))  # multiples of the step, bitwise
+    truth = fit_errors + spline.evaluate_points(dirs)
+    np.testing.assert_allclose(errors, truth - stored.evaluate_points(dirs), atol=1e-12)
+    assert np.abs(errors).max() <= tolerance
+
+
+def test_a_node_its_neighbours_rounding_takes_over_does_not_halve_a_bands_step():
+    """A node at a band's edge that the neighbour's rounding alone takes over the tolerance
+    (its own values exact) is reported, not chased: halving the band's own step cannot
+    bring it back, and the step stays the one its other nodes need."""
+    from geoidspline.bspline.keys import touching_keys
+    from geoidspline.bspline.level import LevelSpline, cube_of_support_centres
+    from geoidspline.fitting.bands import Rounding, band_step
+    from geoidspline.hierarchy.ambient import AmbientSpline
+    from geoidspline.sphere.coordinates import directions
+    from geoidspline.store.codec import stored_values
+
+    rng = np.random.default_rng(6)
+    h, order, start, tolerance = 0.05, 4, 0.2, 0.1
+    dirs = directions(rng.uniform(70, 84, 2000), rng.uniform(-10, 10, 2000))  # z 0.94-0.99, by the edge at 1
+    keys = touching_keys(np.unique(np.floor(dirs / h).astype(np.int64), axis=0), order)
+    spline = AmbientSpline([LevelSpline(0, h, order, keys, rng.normal(0.0, 1.0, keys.size))])
+    owned = [cube_of_support_centres(spline.levels[0].indices, h, order, 1.0)[:, 2] == 0]
+    assert 0 < owned[0].sum() < keys.size
+    lv = spline.levels[0]
+    theirs = AmbientSpline([LevelSpline(0, h, order, lv.keys[~owned[0]],
+                                        stored_values(lv.coefficients[~owned[0]], start) - lv.coefficients[~owned[0]])])
+    moved = theirs.evaluate_points(dirs)  # the neighbour's change if it keeps the start step
+    node = int(np.argmax(np.abs(moved)))
+    fit_errors = np.zeros(dirs.shape[0])
+    fit_errors[node] = -np.sign(moved[node]) * (tolerance - 0.5 * abs(moved[node]))
+    step, _, _, largest = band_step(spline, owned, dirs, fit_errors, Rounding(start, tolerance, stored_values),
+                                    Band(0, 0), 1.0)
+    assert largest > tolerance  # reported as it is
+    assert step >= start / 8  # not halved towards 1 µm for it
+
+
+def test_a_bands_step_is_halved_while_its_rounding_lifts_the_rms_above_its_budget():
+    """Every node within the tolerance at the first step, but the rounding's noise lifts
+    the nodes' RMS above ``Rounding.rms_m``: the step is halved until it does not (and
+    without a budget the first step is kept)."""
+    from geoidspline.bspline.keys import touching_keys
+    from geoidspline.bspline.level import LevelSpline, cube_of_support_centres
+    from geoidspline.fitting.bands import Rounding, band_step
+    from geoidspline.hierarchy.ambient import AmbientSpline
+    from geoidspline.sphere.coordinates import directions
+    from geoidspline.store.codec import quantisation_change, stored_values
+
+    rng = np.random.default_rng(7)
+    h, order, start, tolerance = 0.05, 4, 0.2, 0.15
+    dirs = directions(rng.uniform(25, 35, 3000), rng.uniform(-10, 10, 3000))  # no edge
+    keys = touching_keys(np.unique(np.floor(dirs / h).astype(np.int64), axis=0), order)
+    spline = AmbientSpline([LevelSpline(0, h, order, keys, rng.normal(0.0, 1.0, keys.size))])
+    owned = [cube_of_support_centres(spline.levels[0].indices, h, order, 1.0)[:, 2] == 0]
+    fit_errors = np.zeros(dirs.shape[0])
+    noise = float(np.sqrt(np.mean(quantisation_change(spline, start, dirs) ** 2)))
+    assert 0.0 < noise and np.abs(quantisation_change(spline, start, dirs)).max() <= tolerance
+    step, _, errors, _ = band_step(spline, owned, dirs, fit_errors, Rounding(start, tolerance, stored_values),
+                                   Band(0, 0), 1.0)
+    assert step == start
+    budget = 0.4 * noise
+    step, _, errors, largest = band_step(spline, owned, dirs, fit_errors,
+                                         Rounding(start, tolerance, stored_values, budget), Band(0, 0), 1.0)
+    assert step <= start / 4  # the rounding noise goes as the step
+    assert np.sqrt(np.mean(errors ** 2)) <= budget and largest <= tolerance
+    assert np.sqrt(np.mean(quantisation_change(spline, 2 * step, dirs) ** 2)) > budget  # halved no further than needed

@@ -68,14 +68,14 @@ def build_banded_store(source, path, region, params, progress=None, overwrite=Fa
     :func:`~geoidspline.api.build_store` does (the result's ``spline`` is None: the
     store holds it, read it with :func:`~geoidspline.api.open_store`)."""
     from ..bspline.level import LevelSpline
-    from ..fitting.bands import Rounding, band_margin_deg
+    from ..fitting.bands import ROUNDING_RMS_OVER_TOLERANCE, Rounding, band_margin_deg
     from ..fitting.check_points import random_positions
     from ..fitting.executors import Executor
     from ..fitting.memory import band_slabs, banded_parameters, check_plan
     from ..fitting.parameters import check_promise
     from ..fitting.progress import as_progress
     from ..hierarchy.ambient import AmbientSpline
-    from ..store.codec import stored_values, value_step
+    from ..store.codec import first_step, stored_values
     from ..store.reader import TileStore
     from ..store.writer import BandedWrite, tile_groups, tile_stats, tolerance_asked
 
@@ -87,10 +87,11 @@ def build_banded_store(source, path, region, params, progress=None, overwrite=Fa
     check_plan(source, region, params, executor.memory_budget)
     margin = band_margin_deg(params) if margin_deg is None else float(margin_deg)
     asked = tolerance_asked({"tolerance_m": params.tolerance_m, **(extra or {})})
-    # the store's step, as a whole-globe write starts from; each band halves it as often
-    # as its own nodes need (tiles of finer steps nest in the store's)
-    step = value_step(asked, params.max_level + 1)
-    rounding = Rounding(step, asked, stored_values)
+    # the store's step: 4x the proven bound's (first_step); each band corrects its
+    # rounding at its nodes and halves the step as often as they need (tiles of finer
+    # steps nest in the store's)
+    step = first_step(asked, params.max_level + 1)
+    rounding = Rounding(step, asked, stored_values, ROUNDING_RMS_OVER_TOLERANCE * asked)
     check_lat, check_lon = random_positions(region, check_count, CHECK_SEED)
     bands = band_slabs(source, params)
     identity = json.loads(json.dumps({
@@ -169,7 +170,7 @@ def _banded_manifest(write, source, region, params, step, extra, started, check_
            **(extra or {})}
     coverage = Coverage.of_region(region)
     manifest = fit_manifest(entries, write.previous, write.version, write.store_id, source.provenance, region,
-                            coverage, params, quantisation_meta(step, len(level_counts)), level_counts, fit,
+                            coverage, params, quantisation_meta(step, len(level_counts), nudged=True), level_counts, fit,
                             node_stats, max(record["fit_node_max_error_m"] for record in bands),
                             error_stats(check_errors), random_description(check_count, CHECK_SEED))
     result = FitResult(

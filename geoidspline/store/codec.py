@@ -17,7 +17,9 @@ A tile's coefficients, level by level and in key order (i, j, k), are stored as
   key order. Format 3 is 27-41 % smaller on level-0 tiles of EGM96 and EGM2008 stores
   (benchmarks/README.md, "Store codec").
 
-Quantisation error bound: every coefficient moves by at most ``step / 2``. The B-splines
+Quantisation error bound: every coefficient moves by at most ``step / 2`` (a step where
+a banded fit corrected its rounding at the nodes: :func:`geoidspline.fitting.bands.band_step`,
+whose manifest states the bound that follows). The B-splines
 of one level are non-negative and sum to at most 1 at every point (a partition of unity
 where the level is complete, less where an overlay is partial), so one level's value
 moves by at most ``step / 2`` anywhere, and a store of ``L`` levels by at most
@@ -90,6 +92,24 @@ def value_step(tolerance_m: float, levels: int) -> float:
     return max(1, int(np.floor(budget / 1e-6 + 1e-6))) * 1e-6
 
 
+FIRST_STEP_FACTOR = 4
+"""How many times :func:`value_step`'s step a banded model fit's search for its step
+starts from (:func:`first_step`): the proven bound is the worst case, every rounding
+change at once of one sign; the changes are independent and the B-splines average
+them, so at the 27.7 M nodes of a global EGM2008 band at 1 cm the largest change was
+0.35 step against the bound's 0.5 (benchmarks/README.md, "Store codec"). The search
+checks the stored spline at every node of the model's lattice and halves: a power of
+two, so that its steps pass through :func:`value_step`'s and a band that needs that
+step still gets it."""
+
+
+def first_step(tolerance_m: float, levels: int) -> float:
+    """The step (metres) a banded model fit's search for its stored spline's step starts
+    from (:func:`geoidspline.fitting.bands.band_step`): ``FIRST_STEP_FACTOR`` times
+    :func:`value_step`'s."""
+    return FIRST_STEP_FACTOR * value_step(tolerance_m, levels)
+
+
 def node_safe_step(spline, node_directions, node_errors, tolerance_m: float, start_step: float | None = None,
                    between=None):
     """(step, node errors of the stored spline): the largest step, from :func:`value_step`
@@ -104,7 +124,10 @@ def node_safe_step(spline, node_directions, node_errors, tolerance_m: float, sta
     fit's errors ``node_errors`` (truth − fit, metres) are known: its errors there are
     ``node_errors − (quantised − fit)``, exactly. More levels give a smaller start
     (:func:`value_step` divides the share by the level count); more halvings follow where
-    the fit left no room (:func:`slack_step` when the nodes are not at hand).
+    the fit left no room (:func:`slack_step` when the nodes are not at hand). (A banded
+    model fit starts above it, :func:`first_step`: its nodes are a lattice as dense as
+    its spline; a grid's are the data's own, and a store's error between them, at
+    another source's nodes, grew with a larger step.)
 
     Halving stops at :func:`slack_step` of the room the fit left under ``tolerance_m``
     (a fit aims at a little less than its tolerance for this:

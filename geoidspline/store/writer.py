@@ -361,10 +361,17 @@ def write_tile_entry(root, key, group, version, spline_meta, stats, attempt: _At
     }
 
 
-def quantisation_meta(step, levels, bound_m: float | None = None) -> dict:
+def quantisation_meta(step, levels, bound_m: float | None = None, nudged: bool = False) -> dict:
     """The manifest's statement of a format-2 store's quantisation (``spline`` keys);
     ``bound_m`` when the levels' steps differ (a regional update's finer tiles), else
-    ``levels · step / 2``."""
+    ``levels · step / 2``, or ``levels · step`` when ``nudged`` (a banded fit's rounding,
+    corrected at its nodes: :func:`geoidspline.fitting.bands.band_step`)."""
+    if nudged:
+        return {"value_step_m": step,
+                "value_error_bound_m": 2.0 * value_error_bound(step, levels) if bound_m is None else float(bound_m),
+                "value_error_rule": "each coefficient within step/2, or within a step where the rounding was "
+                                    "corrected at the nodes; B-splines of a level are non-negative and sum to at "
+                                    "most 1, so the value moves by at most a step per level"}
     return {
         "value_step_m": step,
         "value_error_bound_m": value_error_bound(step, levels) if bound_m is None else float(bound_m),
