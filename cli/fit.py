@@ -161,8 +161,9 @@ def main(ctx, source, store_path, update, blend_width, region, tolerance, h0, ma
                  f"{r.nodes_above_tolerance:9d}  {r.seconds:7.1f}")
     if result.refinement_fallback:
         echo(f"fallback   {result.refinement_fallback}")
-    where = "at the nodes and check points" if promise["check_max_m"] is not None else "at the nodes"
-    state = "kept" if promise["kept"] else f"NOT kept ({_why_not(result, choice)})"
+    where = ("at the nodes and check points" if promise["check_max_m"] is not None
+             else "at the nodes and cell centres" if promise["cell_centre_max_m"] is not None else "at the nodes")
+    state = "kept" if promise["kept"] else f"NOT kept ({_why_not(result, choice, promise)})"
     echo(f"total      {info['coefficients']:,} coefficients; tolerance {promise['tolerance_m']:.3g} m {where} {state} "
          "in the store")
     echo(f"nodes      {info['nodes']:,}: max |error| {info['node_max_error_m']:.4f} m, "
@@ -178,9 +179,19 @@ def main(ctx, source, store_path, update, blend_width, region, tolerance, h0, ma
         sys.exit(3)
 
 
-def _why_not(result, choice) -> str:
-    """Why a fit left nodes above its tolerance, and only advice that can help."""
+def _why_not(result, choice, promise) -> str:
+    """Why a fit left nodes (or a grid's cell centres) above its tolerance, and only
+    advice that can help."""
     given = {name for name, reason in choice.reasons.items() if reason.startswith("given")}
+    if promise["node_max_m"] is not None and promise["node_max_m"] <= promise["tolerance_m"] \
+            and (promise["check_max_m"] is None or promise["check_max_m"] <= promise["tolerance_m"]):
+        # the nodes are kept: only the cell centres are not
+        outside = f"cell centres up to {promise['cell_centre_max_m']:.4g} m outside the grid's interpolants' interval"
+        if result.basis is None:
+            return f"{outside}: overlays do not fit the cell centres, leave --refinement to be chosen"
+        if given & {"h0", "order", "max_level"}:
+            return f"{outside} with the given options: leave them to be chosen"
+        return f"{outside} at the finest level the data determine"
     if result.data_limited:
         return "the finest level the data determine was reached"
     if "max_level" in given:

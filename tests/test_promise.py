@@ -228,6 +228,35 @@ def test_the_completion_passes_take_what_the_hierarchical_refinement_left():
     assert err.max() == pytest.approx(done.node_max_error_m, rel=1e-9)
 
 
+def test_the_completion_passes_take_the_cell_centres_the_refinement_left_outside():
+    """The noisy grid fitted with its cell centres down to level 3 leaves nodes above 1 cm
+    and centres up to 2.3 cm outside the interpolants' interval; local passes at level 4
+    on the nodes alone meet every node and leave the centres there (2.4 cm), passes
+    that take the centres as sites too (valued where the spline enters its interval)
+    bring nodes and centres within the target."""
+    from geoidspline.fitting.cell_centres import cell_centre_nodes
+    from geoidspline.fitting.hierarchical import centre_reach_deg
+
+    grid = regional_grid(step=0.25, south=-4, north=8, west=6, east=18)
+    values = grid.values + np.random.default_rng(5).uniform(-0.05, 0.05, grid.values.shape)
+    grid = GeoidGrid(grid.latitude, grid.longitude, values, grid.provenance)
+    region = Region(-2.0, 8.0, 6.0, 16.0)
+    sample = grid.nodes(region.expanded(1.0))
+    nodes = DataNodes.from_sample(sample, region)
+    params = FitParameters(h0=0.05, max_level=4, tolerance_m=0.01, refinement="hierarchical")
+    centres = cell_centre_nodes(sample, region, centre_reach_deg(params, nodes))
+    first = fit_hierarchical(nodes, Coverage.from_sample(sample, region), region,
+                             dataclasses.replace(params, max_level=3), centres=centres)
+    assert not first.converged and outside_interpolants(first.spline, grid, region).max() > 2 * params.node_target_m
+    nodes_only = complete_at_finest_level(first, nodes, region, params)
+    assert nodes_only.converged
+    assert outside_interpolants(nodes_only.spline, grid, region).max() > 2 * params.node_target_m
+    done = complete_at_finest_level(first, nodes, region, params, centres=centres)
+    assert done.converged and done.node_max_error_m <= params.node_target_m
+    assert outside_interpolants(done.spline, grid, region).max() <= params.node_target_m
+    assert all(p.level == 4 for p in done.levels[len(first.levels):])
+
+
 def test_a_fit_beyond_the_memory_allowed_is_refused_before_the_work_naming_the_figure(tmp_path):
     params = choose_parameters(model(360), 0.002).parameters
     # the globe is fitted band by band: the largest band is what must fit
@@ -320,3 +349,21 @@ def test_a_grid_fit_takes_its_cell_centres_by_default():
     result = fit_source(grid, region, params)
     assert result.node_max_error_m <= params.tolerance_m
     assert outside_interpolants(result.spline, grid, region).max() <= params.node_target_m
+
+
+def test_the_exit_status_counts_the_cell_centres(tmp_path):
+    """The promise holds at the nodes and the cell centres: the noisy grid fitted by
+    overlays (which do not take the centres) meets every node but leaves centres 2.1 cm
+    off the interpolants' interval at 1 cm: exit 3, naming the centres and the option;
+    with the refinement chosen, exit 0 with both figures within 1 cm."""
+    grid = regional_grid(step=0.25, south=-2, north=6, west=8, east=16)
+    values = grid.values + np.random.default_rng(5).uniform(-0.05, 0.05, grid.values.shape)
+    path = write_gtx(tmp_path / "noisy.gtx", GeoidGrid(grid.latitude, grid.longitude, values, grid.provenance))
+    overlays = invoke([path, "--store", tmp_path / "o", "--tolerance", 0.01, "--refinement", "overlays", "-q"])
+    assert overlays.exit_code == 3, overlays.output
+    assert "at the nodes and cell centres NOT kept (cell centres up to 0.021" in overlays.stdout
+    assert "overlays do not fit the cell centres, leave --refinement to be chosen" in overlays.stdout
+    chosen = invoke([path, "--store", tmp_path / "c", "--tolerance", 0.01, "--json", "-q"])
+    assert chosen.exit_code == 0, chosen.output
+    promise = json.loads(chosen.stdout)["promise"]
+    assert promise["kept"] is True and promise["node_max_m"] <= 0.01 and promise["cell_centre_max_m"] <= 0.01

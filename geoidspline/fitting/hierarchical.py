@@ -130,13 +130,6 @@ CELL_CENTRE_SPACINGS = 2.0
 #: more assembly of the normal equations).
 CELL_CENTRE_WEIGHT_CLASSES = 4
 
-#: When nothing more can be refined and centres are still outside their interval by
-#: more than the target (where nodes and centres pull apart at the finest level: Andes
-#: 0.01 m, 12 of 72,000 at 1.6 T), their weight is multiplied by this and the basis fitted
-#: again, at most :data:`CELL_CENTRE_BOOSTS` times (the nodes' promise still first).
-CELL_CENTRE_BOOST = 16.0
-CELL_CENTRE_BOOSTS = 2
-
 #: Whether a grid fit (:func:`geoidspline.fitting.driver.fit_source`) takes its cell
 #: centres by default: on, every row of issue 21's matrix measured with them in
 #: benchmarks/README.md ("Between the nodes"). ``fit_nodes(..., cell_centres=...)`` chooses.
@@ -183,15 +176,13 @@ def centre_reach_deg(params: FitParameters, nodes: DataNodes) -> float:
     return math.degrees(2.0 * params.order * CELL_CENTRE_SPACINGS * nodes.spacing_rad)
 
 
-def centre_weight_groups(centres, tolerance_m: float, boost=None):
+def centre_weight_groups(centres, tolerance_m: float):
     """``[(weight, centres)]``: the cell centres in classes of weight (powers of 4, at
-    most :data:`CELL_CENTRE_WEIGHT_CLASSES` below :data:`CELL_CENTRE_WEIGHT`), times
-    ``boost`` (a factor per centre, :data:`CELL_CENTRE_BOOST`), the empty ones left out."""
+    most :data:`CELL_CENTRE_WEIGHT_CLASSES` below :data:`CELL_CENTRE_WEIGHT`), the empty
+    ones left out."""
     half_width = 0.5 * (centres.high - centres.low)
     share = (tolerance_m / (tolerance_m + half_width)) ** 2
     steps = -np.clip(np.floor(-np.log(share) / np.log(4.0)), 0, CELL_CENTRE_WEIGHT_CLASSES - 1)
-    if boost is not None:
-        steps = steps + np.round(np.log(boost) / np.log(4.0))
     steps = steps.astype(int)
     return [(CELL_CENTRE_WEIGHT * 4.0 ** float(k), centres.subset(steps == k)) for k in np.unique(steps)]
 
@@ -336,7 +327,12 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
     (weight :data:`CELL_CENTRE_WEIGHT`, valued at the middle of its interval), and a
     centre of the region where the spline lies more than the nodes' target outside its
     interval marks its B-splines for refinement as a node above the target does; the fit
-    stops when neither is left or nothing more can be refined.
+    stops when neither is left or nothing more can be refined (what is left, where nodes
+    and centres pull apart at the finest level, is for the local passes of
+    :func:`geoidspline.fitting.driver.complete_at_finest_level`, which take the centres
+    too: multiplying the weight of the centres outside and fitting the whole basis again,
+    tried first, cost whole steps and pushed nodes out; benchmarks/README.md, "Between
+    the nodes").
     """
     start = time.perf_counter() if start is None else start
     progress = as_progress(progress)
@@ -354,8 +350,6 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
     if centres is not None:
         centre_dirs = centres.directions[centres.in_region]
         centre_groups = centre_weight_groups(centres, params.tolerance_m)
-        boost, boosts = np.ones(centres.values.size), 0
-        centre_index = np.flatnonzero(centres.in_region)
     kept = None  # the last spline keeping every node, while the centres are still being fitted
     centre_max = None
     while True:
@@ -409,13 +403,6 @@ def fit_hierarchical(nodes: DataNodes, coverage, region: Region, params: FitPara
             converged = True
             break
         refined = strategy.refine(basis, marks, max_level=finest)
-        if refined is basis and centres is not None and not above.any() and centre_above.any() \
-                and boosts < CELL_CENTRE_BOOSTS:
-            # nodes and centres pull apart where nothing can be refined: the centres outside weigh more
-            boosts += 1
-            boost[centre_index[centre_above]] *= CELL_CENTRE_BOOST
-            centre_groups = centre_weight_groups(centres, params.tolerance_m, boost)
-            continue
         if refined is basis:
             data_limited = finest < params.max_level
             converged = not above.any()

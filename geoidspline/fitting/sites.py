@@ -66,6 +66,12 @@ class DataNodes:
         return dataclasses.replace(self, **{f.name: getattr(self, f.name)[mask] for f in dataclasses.fields(self)
                                             if isinstance(getattr(self, f.name), np.ndarray)})
 
+    def joined(self, other: "DataNodes") -> "DataNodes":
+        """These nodes and ``other``'s (same spacing) as one set of data nodes."""
+        return DataNodes(**{f.name: np.concatenate([getattr(self, f.name), getattr(other, f.name)])
+                            if isinstance(getattr(self, f.name), np.ndarray) else getattr(self, f.name)
+                            for f in dataclasses.fields(DataNodes)})
+
     @property
     def spacing_rad(self) -> float:
         """The nodes' spacing on the unit sphere: the larger of the latitude step and the
