@@ -199,12 +199,10 @@ def test_the_cell_centre_figure_is_the_distance_from_the_interpolants_interval(p
     assert run.promise["cell_centre_max_m"] == manifest["accuracy"]["cell_centre_max_m"]
 
 
-def test_the_completion_passes_take_what_the_hierarchical_refinement_left():
-    """A hierarchical fit that stops with nodes above the tolerance one level before the
-    finest admissible one (here: refined to level 3 only, on nodes with ±5 cm of noise)
-    goes on by local passes at that level (4, the finest at least half the 0.25° spacing):
-    three passes take the 425 nodes above 1 cm to none, and the errors reported are the
-    spline's own at the nodes."""
+def _noisy_grid_at_one_centimetre():
+    """(grid, region, sample, nodes, params): a 0.25° grid with ±5 cm of noise on its
+    nodes, fitted at 1 cm (hierarchical, level 4 the finest admissible), whose fits down
+    to level 3 leave nodes and cell centres for the completion passes."""
     grid = regional_grid(step=0.25, south=-4, north=8, west=6, east=18)
     values = grid.values + np.random.default_rng(5).uniform(-0.05, 0.05, grid.values.shape)
     grid = GeoidGrid(grid.latitude, grid.longitude, values, grid.provenance)
@@ -212,6 +210,16 @@ def test_the_completion_passes_take_what_the_hierarchical_refinement_left():
     sample = grid.nodes(region.expanded(1.0))
     nodes = DataNodes.from_sample(sample, region)
     params = FitParameters(h0=0.05, max_level=4, tolerance_m=0.01, refinement="hierarchical")
+    return grid, region, sample, nodes, params
+
+
+def test_the_completion_passes_take_what_the_hierarchical_refinement_left():
+    """A hierarchical fit that stops with nodes above the tolerance one level before the
+    finest admissible one (here: refined to level 3 only, on nodes with ±5 cm of noise)
+    goes on by local passes at that level (4, the finest at least half the 0.25° spacing):
+    three passes take the 425 nodes above 1 cm to none, and the errors reported are the
+    spline's own at the nodes."""
+    grid, region, sample, nodes, params = _noisy_grid_at_one_centimetre()
     assert finest_admissible_level(params, nodes) == 4
     first = fit_hierarchical(nodes, Coverage.from_sample(sample, region), region,
                              dataclasses.replace(params, max_level=3))
@@ -224,7 +232,7 @@ def test_the_completion_passes_take_what_the_hierarchical_refinement_left():
     assert [lv.level for lv in done.spline.levels] == [lv.level for lv in first.spline.levels] + [4]
     la, lo = np.meshgrid(grid.latitude, grid.longitude, indexing="ij")
     inside = region.contains(la, lo)
-    err = np.abs(values[inside] - done.spline.undulation(la[inside], lo[inside]))
+    err = np.abs(grid.values[inside] - done.spline.undulation(la[inside], lo[inside]))
     assert err.max() == pytest.approx(done.node_max_error_m, rel=1e-9)
 
 
@@ -237,13 +245,7 @@ def test_the_completion_passes_take_the_cell_centres_the_refinement_left_outside
     from geoidspline.fitting.cell_centres import cell_centre_nodes
     from geoidspline.fitting.hierarchical import centre_reach_deg
 
-    grid = regional_grid(step=0.25, south=-4, north=8, west=6, east=18)
-    values = grid.values + np.random.default_rng(5).uniform(-0.05, 0.05, grid.values.shape)
-    grid = GeoidGrid(grid.latitude, grid.longitude, values, grid.provenance)
-    region = Region(-2.0, 8.0, 6.0, 16.0)
-    sample = grid.nodes(region.expanded(1.0))
-    nodes = DataNodes.from_sample(sample, region)
-    params = FitParameters(h0=0.05, max_level=4, tolerance_m=0.01, refinement="hierarchical")
+    grid, region, sample, nodes, params = _noisy_grid_at_one_centimetre()
     centres = cell_centre_nodes(sample, region, centre_reach_deg(params, nodes))
     first = fit_hierarchical(nodes, Coverage.from_sample(sample, region), region,
                              dataclasses.replace(params, max_level=3), centres=centres)
