@@ -319,12 +319,17 @@ def band_step(spline: AmbientSpline, owned, node_dirs, fit_errors, rounding: Rou
     # edge nodes over the target with the band's own values exact: no step of its own
     # brings them within it (its neighbours' roundings alone take them over), so the
     # search goes by the other nodes and the largest error reports them
+    def with_neighbours(at_edge):
+        """The edge nodes' largest errors with the neighbours' level-0 rounding (each
+        step checked exactly, finer ones by their bound), given the band's own."""
+        worst = np.abs(at_edge) + bound
+        for moved in neighbour_changes:
+            worst = np.maximum(worst, np.abs(at_edge - moved))
+        return worst
+
     hopeless = np.zeros(node_dirs.shape[0], dtype=bool)
     if edge_dirs.size and fit_errors.size:
-        own_exact = np.abs(fit_errors[edge]) + bound
-        for moved in neighbour_changes:
-            own_exact = np.maximum(own_exact, np.abs(fit_errors[edge] - moved))
-        hopeless[edge] = own_exact + bound_overlays + EVALUATION_ROUNDING_M > target
+        hopeless[edge] = with_neighbours(fit_errors[edge]) + bound_overlays + EVALUATION_ROUNDING_M > target
 
     def measured(rounded):
         """(node errors, each node's largest error at most) of the band's rounded values."""
@@ -334,11 +339,7 @@ def band_step(spline: AmbientSpline, owned, node_dirs, fit_errors, rounding: Rou
             else np.empty(0)
         worst = np.abs(errors)
         if edge_dirs.size and errors.size:
-            at_edge = errors[edge]
-            edge_worst = np.abs(at_edge) + bound
-            for moved in neighbour_changes:
-                edge_worst = np.maximum(edge_worst, np.abs(at_edge - moved))
-            worst[edge] = edge_worst + bound_overlays
+            worst[edge] = with_neighbours(errors[edge]) + bound_overlays
         return errors, worst + EVALUATION_ROUNDING_M
 
     fit_ms = float(np.mean(fit_errors ** 2)) if fit_errors.size else 0.0
