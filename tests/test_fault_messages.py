@@ -175,8 +175,8 @@ def test_upgrade_then_verify_runs_both(small_store, tmp_path):
     result = CliRunner().invoke(info.main, ["--store", str(path), "--upgrade", "--verify"])
     assert result.exit_code == 0, result.stderr
     out = result.stdout.splitlines()
-    assert out[0].startswith(f"{path}: format 1 -> 3") and out[1] == f"{path}: every tile matches the manifest"
-    assert geoidspline.open_store(path).manifest["format_version"] == 3
+    assert out[0].startswith(f"{path}: format 1 -> 4") and out[1] == f"{path}: every tile matches the manifest"
+    assert geoidspline.open_store(path).manifest["format_version"] == 4
 
 
 def test_verify_and_check_against_both_run(store_copy, tmp_path):

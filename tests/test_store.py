@@ -91,7 +91,7 @@ def test_round_trip_keeps_every_coefficient(small_store):
 def test_manifest_header_provenance_and_spline(small_store):
     m = _manifest(small_store.path)
     assert m["format"] == FORMAT_NAME == "geoidspline-tile-store"
-    assert m["format_version"] == FORMAT_VERSION == 3
+    assert m["format_version"] == FORMAT_VERSION == 4
     assert m["store_version"] == 1
 
     prov = m["provenance"]
@@ -217,7 +217,7 @@ def test_info_summary_and_bytes_on_disk(small_store):
     m = _manifest(root)
     assert info["max_error_m"] == m["accuracy"]["max_error_m"]
     assert info["rms_error_m"] == m["accuracy"]["rms_error_m"]
-    assert info["format_version"] == 3 and info["order"] == 4 and info["h0"] == 0.2
+    assert info["format_version"] == 4 and info["order"] == 4 and info["h0"] == 0.2
 
 
 def test_no_temporary_files_are_left(small_store):

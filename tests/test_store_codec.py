@@ -56,24 +56,25 @@ def test_both_formats_round_trip_to_the_same_values_bitwise(tile, step, order):
     shuffle = np.random.default_rng(1).permutation(len(q))  # any input order
     record = {"order": order} if order else None
     decoded = {}
-    for tile_format in (2, 3):
+    for tile_format in (2, 3, 4):
         data = codec.encode_tile((2, 0, -1), levels[shuffle], indices[shuffle], values[shuffle], step, record,
                                  tile_format=tile_format)
         assert codec.tile_format_of(data) == tile_format
         header, decoded[tile_format] = codec.decode_tile(data)
         assert header["tile"] == [2, 0, -1] and header["codec"] == codec.CODECS[tile_format]
-    assert sorted(decoded[3]) == sorted(decoded[2]) == sorted(set(levels.tolist()))
-    for level, (keys, got) in decoded[3].items():
-        sel = levels == level
-        want_keys = pack_keys(indices[sel])
-        order_ = np.argsort(want_keys)
-        assert np.array_equal(keys, want_keys[order_]) and np.array_equal(keys, decoded[2][level][0])
-        # exactly q * step: what format 2 gives, bit for bit
-        assert np.array_equal(got.view(np.int64), (q[sel][order_] * step).view(np.int64))
-        assert np.array_equal(got.view(np.int64), decoded[2][level][1].view(np.int64))
+    assert sorted(decoded[4]) == sorted(decoded[3]) == sorted(decoded[2]) == sorted(set(levels.tolist()))
+    for tile_format in (3, 4):
+        for level, (keys, got) in decoded[tile_format].items():
+            sel = levels == level
+            want_keys = pack_keys(indices[sel])
+            order_ = np.argsort(want_keys)
+            assert np.array_equal(keys, want_keys[order_]) and np.array_equal(keys, decoded[2][level][0])
+            # exactly q * step: what format 2 gives, bit for bit
+            assert np.array_equal(got.view(np.int64), (q[sel][order_] * step).view(np.int64))
+            assert np.array_equal(got.view(np.int64), decoded[2][level][1].view(np.int64))
 
 
-@pytest.mark.parametrize("tile_format", [2, 3])
+@pytest.mark.parametrize("tile_format", [2, 3, 4])
 def test_an_empty_tile_and_one_coefficient(tile_format):
     empty = codec.encode_tile((0, 0, 0), np.zeros(0), np.zeros((0, 3)), np.zeros(0), 1e-3, {"order": 6},
                               tile_format=tile_format)
@@ -109,6 +110,20 @@ def test_format_3_is_smaller_on_a_shell_of_radially_constant_values():
     assert sizes[3] < 0.8 * sizes[2], sizes
 
 
+def test_format_4_template_decodes_exactly_and_is_smaller_on_a_shell():
+    idx, values = _shell(h=0.002, order=6)
+    data = {f: codec.encode_tile((0, 0, 0), np.zeros(len(idx)), idx, values, 1e-3, {"order": 6}, tile_format=f)
+            for f in (3, 4)}
+    header, decoded = codec.decode_tile(data[4])
+    template = header["levels"][0]["template"]
+    assert len(template["shift"]) == 4 and len(template["weights"]) == 29
+    keys, got = decoded[0]
+    want = codec.stored_values(values[np.argsort(pack_keys(idx))], 1e-3)
+    assert np.array_equal(keys, np.sort(pack_keys(idx))) and np.array_equal(got.view(np.int64), want.view(np.int64))
+    assert np.array_equal(got.view(np.int64), codec.decode_tile(data[3])[1][0][1].view(np.int64))
+    assert len(data[4]) < 0.9 * len(data[3]), {f: len(d) for f, d in data.items()}
+
+
 def test_radial_residuals_and_values_are_inverse_and_small_on_a_shell():
     idx, values = _shell(h=0.002, order=6)
     keys = np.sort(pack_keys(idx))
@@ -122,17 +137,20 @@ def test_radial_residuals_and_values_are_inverse_and_small_on_a_shell():
     assert np.median(np.abs(residuals)) < 0.5 * np.median(np.abs(along_k))
 
 
-@pytest.mark.parametrize("damage, message", [
-    ("signature", "coded tile's signature"),
-    ("value array", "damaged array"),
-    ("truncated", "do not add up"),
-    ("order", "damaged header"),
-    ("column", "damaged header"),
-    ("count", "damaged header|do not add up|header says"),
+@pytest.mark.parametrize("tile_format, damage, message", [
+    *((f, "signature", "coded tile's signature") for f in (3, 4)),
+    *((f, "value array", "damaged array") for f in (3, 4)),
+    *((f, "truncated", "do not add up") for f in (3, 4)),
+    *((f, "order", "damaged header") for f in (3, 4)),
+    *((f, "column", "damaged header") for f in (3, 4)),
+    *((f, "count", "damaged header|do not add up|header says") for f in (3, 4)),
+    (4, "template", "template is not 4 shifts"),
+    (4, "weight", "template is not 4 shifts"),
 ])
-def test_damaged_format_3_bytes_name_the_rule_broken(damage, message):
+def test_damaged_format_3_and_4_bytes_name_the_rule_broken(tile_format, damage, message):
     idx, values = _shell(h=0.004, order=6)
-    data = bytearray(codec.encode_tile((0, 0, 0), np.zeros(len(idx)), idx, values, 1e-3, {"order": 6}))
+    data = bytearray(codec.encode_tile((0, 0, 0), np.zeros(len(idx)), idx, values, 1e-3, {"order": 6},
+                                       tile_format=tile_format))
     magic = len(codec.MAGICS[3])
     size = int.from_bytes(data[magic:magic + 4], "little")
     header = json.loads(data[magic + 4:magic + 4 + size])
@@ -147,6 +165,10 @@ def test_damaged_format_3_bytes_name_the_rule_broken(damage, message):
             header["order"] = 99
         elif damage == "column":
             header["levels"][0]["column"] = 1
+        elif damage == "template":
+            header["levels"][0]["template"]["shift"] = [0, 0]
+        elif damage == "weight":
+            header["levels"][0]["template"]["weights"][3] = 1 << 40
         else:
             header["levels"][0]["coefficients"] = -5
         head = json.dumps(header, separators=(",", ":")).encode()
@@ -157,16 +179,16 @@ def test_damaged_format_3_bytes_name_the_rule_broken(damage, message):
 
 @pytest.fixture(scope="module")
 def both_formats(small_store, tmp_path_factory):
-    """The small store written in format 2 and in format 3."""
+    """The small store written in formats 2, 3 and 4."""
     root = tmp_path_factory.mktemp("formats")
     paths = {}
-    for version in (2, 3):
+    for version in (2, 3, 4):
         paths[version] = root / f"v{version}"
         write_store(paths[version], small_store.result, small_store.grid.provenance, format_version=version)
     return paths
 
 
-def test_format_2_and_3_stores_hold_the_same_values_bitwise(both_formats):
+def test_format_2_3_and_4_stores_hold_the_same_values_bitwise(both_formats):
     stores = {v: TileStore.open(p, lazy=False) for v, p in both_formats.items()}
     for v, p in both_formats.items():
         manifest = json.loads((p / "manifest.json").read_text())
@@ -174,19 +196,22 @@ def test_format_2_and_3_stores_hold_the_same_values_bitwise(both_formats):
         tiles = [p / e["file"] for e in manifest["tiles"]]
         assert {codec.tile_format_of(t.read_bytes()) for t in tiles} == {v}
     levels = {v: s.spline.levels for v, s in stores.items()}
-    for a, b in zip(levels[2], levels[3]):
-        assert np.array_equal(a.keys, b.keys)
-        assert np.array_equal(a.coefficients.view(np.int64), b.coefficients.view(np.int64))
+    for newer in (3, 4):
+        for a, b in zip(levels[2], levels[newer]):
+            assert np.array_equal(a.keys, b.keys)
+            assert np.array_equal(a.coefficients.view(np.int64), b.coefficients.view(np.int64))
     rng = np.random.default_rng(3)
     lat, lon = rng.uniform(10, 30, 500), rng.uniform(20, 40, 500)
     assert np.array_equal(stores[2].undulation(lat, lon), stores[3].undulation(lat, lon))
+    assert np.array_equal(stores[2].undulation(lat, lon), stores[4].undulation(lat, lon))
 
 
 def test_a_format_2_store_keeps_its_tile_format_when_updated(both_formats):
     manifest = json.loads((both_formats[2] / "manifest.json").read_text())
     assert tile_encoding(manifest) == (2, {"value_step_m": manifest["spline"]["value_step_m"]})
-    manifest = json.loads((both_formats[3] / "manifest.json").read_text())
-    assert tile_encoding(manifest)[0] == 3
+    for version in (3, 4):
+        manifest = json.loads((both_formats[version] / "manifest.json").read_text())
+        assert tile_encoding(manifest)[0] == version
 
 
 def test_a_damaged_format_3_tile_is_refused_naming_its_file(both_formats, tmp_path):

@@ -316,7 +316,7 @@ def test_upgrade_rewrites_a_format_1_store_atomically(small_store, v1_store, tmp
     step = new["spline"]["value_step_m"]
     assert np.array_equal(store.undulation(lat, lon),
                           codec.quantised_spline(small_store.result.spline, step).undulation(lat, lon))
-    with pytest.raises(StoreError, match="already in store format 3"):
+    with pytest.raises(StoreError, match="already in store format 4"):
         upgrade_store(root)
 
 

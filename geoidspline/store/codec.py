@@ -64,15 +64,16 @@ than 3 on coefficient tiles and decodes as fast."""
 MAGIC = b"GSPLTILE2\n"
 """First bytes of a format-2 tile file (format 1 tiles are netCDF4/HDF5: ``\\x89HDF``)."""
 
-MAGICS = {2: MAGIC, 3: b"GSPLTILE3\n"}
+MAGICS = {2: MAGIC, 3: b"GSPLTILE3\n", 4: b"GSPLTILE4\n"}
 """First bytes of a coded tile file of each format (all of one length)."""
 
-TILE_FORMAT = 3
-"""The coded tile format written (stores of format 3); format-2 tiles are read as ever."""
+TILE_FORMAT = 4
+"""The coded tile format written (stores of format 4); formats 2 and 3 are read as ever."""
 
 CODECS = {2: f"Delta(int32) + Shuffle(4) + Zstd(level={ZSTD_LEVEL}, checksum)",
           3: f"RadialFoot(bicubic or bilinear, 1/256; column term per level) + ZigZag(int32) + Shuffle(4) + "
-             f"Zstd(level={ZSTD_LEVEL}, checksum)"}
+             f"Zstd(level={ZSTD_LEVEL}, checksum)",
+          4: "Template(least squares, 1/65536) else RadialFoot; by kind; ZigZag + Shuffle(4) + Zstd"}
 """What each format's header states of its value array's coding."""
 
 QUANTISATION_SHARE = 2.0 / 3.0
@@ -327,6 +328,114 @@ def _entropy_bits(values):
     return float(-(counts * np.log2(counts / values.size)).sum()) if values.size else 0.0
 
 
+# -- format 4: a template by least squares, residuals grouped by how they were predicted ----
+
+TEMPLATE_WEIGHT_LIMIT = 1 << 20
+"""Largest |weight| (in 1/65536) of format 4's template: the prediction's sum of 29
+products of int32 values stays far inside int64."""
+
+TEMPLATE_BOX_LIMIT = 1 << 26
+"""Largest box (cells, the level's key range along its three axes) a tile level gets a
+template for: the decoder's lookup table (4 bytes a cell)."""
+
+
+def template_shift(keys, order):
+    """Format 4's template position of a tile level (4 ints, ``src/codec.c``): its mean
+    radial foot offset in the slab before (floored, the Catmull-Rom stencil's corner + 1)
+    and twice it (rounded) in the slab two before, along the slab axes b < c (the axis a
+    nearest the level's mean radial direction, as format 3 takes it); None when the level
+    is too large for the decoder's table or has no slab before."""
+    idx = _keys.unpack_keys(np.asarray(keys, dtype=np.int64))
+    centres = 2 * idx + int(order)
+    sums = centres.sum(axis=0)
+    a = int(np.argmax(np.abs(sums)))
+    b, c = [axis for axis in range(3) if axis != a]
+    span = idx.max(axis=0) - idx.min(axis=0) + 1
+    den = centres[:, a].astype(np.float64)
+    usable = den != 0
+    if int(np.prod(span.astype(np.float64))) > TEMPLATE_BOX_LIMIT or span[a] < 3 or not usable.any():
+        return None
+    offset = -(centres[usable][:, [b, c]] / den[usable, None]).mean(axis=0)
+    return [int(np.floor(offset[0])), int(np.floor(offset[1])), int(np.rint(2 * offset[0])),
+            int(np.rint(2 * offset[1]))]
+
+
+def template_weights(keys, order, q, shift):
+    """Format 4's weights (int64 in 1/65536) of a level's template at ``shift``: the least
+    squares prediction of its quantised values ``q`` from their template rows, where
+    those are all there; None when too few are, or a weight is beyond
+    :data:`TEMPLATE_WEIGHT_LIMIT`."""
+    from .._kernels.codec import template_rows, template_taps
+
+    taps, kinds = template_rows(keys, order, shift)
+    whole = kinds == 0
+    if whole.sum() < 4 * template_taps():
+        return None
+    design = np.asarray(q, dtype=np.float64)[taps[whole]]
+    # the normal equations (29 x 29): 50x faster than an SVD of the design matrix, and the
+    # weights only need to predict well (any weights decode exactly)
+    weights, *_ = np.linalg.lstsq(design.T @ design, design.T @ np.asarray(q, dtype=np.float64)[whole],
+                                  rcond=None)
+    fixed = np.rint(weights * 65536.0).astype(np.int64)
+    return fixed if np.abs(fixed).max() < TEMPLATE_WEIGHT_LIMIT else None
+
+
+def _template_pass(keys, order, column, decode, template, values=None, residuals=None):
+    """(values, residuals, kinds) of format 4's pass over one level (``template``: its
+    header entry, ``{"shift", "weights"}`` or None)."""
+    from .._kernels.codec import template_code
+
+    n = np.asarray(keys).size
+    values = np.zeros(n, np.int64) if values is None else np.ascontiguousarray(values, dtype=np.int64)
+    residuals = np.zeros(n, np.int64) if residuals is None else np.ascontiguousarray(residuals, dtype=np.int64)
+    kinds = np.empty(n, np.uint8)
+    shift, weights = (None, None) if template is None else (template["shift"], template["weights"])
+    template_code(keys, order, column, decode, shift, weights, values, residuals, kinds)
+    return values, residuals, kinds
+
+
+def _encode_values4(level_keys, level_q, order):
+    """Format 4's value arrays (template-predicted residuals; the others, stably sorted by
+    how they were predicted) and per level (column flag, template entry)."""
+    templated, others, other_kinds, meta = [], [], [], []
+    for keys, q in zip(level_keys, level_q):
+        shift = template_shift(keys, order) if order else None
+        weights = template_weights(keys, order, q, shift) if shift is not None else None
+        template = None if weights is None else {"shift": shift, "weights": [int(w) for w in weights]}
+        both = [_template_pass(keys, order, column, False, template, q) for column in (False, True)]
+        rest = [residuals[kinds != 0] for _, residuals, kinds in both]
+        column = _entropy_bits(rest[1]) < _entropy_bits(rest[0])
+        _, residuals, kinds = both[column]
+        templated.append(residuals[kinds == 0])
+        others.append(residuals[kinds != 0])
+        other_kinds.append(kinds[kinds != 0])
+        meta.append((bool(column), template))
+    rest = np.concatenate(others) if others else np.zeros(0, np.int64)
+    rest = rest[np.argsort(np.concatenate(other_kinds) if other_kinds else np.zeros(0), kind="stable")]
+    first = np.concatenate(templated) if templated else np.zeros(0, np.int64)
+    return {"value_template": _shuffle_compress(_zigzag(first)), "value_rest": _shuffle_compress(_zigzag(rest))}, meta
+
+
+def _decode_values4(blobs, level_keys, meta, order, n_coefs):
+    """Inverse of :func:`_encode_values4`: each level's quantised values (int64)."""
+    kinds = [_template_pass(keys, order, column, False, template)[2]
+             for keys, (column, template) in zip(level_keys, meta)]
+    every = np.concatenate(kinds) if kinds else np.zeros(0, np.uint8)
+    first = every == 0
+    n_first = int(first.sum())
+    residuals = np.empty(n_coefs, np.int64)
+    residuals[first] = _unzigzag(_shuffle_decompress(blobs["value_template"], n_first))
+    rest_at = np.flatnonzero(~first)
+    residuals[rest_at[np.argsort(every[rest_at], kind="stable")]] = \
+        _unzigzag(_shuffle_decompress(blobs["value_rest"], n_coefs - n_first))
+    out, at = [], 0
+    for keys, (column, template) in zip(level_keys, meta):
+        values, _, _ = _template_pass(keys, order, column, True, template, residuals=residuals[at:at + keys.size])
+        out.append(values)
+        at += keys.size
+    return out
+
+
 def _encode_values(level_keys, level_q, order, tile_format):
     """(value array's bytes, per level: whether format 3's column term is used)."""
     if tile_format == 2:
@@ -368,15 +477,21 @@ def encode_tile(tile, levels, indices, values, step, record=None, tile_format=TI
     start_keys = np.concatenate(starts_all) if starts_all else np.zeros(0, np.int64)
     lengths = np.concatenate(lengths_all) if lengths_all else np.zeros(0, np.int64)
     spline_order = int((record or {}).get("order", 0))
-    value_blob, columns = _encode_values(level_keys, level_q, spline_order, tile_format)
-    for meta, column in zip(level_meta, columns):
-        meta["column"] = column
     blobs = {
         # i, j, k columns one after the other: each changes slowly from run to run
         "run_start": _delta_encode(_keys.unpack_keys(start_keys).T.ravel(), np.int32),
         "run_length": _delta_encode(lengths, np.int32),
-        "value": value_blob,
     }
+    if tile_format == 4:
+        value_blobs, per_level = _encode_values4(level_keys, level_q, spline_order)
+        blobs.update(value_blobs)
+        for meta, (column, template) in zip(level_meta, per_level):
+            meta["column"] = column
+            meta["template"] = template
+    else:
+        blobs["value"], columns = _encode_values(level_keys, level_q, spline_order, tile_format)
+        for meta, column in zip(level_meta, columns):
+            meta["column"] = column
     header = {
         "tile": [int(v) for v in tile],
         "value_step_m": float(step),
@@ -427,14 +542,16 @@ def decode_tile(data):
         arrays = {name: int(count) for name, count in header["arrays"]}
         step = float(header["value_step_m"])
         level_meta = [(int(m["level"]), int(m["coefficients"]), int(m["runs"])) for m in header["levels"]]
-        columns = [_flag(m["column"]) for m in header["levels"]] if tile_format == 3 else []
+        columns = [_flag(m["column"]) for m in header["levels"]] if tile_format >= 3 else []
+        templates = [_template_entry(m["template"]) for m in header["levels"]] if tile_format == 4 else []
         spline_order = int(header.get("order", 0))
     except (ValueError, KeyError, TypeError) as exc:
         raise ValueError(f"has a damaged header ({exc})") from None
     if not 0 <= spline_order <= 16:
         raise ValueError(f"has a damaged header (order {spline_order})")
     at += size
-    if at + sum(arrays.values()) != len(data) or set(arrays) != {"run_start", "run_length", "value"}:
+    names = {"run_start", "run_length", *(("value_template", "value_rest") if tile_format == 4 else ("value",))}
+    if at + sum(arrays.values()) != len(data) or set(arrays) != names:
         raise ValueError("array sizes in the header do not add up to the file's size")
     blobs = {}
     for name, count in header["arrays"]:
@@ -448,24 +565,47 @@ def decode_tile(data):
     lengths = _delta_decode(blobs["run_length"], np.int32, n_runs).astype(np.int64)
     if tile_format == 2:
         q = _delta_decode(blobs["value"], np.int32, n_coefs).astype(np.int64)
-    else:
+    elif tile_format == 3:
         q = _unzigzag(_shuffle_decompress(blobs["value"], n_coefs))
     if np.any(lengths < 1) or int(lengths.sum()) != n_coefs:
         raise ValueError("run lengths do not add up to the coefficient count")
     start_keys = _keys.pack_keys(start)
-    out = {}
-    run_at = coef_at = 0
-    for at_level, (level, count, runs) in enumerate(level_meta):
+    level_keys = []
+    run_at = 0
+    for level, count, runs in level_meta:
         keys = keys_of_runs(start_keys[run_at:run_at + runs], lengths[run_at:run_at + runs])
         if keys.size != count or (keys.size > 1 and not np.all(keys[1:] > keys[:-1])):
             raise ValueError(f"level {level}'s runs are not in increasing key order")
-        values = q[coef_at:coef_at + count]
-        if tile_format == 3:
-            values = radial_values(keys, spline_order, values, columns[at_level])
-        out[level] = (keys, values.astype(np.int32) * step)
+        level_keys.append(keys)
         run_at += runs
-        coef_at += count
+    if tile_format == 4:
+        level_values = _decode_values4(blobs, level_keys, list(zip(columns, templates)), spline_order, n_coefs)
+    else:
+        level_values, coef_at = [], 0
+        for at_level, keys in enumerate(level_keys):
+            values = q[coef_at:coef_at + keys.size]
+            if tile_format == 3:
+                values = radial_values(keys, spline_order, values, columns[at_level])
+            level_values.append(values)
+            coef_at += keys.size
+    out = {level: (keys, values.astype(np.int32) * step)
+           for (level, _, _), keys, values in zip(level_meta, level_keys, level_values)}
     return header, out
+
+
+def _template_entry(value):
+    """A format-4 level's template entry, checked: None or 4 shift and the taps' weights."""
+    from .._kernels.codec import template_taps
+
+    if value is None:
+        return None
+    shift, weights = value["shift"], value["weights"]
+    if (not isinstance(shift, list) or len(shift) != 4 or not isinstance(weights, list)
+            or len(weights) != template_taps()
+            or not all(isinstance(v, int) and not isinstance(v, bool) for v in shift + weights)
+            or max(abs(v) for v in shift) > 64 or max(abs(v) for v in weights) >= TEMPLATE_WEIGHT_LIMIT):
+        raise ValueError(f"a level's template is not 4 shifts and {template_taps()} weights in range")
+    return {"shift": shift, "weights": weights}
 
 
 def stored_values(values, step):

@@ -53,7 +53,7 @@ FORMAT_NAME = "geoidspline-tile-store"
 
 
 #: The format this geoidspline writes; it reads every format from 1 to this one.
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 
 
 MANIFEST = "manifest.json"
@@ -553,7 +553,8 @@ def manifest_text(manifest: dict) -> bytes:
     manifest = dict(manifest)
     manifest.pop("integrity", None)
     manifest["integrity"] = {"sha256": integrity_digest(manifest), "rule": INTEGRITY_RULE}
-    return json.dumps(manifest, indent=1, allow_nan=False).encode("utf-8")
+    # compact: a global store lists thousands of tiles (indent=1 added 0.78 MB of 3.7 at 1 cm)
+    return json.dumps(manifest, separators=(",", ":"), allow_nan=False).encode("utf-8")
 
 
 MANIFEST_KEYS = ("format_version", "store_version", "spline", "fit", "accuracy", "tiles", "region", "provenance")

@@ -75,12 +75,50 @@ GS_INLINE int64_t lower_bound_near(const int64_t *keys, int64_t lo, int64_t hi, 
     return at;
 }
 
-/* keys: the level's n sorted packed keys; values int64 holding int32; column: the
- * previous row's foot error is predicted too. decode: values from
- * residuals (values written); else residuals from values (residuals written). Returns 0, or
- * -1 when memory ran out. */
-GS_EXPORT int gs_radial_code(int64_t n, const int64_t *keys, int64_t order, int64_t column, int64_t decode,
-                             int64_t *values, int64_t *residuals)
+/* Format 4's template (geoidspline/store/codec.py, template_residuals): the rows a row is
+ * predicted from by the tile level's own least-squares weights, as (a, b, c) offsets in slab
+ * axes: the 4 x 4 nodes of slab a - 1 from (shift[0], shift[1]) - 1 (the level's mean radial foot
+ * offset, floored), the 3 x 3 of slab a - 2 around (shift[2], shift[3]) (twice it, rounded),
+ * and the four rows before it in its own slab that touch it. All come before the row in slab
+ * order. */
+#define TEMPLATE_TAPS 29
+#define WEIGHT_BITS 16 /* the weights' fixed point: 1/65536 */
+
+static void template_offsets(const int64_t *shift, int64_t offsets[TEMPLATE_TAPS][3])
+{
+    int t = 0;
+    for (int db = -1; db <= 2; ++db)
+        for (int dc = -1; dc <= 2; ++dc, ++t) {
+            offsets[t][0] = -1;
+            offsets[t][1] = shift[0] + db;
+            offsets[t][2] = shift[1] + dc;
+        }
+    for (int db = -1; db <= 1; ++db)
+        for (int dc = -1; dc <= 1; ++dc, ++t) {
+            offsets[t][0] = -2;
+            offsets[t][1] = shift[2] + db;
+            offsets[t][2] = shift[3] + dc;
+        }
+    const int64_t own[4][2] = {{0, -1}, {-1, -1}, {-1, 0}, {-1, 1}};
+    for (int m = 0; m < 4; ++m, ++t) {
+        offsets[t][0] = 0;
+        offsets[t][1] = own[m][0];
+        offsets[t][2] = own[m][1];
+    }
+}
+
+/* The shared pass of formats 3 and 4. keys: the level's n sorted packed keys; values int64
+ * holding int32; column: the previous row's foot error is predicted too. decode: values from
+ * residuals (values written); else residuals from values (residuals written). shift (4) and
+ * weights (TEMPLATE_TAPS, in 1/2^WEIGHT_BITS) given (format 4): a row whose template rows are all
+ * there is predicted by them instead. kinds (n, key order, or NULL): how each row was
+ * predicted (0 template, 1 bicubic foot, 2 bilinear foot, 3 the row before, 4 by 0). taps
+ * (n x TEMPLATE_TAPS, key order, or NULL): with shift given, only each row's template rows
+ * (key-order positions; -1 in the first place when one is missing) and kinds are written.
+ * Returns 0, or -1 when memory ran out. */
+static int radial_pass(int64_t n, const int64_t *keys, int64_t order, int64_t column, int64_t decode,
+                       int64_t *values, int64_t *residuals, const int64_t *shift, const int64_t *weights,
+                       uint8_t *kinds, int64_t *taps)
 {
     if (n <= 0)
         return 0;
@@ -128,12 +166,76 @@ GS_EXPORT int gs_radial_code(int64_t n, const int64_t *keys, int64_t order, int6
         start[s] = start[s - 1];
     start[0] = 0;
 
+    /* format 4: a dense box of the rows by slab-axis position, for the template's lookups */
+    int64_t offsets[TEMPLATE_TAPS][3], box_lo[3] = {lo_a, 0, 0}, span[3] = {slabs, 0, 0};
+    int32_t *box = NULL;
+    if (shift) {
+        template_offsets(shift, offsets);
+        for (int x = 1; x < 3; ++x) {
+            int axis = x == 1 ? b : c;
+            int64_t low = unpack(keys[0], axis), high = low;
+            for (int64_t i = 1; i < n; ++i) {
+                int64_t v = unpack(keys[i], axis);
+                low = v < low ? v : low;
+                high = v > high ? v : high;
+            }
+            box_lo[x] = low;
+            span[x] = high - low + 1;
+        }
+        box = malloc((size_t)(span[0] * span[1] * span[2]) * sizeof *box);
+        if (!box) {
+            free(start);
+            free(perm);
+            free(slab_keys);
+            free(foot);
+            free(footed);
+            return -1;
+        }
+        for (int64_t i = 0; i < span[0] * span[1] * span[2]; ++i)
+            box[i] = -1;
+        for (int64_t r = 0; r < n; ++r)
+            box[((unpack(slab_keys[r], 0) - box_lo[0]) * span[1] + unpack(slab_keys[r], 1) - box_lo[1]) * span[2]
+                + unpack(slab_keys[r], 2) - box_lo[2]] = (int32_t)r;
+    }
+
     int64_t hint[4] = {0, 0, 0, 0};
     for (int64_t r = 0; r < n; ++r) {
         int64_t key = slab_keys[r], ia = unpack(key, 0), s = ia - lo_a;
         int64_t prediction = 0, total = 0, acc = 0;
         int64_t den = 2 * ia + order;
-        if (s > 0 && den != 0) {
+        int kind = 4, templated = 0;
+        if (box) { /* format 4: the template, where all of its rows are there */
+            int64_t at[TEMPLATE_TAPS], pos[3] = {ia, unpack(key, 1), unpack(key, 2)};
+            templated = 1;
+            for (int t = 0; t < TEMPLATE_TAPS && templated; ++t) {
+                int64_t cell = 0;
+                for (int x = 0; x < 3; ++x) {
+                    int64_t v = pos[x] + offsets[t][x] - box_lo[x];
+                    if (v < 0 || v >= span[x]) {
+                        templated = 0;
+                        break;
+                    }
+                    cell = cell * span[x] + v;
+                }
+                if (templated && (at[t] = box[cell]) < 0)
+                    templated = 0;
+            }
+            if (taps) {
+                for (int t = 0; t < TEMPLATE_TAPS; ++t)
+                    taps[perm[r] * TEMPLATE_TAPS + t] = templated ? perm[at[t]] : -1;
+                if (kinds)
+                    kinds[perm[r]] = templated ? 0 : 4;
+                continue;
+            }
+            if (templated) {
+                for (int t = 0; t < TEMPLATE_TAPS; ++t)
+                    acc += weights[t] * values[perm[at[t]]];
+                prediction = (acc + ((int64_t)1 << (WEIGHT_BITS - 1))) >> WEIGHT_BITS; /* arithmetic: floor */
+                kind = 0;
+                acc = 0;
+            }
+        }
+        if (!templated && s > 0 && den != 0) {
             int64_t base[2], frac[2];
             for (int x = 0; x < 2; ++x) {
                 /* foot_x = ix - P_x / P_a = ix - (2 ix + order) / den, in 1/FRACTION, floored:
@@ -176,6 +278,7 @@ GS_EXPORT int gs_radial_code(int64_t n, const int64_t *keys, int64_t order, int6
             if (complete) {
                 acc = cubic_acc;
                 total = cubic_total;
+                kind = 1;
             } else {
                 for (int db = 0; db < 2; ++db) { /* bilinear, over the nodes present */
                     int64_t nb = base[0] + db, nc = base[1];
@@ -201,15 +304,19 @@ GS_EXPORT int gs_radial_code(int64_t n, const int64_t *keys, int64_t order, int6
             else
                 prediction = floor_div(2 * acc + total, 2 * total); /* rounded half up */
             foot[r] = prediction;
+            kind = kind == 1 ? 1 : 2;
             /* the foot's interpolation error varies slowly along a column: take the
              * previous row's off too, when that was predicted from its foot */
             if (column && has_prev && footed[r - 1])
                 prediction += values[perm[r - 1]] - foot[r - 1];
             footed[r] = 1;
-        } else if (has_prev) {
+        } else if (!templated && has_prev) {
             prediction = values[perm[r - 1]];
+            kind = 3;
         }
         int64_t row = perm[r];
+        if (kinds)
+            kinds[row] = (uint8_t)kind;
         if (decode) /* values are int32: the sum wraps as the encoder's difference did */
             values[row] = (int32_t)(uint32_t)(uint64_t)(prediction + residuals[row]);
         else
@@ -220,5 +327,29 @@ GS_EXPORT int gs_radial_code(int64_t n, const int64_t *keys, int64_t order, int6
     free(slab_keys);
     free(foot);
     free(footed);
+    free(box);
     return 0;
+}
+
+/* Format 3: the radial foot alone (radial_pass without a template). */
+GS_EXPORT int gs_radial_code(int64_t n, const int64_t *keys, int64_t order, int64_t column, int64_t decode,
+                             int64_t *values, int64_t *residuals)
+{
+    return radial_pass(n, keys, order, column, decode, values, residuals, NULL, NULL, NULL, NULL);
+}
+
+/* Format 4: the template by weights where it is complete, else format 3's prediction;
+ * kinds (uint8, n) written. weights NULL: taps (n x TEMPLATE_TAPS) and kinds written, nothing
+ * else. */
+GS_EXPORT int gs_template_code(int64_t n, const int64_t *keys, int64_t order, int64_t column, int64_t decode,
+                               const int64_t *shift, const int64_t *weights, int64_t *values, int64_t *residuals,
+                               uint8_t *kinds, int64_t *taps)
+{
+    return radial_pass(n, keys, order, column, decode, values, residuals, shift, weights, kinds,
+                       weights ? NULL : taps);
+}
+
+GS_EXPORT int64_t gs_template_taps(void)
+{
+    return TEMPLATE_TAPS;
 }
