@@ -116,7 +116,7 @@ def test_format_4_template_decodes_exactly_and_is_smaller_on_a_shell():
             for f in (3, 4)}
     header, decoded = codec.decode_tile(data[4])
     template = header["levels"][0]["template"]
-    assert len(template["shift"]) == 4 and len(template["weights"]) == 29
+    assert len(template["shift"]) == 4 and len(template["weights"]) == 29 and len(template["small"]) == 13
     keys, got = decoded[0]
     want = codec.stored_values(values[np.argsort(pack_keys(idx))], 1e-3)
     assert np.array_equal(keys, np.sort(pack_keys(idx))) and np.array_equal(got.view(np.int64), want.view(np.int64))

@@ -80,6 +80,32 @@ def global_lattice_engine(source):
     return source
 
 
+def _commit_behind(fitted, commit, committed):
+    """``commit(band, result)`` of each ``(band, result)`` of ``fitted`` in order, on one
+    thread of its own while the next band is fitted (a band's tiles are encoded and
+    written in 12-25 s at 1 cm: the codec, zstd and the files release the GIL); at most
+    one band waits, each committed before the next is handed over, and none is left
+    writing when this returns or raises (``committed()`` after each)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    pending = None
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="band-commit") as writer:
+        try:
+            for band, result in fitted:
+                if pending is not None:
+                    pending.result()
+                    committed()
+                pending = writer.submit(commit, band, result)
+                del result  # the writer holds it until committed
+            if pending is not None:
+                pending.result()
+                committed()
+                pending = None
+        finally:
+            if pending is not None:  # a fit failed: its predecessor's commit still completes
+                pending.exception()
+
+
 def build_banded_store(source, path, region, params, progress=None, overwrite=False, resume=False,
                        check_count=20_000, executor=None, extra=None, sign=None, margin_deg=None):
     """Fit ``source`` over the globe band by band into the store at ``path`` (see the
@@ -129,28 +155,30 @@ def build_banded_store(source, path, region, params, progress=None, overwrite=Fa
             log.info("resuming: %d of %d bands committed already", len(done), len(bands))
         todo = [band for band in bands if band.first not in done]
         shared = (source, params, rounding, check_lat, check_lon, margin)
+
+        def commit(band, result):
+            levels = [LevelSpline(level, h, params.order, keys, coefs)
+                      for level, h, keys, coefs in result.levels if keys.size]
+            groups = tile_groups(AmbientSpline(levels), params.tile_size)
+            stats = {key: tile_stats(*result.tile_stats[key]) for key in groups}
+            summary = json.loads(json.dumps({
+                "levels": {str(level): int(keys.size) for level, _, keys, _ in result.levels},
+                "node_count": result.node_count, "node_max_error_m": result.node_max_error_m,
+                "node_sum_squares": result.node_sum_squares,
+                "fit_node_max_error_m": result.fit_node_max_error_m,
+                "check_errors": result.check_errors, "level_reports": result.level_reports,
+                "converged": result.converged, "data_limited": result.data_limited,
+                "seconds": round(result.seconds, 3), "rows": result.sample_rows,
+                "value_step_m": result.value_step_m,
+            }, default=_plain))
+            write.commit_band(band.first, groups, stats, {**spline_meta, "value_step_m": result.value_step_m},
+                              summary)
+            log.info("band %d..%d: %d coefficients, node max %.4f m, %.1f s", band.first, band.last,
+                     sum(summary["levels"].values()), summary["node_max_error_m"], summary["seconds"])
+
         with progress.stage("bands", len(bands), "band") as advance:
             advance(len(done))
-            for band, result in _fitted_bands(todo, shared, executor, progress):
-                levels = [LevelSpline(level, h, params.order, keys, coefs)
-                          for level, h, keys, coefs in result.levels if keys.size]
-                groups = tile_groups(AmbientSpline(levels), params.tile_size)
-                stats = {key: tile_stats(*result.tile_stats[key]) for key in groups}
-                summary = json.loads(json.dumps({
-                    "levels": {str(level): int(keys.size) for level, _, keys, _ in result.levels},
-                    "node_count": result.node_count, "node_max_error_m": result.node_max_error_m,
-                    "node_sum_squares": result.node_sum_squares,
-                    "fit_node_max_error_m": result.fit_node_max_error_m,
-                    "check_errors": result.check_errors, "level_reports": result.level_reports,
-                    "converged": result.converged, "data_limited": result.data_limited,
-                    "seconds": round(result.seconds, 3), "rows": result.sample_rows,
-                    "value_step_m": result.value_step_m,
-                }, default=_plain))
-                write.commit_band(band.first, groups, stats, {**spline_meta, "value_step_m": result.value_step_m},
-                                  summary)
-                log.info("band %d..%d: %d coefficients, node max %.4f m, %.1f s", band.first, band.last,
-                         sum(summary["levels"].values()), summary["node_max_error_m"], summary["seconds"])
-                advance(1)
+            _commit_behind(_fitted_bands(todo, shared, executor, progress), commit, lambda: advance(1))
         manifest, result = _banded_manifest(write, source, region, params, step, extra, started, check_count)
         with progress.stage("write", 1, "store") as advance:
             write.finish(manifest)

@@ -75,50 +75,79 @@ GS_INLINE int64_t lower_bound_near(const int64_t *keys, int64_t lo, int64_t hi, 
     return at;
 }
 
-/* Format 4's template (geoidspline/store/codec.py, template_residuals): the rows a row is
+/* Format 4's templates (geoidspline/store/codec.py, template_shift): the rows a row is
  * predicted from by the tile level's own least-squares weights, as (a, b, c) offsets in slab
- * axes: the 4 x 4 nodes of slab a - 1 from (shift[0], shift[1]) - 1 (the level's mean radial foot
- * offset, floored), the 3 x 3 of slab a - 2 around (shift[2], shift[3]) (twice it, rounded),
- * and the four rows before it in its own slab that touch it. All come before the row in slab
- * order. */
-#define TEMPLATE_TAPS 29
+ * axes. The whole template (WHOLE_TAPS): the 4 x 4 rows of slab a - 1 from (shift[0], shift[1])
+ * - 1 (the level's mean radial foot offset, floored), the 3 x 3 of slab a - 2 around
+ * (shift[2], shift[3]) (twice it, rounded), and the four rows before it in its own slab that
+ * touch it. The small template (SMALL_TAPS), for a row whose whole one is not there: the 3 x 3
+ * rows of slab a - 1 from (shift[0], shift[1]) and the same four. All come before the row in
+ * slab order. */
+#define WHOLE_TAPS 29
+#define SMALL_TAPS 13
 #define WEIGHT_BITS 16 /* the weights' fixed point: 1/65536 */
 
-static void template_offsets(const int64_t *shift, int64_t offsets[TEMPLATE_TAPS][3])
+static void template_offsets(const int64_t *shift, int64_t whole[WHOLE_TAPS][3], int64_t small[SMALL_TAPS][3])
 {
-    int t = 0;
+    int t = 0, u = 0;
     for (int db = -1; db <= 2; ++db)
         for (int dc = -1; dc <= 2; ++dc, ++t) {
-            offsets[t][0] = -1;
-            offsets[t][1] = shift[0] + db;
-            offsets[t][2] = shift[1] + dc;
+            whole[t][0] = -1;
+            whole[t][1] = shift[0] + db;
+            whole[t][2] = shift[1] + dc;
+            if (db >= 0 && dc >= 0) {
+                small[u][0] = -1;
+                small[u][1] = shift[0] + db;
+                small[u][2] = shift[1] + dc;
+                ++u;
+            }
         }
     for (int db = -1; db <= 1; ++db)
         for (int dc = -1; dc <= 1; ++dc, ++t) {
-            offsets[t][0] = -2;
-            offsets[t][1] = shift[2] + db;
-            offsets[t][2] = shift[3] + dc;
+            whole[t][0] = -2;
+            whole[t][1] = shift[2] + db;
+            whole[t][2] = shift[3] + dc;
         }
     const int64_t own[4][2] = {{0, -1}, {-1, -1}, {-1, 0}, {-1, 1}};
-    for (int m = 0; m < 4; ++m, ++t) {
-        offsets[t][0] = 0;
-        offsets[t][1] = own[m][0];
-        offsets[t][2] = own[m][1];
+    for (int m = 0; m < 4; ++m, ++t, ++u) {
+        whole[t][0] = small[u][0] = 0;
+        whole[t][1] = small[u][1] = own[m][0];
+        whole[t][2] = small[u][2] = own[m][1];
     }
+}
+
+/* Rows (slab order) of a template of count taps at pos: whether all are there (at[] set). */
+GS_INLINE int template_rows_at(const int32_t *box, const int64_t *box_lo, const int64_t *span, const int64_t *pos,
+                               int64_t (*offsets)[3], int count, int64_t *at)
+{
+    for (int t = 0; t < count; ++t) {
+        int64_t cell = 0;
+        for (int x = 0; x < 3; ++x) {
+            int64_t v = pos[x] + offsets[t][x] - box_lo[x];
+            if (v < 0 || v >= span[x])
+                return 0;
+            cell = cell * span[x] + v;
+        }
+        if ((at[t] = box[cell]) < 0)
+            return 0;
+    }
+    return 1;
 }
 
 /* The shared pass of formats 3 and 4. keys: the level's n sorted packed keys; values int64
  * holding int32; column: the previous row's foot error is predicted too. decode: values from
- * residuals (values written); else residuals from values (residuals written). shift (4) and
- * weights (TEMPLATE_TAPS, in 1/2^WEIGHT_BITS) given (format 4): a row whose template rows are all
- * there is predicted by them instead. kinds (n, key order, or NULL): how each row was
- * predicted (0 template, 1 bicubic foot, 2 bilinear foot, 3 the row before, 4 by 0). taps
- * (n x TEMPLATE_TAPS, key order, or NULL): with shift given, only each row's template rows
- * (key-order positions; -1 in the first place when one is missing) and kinds are written.
- * Returns 0, or -1 when memory ran out. */
+ * residuals (values written); else residuals from values (residuals written). shift (4) given
+ * (format 4): a row whose whole template's rows are all there is predicted by them with
+ * weights (WHOLE_TAPS, in 1/2^WEIGHT_BITS; NULL: not), else one whose small template's are,
+ * with small (SMALL_TAPS; NULL: not), else as format 3. kinds (n, key order, or NULL): how each
+ * row was predicted (0 whole template, 1 small template, 2 bicubic foot, 3 bilinear foot, 4 the
+ * row before, 5 by 0). taps (n x WHOLE_TAPS, or n x SMALL_TAPS when which is 1; key order; or
+ * NULL): with shift given, only each row's rows of that template (key-order positions; -1 in
+ * each place when one is missing) are written, and kinds: 0 where they are all there. Returns
+ * 0, or -1 when memory ran out. */
 static int radial_pass(int64_t n, const int64_t *keys, int64_t order, int64_t column, int64_t decode,
                        int64_t *values, int64_t *residuals, const int64_t *shift, const int64_t *weights,
-                       uint8_t *kinds, int64_t *taps)
+                       const int64_t *small, uint8_t *kinds, int64_t *taps, int which)
 {
     if (n <= 0)
         return 0;
@@ -167,10 +196,10 @@ static int radial_pass(int64_t n, const int64_t *keys, int64_t order, int64_t co
     start[0] = 0;
 
     /* format 4: a dense box of the rows by slab-axis position, for the template's lookups */
-    int64_t offsets[TEMPLATE_TAPS][3], box_lo[3] = {lo_a, 0, 0}, span[3] = {slabs, 0, 0};
+    int64_t whole[WHOLE_TAPS][3], small_offsets[SMALL_TAPS][3], box_lo[3] = {lo_a, 0, 0}, span[3] = {slabs, 0, 0};
     int32_t *box = NULL;
     if (shift) {
-        template_offsets(shift, offsets);
+        template_offsets(shift, whole, small_offsets);
         for (int x = 1; x < 3; ++x) {
             int axis = x == 1 ? b : c;
             int64_t low = unpack(keys[0], axis), high = low;
@@ -203,35 +232,34 @@ static int radial_pass(int64_t n, const int64_t *keys, int64_t order, int64_t co
         int64_t key = slab_keys[r], ia = unpack(key, 0), s = ia - lo_a;
         int64_t prediction = 0, total = 0, acc = 0;
         int64_t den = 2 * ia + order;
-        int kind = 4, templated = 0;
-        if (box) { /* format 4: the template, where all of its rows are there */
-            int64_t at[TEMPLATE_TAPS], pos[3] = {ia, unpack(key, 1), unpack(key, 2)};
-            templated = 1;
-            for (int t = 0; t < TEMPLATE_TAPS && templated; ++t) {
-                int64_t cell = 0;
-                for (int x = 0; x < 3; ++x) {
-                    int64_t v = pos[x] + offsets[t][x] - box_lo[x];
-                    if (v < 0 || v >= span[x]) {
-                        templated = 0;
-                        break;
-                    }
-                    cell = cell * span[x] + v;
-                }
-                if (templated && (at[t] = box[cell]) < 0)
-                    templated = 0;
-            }
+        int kind = 5, templated = 0;
+        if (box) { /* format 4: a template, where all of its rows are there */
+            int64_t at[WHOLE_TAPS], pos[3] = {ia, unpack(key, 1), unpack(key, 2)};
             if (taps) {
-                for (int t = 0; t < TEMPLATE_TAPS; ++t)
-                    taps[perm[r] * TEMPLATE_TAPS + t] = templated ? perm[at[t]] : -1;
+                int count = which ? SMALL_TAPS : WHOLE_TAPS;
+                int there = template_rows_at(box, box_lo, span, pos, which ? small_offsets : whole, count, at);
+                for (int t = 0; t < count; ++t)
+                    taps[perm[r] * count + t] = there ? perm[at[t]] : -1;
                 if (kinds)
-                    kinds[perm[r]] = templated ? 0 : 4;
+                    kinds[perm[r]] = there ? 0 : 5;
                 continue;
             }
-            if (templated) {
-                for (int t = 0; t < TEMPLATE_TAPS; ++t)
-                    acc += weights[t] * values[perm[at[t]]];
-                prediction = (acc + ((int64_t)1 << (WEIGHT_BITS - 1))) >> WEIGHT_BITS; /* arithmetic: floor */
+            const int64_t *w = NULL;
+            int count = 0;
+            if (weights && template_rows_at(box, box_lo, span, pos, whole, WHOLE_TAPS, at)) {
+                w = weights;
+                count = WHOLE_TAPS;
                 kind = 0;
+            } else if (small && template_rows_at(box, box_lo, span, pos, small_offsets, SMALL_TAPS, at)) {
+                w = small;
+                count = SMALL_TAPS;
+                kind = 1;
+            }
+            if (w) {
+                for (int t = 0; t < count; ++t)
+                    acc += w[t] * values[perm[at[t]]];
+                prediction = (acc + ((int64_t)1 << (WEIGHT_BITS - 1))) >> WEIGHT_BITS; /* arithmetic: floor */
+                templated = 1;
                 acc = 0;
             }
         }
@@ -278,7 +306,7 @@ static int radial_pass(int64_t n, const int64_t *keys, int64_t order, int64_t co
             if (complete) {
                 acc = cubic_acc;
                 total = cubic_total;
-                kind = 1;
+                kind = 2;
             } else {
                 for (int db = 0; db < 2; ++db) { /* bilinear, over the nodes present */
                     int64_t nb = base[0] + db, nc = base[1];
@@ -304,7 +332,7 @@ static int radial_pass(int64_t n, const int64_t *keys, int64_t order, int64_t co
             else
                 prediction = floor_div(2 * acc + total, 2 * total); /* rounded half up */
             foot[r] = prediction;
-            kind = kind == 1 ? 1 : 2;
+            kind = kind == 2 ? 2 : 3;
             /* the foot's interpolation error varies slowly along a column: take the
              * previous row's off too, when that was predicted from its foot */
             if (column && has_prev && footed[r - 1])
@@ -312,7 +340,7 @@ static int radial_pass(int64_t n, const int64_t *keys, int64_t order, int64_t co
             footed[r] = 1;
         } else if (!templated && has_prev) {
             prediction = values[perm[r - 1]];
-            kind = 3;
+            kind = 4;
         }
         int64_t row = perm[r];
         if (kinds)
@@ -335,21 +363,26 @@ static int radial_pass(int64_t n, const int64_t *keys, int64_t order, int64_t co
 GS_EXPORT int gs_radial_code(int64_t n, const int64_t *keys, int64_t order, int64_t column, int64_t decode,
                              int64_t *values, int64_t *residuals)
 {
-    return radial_pass(n, keys, order, column, decode, values, residuals, NULL, NULL, NULL, NULL);
+    return radial_pass(n, keys, order, column, decode, values, residuals, NULL, NULL, NULL, NULL, NULL, 0);
 }
 
-/* Format 4: the template by weights where it is complete, else format 3's prediction;
- * kinds (uint8, n) written. weights NULL: taps (n x TEMPLATE_TAPS) and kinds written, nothing
- * else. */
+/* Format 4: the templates by their weights where they are there, else format 3's prediction;
+ * kinds (uint8, n) written. */
 GS_EXPORT int gs_template_code(int64_t n, const int64_t *keys, int64_t order, int64_t column, int64_t decode,
-                               const int64_t *shift, const int64_t *weights, int64_t *values, int64_t *residuals,
-                               uint8_t *kinds, int64_t *taps)
+                               const int64_t *shift, const int64_t *weights, const int64_t *small, int64_t *values,
+                               int64_t *residuals, uint8_t *kinds)
 {
-    return radial_pass(n, keys, order, column, decode, values, residuals, shift, weights, kinds,
-                       weights ? NULL : taps);
+    return radial_pass(n, keys, order, column, decode, values, residuals, shift, weights, small, kinds, NULL, 0);
 }
 
-GS_EXPORT int64_t gs_template_taps(void)
+/* Format 4's template rows: taps (n x its taps) and kinds of template which (0 whole, 1 small). */
+GS_EXPORT int gs_template_rows(int64_t n, const int64_t *keys, int64_t order, const int64_t *shift, int64_t which,
+                               int64_t *taps, uint8_t *kinds)
 {
-    return TEMPLATE_TAPS;
+    return radial_pass(n, keys, order, 0, 0, NULL, NULL, shift, NULL, NULL, kinds, taps, (int)which);
+}
+
+GS_EXPORT int64_t gs_template_taps(int64_t which)
+{
+    return which ? SMALL_TAPS : WHOLE_TAPS;
 }
