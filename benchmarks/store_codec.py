@@ -174,7 +174,7 @@ def main(argv=None):
     r = sub.add_parser("recode", help="copy a store with its tiles encoded again in another format")
     r.add_argument("source", type=Path)
     r.add_argument("target", type=Path)
-    r.add_argument("--format", type=int, choices=(2, 3), default=3)
+    r.add_argument("--format", type=int, choices=(2, 3, 4), default=4)
     args = parser.parse_args(argv)
     context = {"time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "load": os.getloadavg(),
                "cpus": os.cpu_count(), "machine": platform.processor() or platform.machine()}

@@ -388,3 +388,38 @@ def test_a_whole_globe_samples_its_lattice_by_ducc0_when_installed(model, monkey
     assert np.abs(fast.nodes(region, 2.5).undulation - model.nodes(region, 2.5).undulation).max() < 1e-9
     monkeypatch.setenv("GEOIDSPLINE_LATTICE_ENGINE", "exact")
     assert global_lattice_engine(model) is model
+
+
+def test_bands_are_committed_in_order_behind_the_fit_and_a_failed_fit_keeps_the_committed():
+    from geoidspline.api.banded import _commit_behind
+
+    events = []
+
+    def fitted(fail_after=None):
+        for band in range(4):
+            if band == fail_after:
+                raise FitError(f"band {band} failed")
+            events.append(("fitted", band))
+            yield band, f"result {band}"
+
+    def commit(band, result):
+        assert result == f"result {band}"
+        events.append(("committed", band))
+
+    _commit_behind(fitted(), commit, lambda: events.append(("counted",)))
+    committed = [e[1] for e in events if e[0] == "committed"]
+    assert committed == [0, 1, 2, 3] and events.count(("counted",)) == 4
+    # band b is committed before band b + 2 is fitted (one waits at most)
+    for band in range(2, 4):
+        assert events.index(("committed", band - 2)) < events.index(("fitted", band))
+    events.clear()
+    with pytest.raises(FitError, match="band 2 failed"):
+        _commit_behind(fitted(fail_after=2), commit, lambda: None)
+    assert [e[1] for e in events if e[0] == "committed"] == [0, 1]  # band 1's commit completed all the same
+
+    def broken(band, result):
+        if band == 1:
+            raise StoreError("disk full")
+
+    with pytest.raises(StoreError, match="disk full"):
+        _commit_behind(fitted(), broken, lambda: None)

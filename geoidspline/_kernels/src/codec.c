@@ -116,21 +116,13 @@ static void template_offsets(const int64_t *shift, int64_t whole[WHOLE_TAPS][3],
     }
 }
 
-/* Rows (slab order) of a template of count taps at pos: whether all are there (at[] set). */
-GS_INLINE int template_rows_at(const int32_t *box, const int64_t *box_lo, const int64_t *span, const int64_t *pos,
-                               int64_t (*offsets)[3], int count, int64_t *at)
+/* Rows (slab order) of a template of count taps (linear offsets in the padded box) at cell:
+ * whether all are there (at[] set). */
+GS_INLINE int template_rows_at(const int32_t *box, int64_t cell, const int64_t *linear, int count, int64_t *at)
 {
-    for (int t = 0; t < count; ++t) {
-        int64_t cell = 0;
-        for (int x = 0; x < 3; ++x) {
-            int64_t v = pos[x] + offsets[t][x] - box_lo[x];
-            if (v < 0 || v >= span[x])
-                return 0;
-            cell = cell * span[x] + v;
-        }
-        if ((at[t] = box[cell]) < 0)
+    for (int t = 0; t < count; ++t)
+        if ((at[t] = box[cell + linear[t]]) < 0)
             return 0;
-    }
     return 1;
 }
 
@@ -195,11 +187,18 @@ static int radial_pass(int64_t n, const int64_t *keys, int64_t order, int64_t co
         start[s] = start[s - 1];
     start[0] = 0;
 
-    /* format 4: a dense box of the rows by slab-axis position, for the template's lookups */
-    int64_t whole[WHOLE_TAPS][3], small_offsets[SMALL_TAPS][3], box_lo[3] = {lo_a, 0, 0}, span[3] = {slabs, 0, 0};
+    /* format 4: a dense box of the rows by slab-axis position, for the template's lookups,
+     * padded by the templates' reach (2 slabs before, pad rows aside) so that no lookup
+     * leaves it: a tap is a fixed offset in it */
+    int64_t whole[WHOLE_TAPS][3], small_offsets[SMALL_TAPS][3], box_lo[3] = {lo_a - 2, 0, 0}, span[3] = {slabs + 2, 0, 0};
+    int64_t whole_linear[WHOLE_TAPS], small_linear[SMALL_TAPS];
     int32_t *box = NULL;
     if (shift) {
         template_offsets(shift, whole, small_offsets);
+        int64_t pad = 0;
+        for (int t = 0; t < WHOLE_TAPS; ++t)
+            for (int x = 1; x < 3; ++x)
+                pad = llabs(whole[t][x]) > pad ? llabs(whole[t][x]) : pad;
         for (int x = 1; x < 3; ++x) {
             int axis = x == 1 ? b : c;
             int64_t low = unpack(keys[0], axis), high = low;
@@ -208,9 +207,13 @@ static int radial_pass(int64_t n, const int64_t *keys, int64_t order, int64_t co
                 low = v < low ? v : low;
                 high = v > high ? v : high;
             }
-            box_lo[x] = low;
-            span[x] = high - low + 1;
+            box_lo[x] = low - pad;
+            span[x] = high - low + 1 + 2 * pad;
         }
+        for (int t = 0; t < WHOLE_TAPS; ++t)
+            whole_linear[t] = (whole[t][0] * span[1] + whole[t][1]) * span[2] + whole[t][2];
+        for (int t = 0; t < SMALL_TAPS; ++t)
+            small_linear[t] = (small_offsets[t][0] * span[1] + small_offsets[t][1]) * span[2] + small_offsets[t][2];
         box = malloc((size_t)(span[0] * span[1] * span[2]) * sizeof *box);
         if (!box) {
             free(start);
@@ -234,10 +237,11 @@ static int radial_pass(int64_t n, const int64_t *keys, int64_t order, int64_t co
         int64_t den = 2 * ia + order;
         int kind = 5, templated = 0;
         if (box) { /* format 4: a template, where all of its rows are there */
-            int64_t at[WHOLE_TAPS], pos[3] = {ia, unpack(key, 1), unpack(key, 2)};
+            int64_t at[WHOLE_TAPS];
+            int64_t cell = ((ia - box_lo[0]) * span[1] + unpack(key, 1) - box_lo[1]) * span[2] + unpack(key, 2) - box_lo[2];
             if (taps) {
                 int count = which ? SMALL_TAPS : WHOLE_TAPS;
-                int there = template_rows_at(box, box_lo, span, pos, which ? small_offsets : whole, count, at);
+                int there = template_rows_at(box, cell, which ? small_linear : whole_linear, count, at);
                 for (int t = 0; t < count; ++t)
                     taps[perm[r] * count + t] = there ? perm[at[t]] : -1;
                 if (kinds)
@@ -246,11 +250,11 @@ static int radial_pass(int64_t n, const int64_t *keys, int64_t order, int64_t co
             }
             const int64_t *w = NULL;
             int count = 0;
-            if (weights && template_rows_at(box, box_lo, span, pos, whole, WHOLE_TAPS, at)) {
+            if (weights && template_rows_at(box, cell, whole_linear, WHOLE_TAPS, at)) {
                 w = weights;
                 count = WHOLE_TAPS;
                 kind = 0;
-            } else if (small && template_rows_at(box, box_lo, span, pos, small_offsets, SMALL_TAPS, at)) {
+            } else if (small && template_rows_at(box, cell, small_linear, SMALL_TAPS, at)) {
                 w = small;
                 count = SMALL_TAPS;
                 kind = 1;
