@@ -94,6 +94,10 @@ SCHWARZ_OVERLAP = 0.0
 #: since its dense factor costs the cube of its size.
 SCHWARZ_MAX_UNKNOWNS = 2_000
 
+#: The type the cubes' packed Cholesky factors are held in (:class:`SchwarzPreconditioner`;
+#: factorised in float64): float32, half the bytes of the largest part of a step's memory.
+FACTOR_DTYPE = np.float32
+
 #: Conjugate gradients stop when the fitted values at the sites are within this
 #: fraction of the tolerance (RMS over the sites) of the whole problem's solution.
 SOLVE_FRACTION = 0.01
@@ -469,20 +473,28 @@ def schwarz_blocks(basis: HierarchicalBasis, size: float, overlap: float, max_un
 
 class SchwarzPreconditioner:
     """Additive Schwarz: ``z = Σ_b R_bᵀ S_bb⁻¹ R_b r`` over overlapping subdomains, each
-    principal block of the whole matrix factorised once by dense Cholesky, its factor
-    packed (the lower triangle by rows, one array for all blocks) and all blocks applied
-    by one compiled call (:func:`geoidspline._kernels.fitting.schwarz_apply`). The blocks
-    are nearly full, so the packed triangle is the least they can be held in; sparse LDLᵀ
-    factors (qdldl) of the same blocks took 1.5 times the memory (benchmarks/README.md)."""
+    principal block of the whole matrix factorised once by dense Cholesky (in float64), its
+    factor packed (the lower triangle by rows, one array for all blocks) and held in
+    :data:`FACTOR_DTYPE`, and all blocks applied by one compiled call
+    (:func:`geoidspline._kernels.fitting.schwarz_apply`, accumulating in float64). The
+    blocks are nearly full, so the packed triangle is the least they can be held in.
+    Rounding the factors changes the preconditioner, not the solution: ``L̃ L̃ᵀ`` stays
+    positive definite, and conjugate gradients stop on the same rule (benchmarks/README.md,
+    issue 21's memory: the iterations of float32 factors against float64 ones)."""
 
     def __init__(self, system: SymmetricMatrix, index_sets, advance=None):
         sizes = np.array([idx.size for idx in index_sets], dtype=np.int64)
         self.block_at = np.r_[0, np.cumsum(sizes)]
         self.index = np.concatenate(index_sets).astype(np.int64) if index_sets else _EMPTY
-        self.factor_at = np.r_[0, np.cumsum(sizes * (sizes + 1) // 2)]
-        self.factors = np.empty(int(self.factor_at[-1]))
+        packed_sizes = sizes * (sizes + 1) // 2
+        self.factor_at = np.r_[0, np.cumsum(packed_sizes)]
+        self.factors = np.empty(int(self.factor_at[-1]), dtype=FACTOR_DTYPE)
+        # each block is factorised in float64 here, then rounded into its place
+        scratch = np.empty(int(packed_sizes.max()) if sizes.size else 0)
         for b, idx in enumerate(index_sets):
-            _cholesky(system.principal_lower(idx), self.factors[self.factor_at[b]:self.factor_at[b + 1]])
+            packed = scratch[:packed_sizes[b]]
+            _cholesky(system.principal_lower(idx), packed)
+            self.factors[self.factor_at[b]:self.factor_at[b + 1]] = packed
             if advance is not None:
                 advance(1)
 
