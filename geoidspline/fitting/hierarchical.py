@@ -103,14 +103,25 @@ FACTOR_DTYPE = np.float32
 SOLVE_FRACTION = 0.01
 MAX_ITERATIONS = 1_000
 
-#: Peak memory of a fit per unknown of its largest step (bytes): the upper triangle of
-#: the whole problem (about 85 non-zeros a row), the cubes' packed Cholesky factors (about
-#: 2.5 local unknowns per unknown, about 3.5 kB), the slices of the normal equations being
-#: assembled, and the data nodes (global EGM96 15' grid at 0.1 m, 2026-12-03: 1.70 GB peak
-#: resident for 281,071 unknowns, 6,040 bytes each; at 0.5 m 1.07 GB for 172,152, 6,200;
-#: benchmarks/README.md, issue 21's memory). A step needing more than the memory
-#: available is not built (:class:`BasisTooLarge`).
-BYTES_PER_UNKNOWN = 6_500
+#: Entries of the cubes' packed Cholesky factors per unknown of a step (about 2.5 local
+#: unknowns per unknown, a packed row each of about half its cube's size): global EGM96
+#: 15' grid at 0.1 m with the cell centres, 2026-12-03, 156 million for 296,315 unknowns
+#: (528 each; 465 at 238,311), benchmarks/README.md, issue 21's memory.
+FACTOR_ENTRIES_PER_UNKNOWN = 530
+
+#: The rest of a fit's peak per unknown of its largest step (bytes): the upper triangle of
+#: the whole problem (about 85 non-zeros a row), the slices of the normal equations being
+#: assembled, and the data nodes and cell centres (the global 15' grid at 0.5 m, the
+#: matrix's grid row with the most nodes per unknown: 1.10 GB peak resident for 172,651
+#: unknowns, 6,350 bytes each, of which about 1,750 the factors).
+OTHER_BYTES_PER_UNKNOWN = 4_400
+
+#: Peak memory of a fit per unknown of its largest step (bytes; about 6,500 with float32
+#: factors, 8,600 with float64 ones): global 15' grid at 0.1 m 1.46 GB for 296,339
+#: unknowns (4,940 each), at 0.5 m 6,350 (benchmarks/README.md). A step needing more
+#: than the memory available is not built (:class:`BasisTooLarge`), and
+#: :func:`geoidspline.fitting.memory.plan` plans level 0 with it.
+BYTES_PER_UNKNOWN = OTHER_BYTES_PER_UNKNOWN + FACTOR_ENTRIES_PER_UNKNOWN * np.dtype(FACTOR_DTYPE).itemsize
 
 #: Cell centres of a grid (:mod:`geoidspline.fitting.cell_centres`) as sites: their weight
 #: relative to a node's.
