@@ -489,9 +489,10 @@ class SchwarzPreconditioner:
     :data:`FACTOR_DTYPE`, and all blocks applied by one compiled call
     (:func:`geoidspline._kernels.fitting.schwarz_apply`, accumulating in float64). The
     blocks are nearly full, so the packed triangle is the least they can be held in.
-    Rounding the factors changes the preconditioner, not the solution: ``L̃ L̃ᵀ`` stays
-    positive definite, and conjugate gradients stop on the same rule (benchmarks/README.md,
-    issue 21's memory: the iterations of float32 factors against float64 ones)."""
+    Rounding the factors changes the preconditioner, not the problem solved: ``L̃ L̃ᵀ``
+    stays positive definite, and conjugate gradients stop on the same rule, at an iterate
+    that differs within it (benchmarks/README.md, issue 21's memory: iterations and
+    stores of float32 factors against float64 ones)."""
 
     def __init__(self, system: SymmetricMatrix, index_sets, advance=None):
         sizes = np.array([idx.size for idx in index_sets], dtype=np.int64)
