@@ -137,6 +137,17 @@ def test_radial_residuals_and_values_are_inverse_and_small_on_a_shell():
     assert np.median(np.abs(residuals)) < 0.5 * np.median(np.abs(along_k))
 
 
+def test_format_4_keeps_a_template_only_where_it_pays_for_its_weights():
+    # a small shell (3,000 coefficients): 42 weights in the header cost more than they save
+    idx, values = _shell(h=0.004, order=6)
+    data = {f: codec.encode_tile((0, 0, 0), np.zeros(len(idx)), idx, values, 1e-3, {"order": 6}, tile_format=f)
+            for f in (3, 4)}
+    header, decoded = codec.decode_tile(data[4])
+    assert header["levels"][0]["template"] is None and len(idx) > 2_000
+    assert np.array_equal(decoded[0][1].view(np.int64), codec.decode_tile(data[3])[1][0][1].view(np.int64))
+    assert len(data[4]) <= len(data[3]) + 100, {f: len(d) for f, d in data.items()}
+
+
 @pytest.mark.parametrize("tile_format, damage, message", [
     *((f, "signature", "coded tile's signature") for f in (3, 4)),
     *((f, "value array", "damaged array") for f in (3, 4)),
@@ -148,7 +159,7 @@ def test_radial_residuals_and_values_are_inverse_and_small_on_a_shell():
     (4, "weight", "template is not 4 shifts"),
 ])
 def test_damaged_format_3_and_4_bytes_name_the_rule_broken(tile_format, damage, message):
-    idx, values = _shell(h=0.004, order=6)
+    idx, values = _shell(h=0.002 if tile_format == 4 else 0.004, order=6)  # 0.002: a template pays
     data = bytearray(codec.encode_tile((0, 0, 0), np.zeros(len(idx)), idx, values, 1e-3, {"order": 6},
                                        tile_format=tile_format))
     magic = len(codec.MAGICS[3])

@@ -412,6 +412,11 @@ def _template_pass(keys, order, column, decode, template, values=None, residuals
     return values, residuals, kinds
 
 
+def _grouped_bits(residuals, kinds):
+    """Zero-order entropy (bits) of residuals coded in groups by kind (format 4's arrays)."""
+    return sum(_entropy_bits(residuals[kinds == kind]) for kind in np.unique(kinds))
+
+
 def _encode_values4(level_keys, level_q, order):
     """Format 4's value arrays (whole-template residuals; the others, stably sorted by
     how they were predicted) and per level (column flag, template entry)."""
@@ -426,6 +431,12 @@ def _encode_values4(level_keys, level_q, order):
         rest = [residuals[kinds != 0] for _, residuals, kinds in both]
         column = _entropy_bits(rest[1]) < _entropy_bits(rest[0])
         _, residuals, kinds = both[column]
+        if template is not None:
+            # the template only where it pays for its weights in the header (a sparse
+            # overlay's level, a grid store's tile: +1.6 % on egm96-15 0.5 m otherwise)
+            _, plain, plain_kinds = _template_pass(keys, order, column, False, None, q)
+            if _grouped_bits(plain, plain_kinds) <= _grouped_bits(residuals, kinds) + 8 * len(json.dumps(template)):
+                template, residuals, kinds = None, plain, plain_kinds
         templated.append(residuals[kinds == 0])
         others.append(residuals[kinds != 0])
         other_kinds.append(kinds[kinds != 0])
