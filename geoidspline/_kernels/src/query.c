@@ -53,6 +53,14 @@ typedef struct {
     const double *values;
     const int32_t *fold_offs, *own_offs;        /* (bricks, side, side) per column: run offset - first k */
     const uint16_t *fold_full, *own_full;       /* (bricks, S, S) per cell column: bit lz = all columns full */
+    /* Quantised tables (qwidth 2 or 4; values then unused): the coefficient at value
+     * position v of brick b is (double)(qbase[b] + qvalues[v]) * value_step, bitwise what
+     * a store's decoder gives (codec.py: int32 q times the step); qvalues int16 (qwidth 2)
+     * or int32 (4, qbase 0): 2 or 4 bytes a value, not 8. */
+    const void *qvalues;
+    const int32_t *qbase; /* per brick */
+    double value_step;
+    int64_t qwidth; /* 0: float64 values */
 } gs_spline;
 
 /* ---- the brick hash --------------------------------------------------------------- */
@@ -191,10 +199,29 @@ GS_INLINE double lanes_dot(const int order, const lanes *a, const double *w)
     return s;
 }
 
+/* Coefficient i of a quantised table's values qv (quant: 2 int16, 4 int32): (double)(qb +
+ * q) * step, the decoder's product (gs_spline). */
+GS_INLINE double dequantised_at(const int quant, const void *qv, int64_t i, int32_t qb, double step)
+{
+    int32_t q = quant == 2 ? (int32_t)((const int16_t *)qv)[i] : ((const int32_t *)qv)[i];
+    return (double)(qb + q) * step;
+}
+
+/* order coefficients of a quantised table from qv + at into pad */
+GS_INLINE const double *dequantised(const int order, const int quant, const void *qv, int64_t at, int32_t qb,
+                                    double step, double *pad)
+{
+    for (int r = 0; r < order; ++r)
+        pad[r] = dequantised_at(quant, qv, at + r, qb, step);
+    return pad;
+}
+
 /* The first of the order coefficients k = lz .. lz + order - 1 of column entry packed
  * (a run of length coefficients from local k0 at values + run offset), or pad filled with
- * them and zeros where the run does not reach; NULL when the column is empty. */
-GS_INLINE const double *column_run(const int order, const double *values, int32_t packed, int64_t lz, double *pad)
+ * them and zeros where the run does not reach; NULL when the column is empty. quant: the
+ * table is quantised (qv, qb, step; see gs_spline), the coefficients always go to pad. */
+GS_INLINE const double *column_run(const int order, const int quant, const double *values, const void *qv,
+                                   int32_t qb, double step, int32_t packed, int64_t lz, double *pad)
 {
     int64_t length = packed & COL_KMASK;
     if (length == 0)
@@ -202,9 +229,11 @@ GS_INLINE const double *column_run(const int order, const double *values, int32_
     int64_t start = lz - ((packed >> COL_KBITS) & COL_KMASK);
     int64_t offset = (int64_t)(packed >> COL_SHIFT) + start;
     if (start >= 0 && start + order <= length)
-        return values + offset;
+        return quant ? dequantised(order, quant, qv, offset, qb, step, pad) : values + offset;
     for (int r = 0; r < order; ++r)
-        pad[r] = (start + r >= 0 && start + r < length) ? values[offset + r] : 0.0;
+        pad[r] = (start + r >= 0 && start + r < length)
+                     ? (quant ? dequantised_at(quant, qv, offset + r, qb, step) : values[offset + r])
+                     : 0.0;
     return pad;
 }
 
@@ -221,14 +250,19 @@ GS_INLINE const double *column_run(const int order, const double *values, int32_
  * points: a folded table covers its band whole). Otherwise each column is decoded from
  * its entry (column_run), an empty one skipped, one cut by the run's end read through a
  * zero-padded copy. Both add the same products in the same order (the same bits). */
-GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, const int full, const double *wx,
+GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, const int full, const int quant,
+                         const double *wx,
                          const double *wy, const double *wz, int64_t base, const int32_t *cols, const int32_t *offs,
                          int64_t brick, int64_t lx, int64_t ly, int64_t lz, double inv_h, double *result)
 {
     const int64_t side = (1 << BRICK_BITS) + order - 1;
     const int64_t col_at = (brick * side + lx) * side + ly;
-    const double *values = S->values + base;
-    const double *values_lz = values + lz;
+    const double *values = quant ? NULL : S->values + base;
+    const double *values_lz = quant ? NULL : values + lz;
+    const void *qv = quant == 2 ? (const void *)((const int16_t *)S->qvalues + base)
+                   : (const void *)((const int32_t *)S->qvalues + base); /* quant: see gs_spline */
+    const int32_t qb = quant ? S->qbase[brick] : 0;
+    const double step = S->value_step;
     /* A per derivative (x, y): 00 value; 10 01 first; 20 02 11 second */
     lanes a00, a10, a01, a20, a02, a11;
     double pad[GS_MAX_ORDER];
@@ -252,9 +286,10 @@ GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, 
         for (int q = 0; q < order; ++q) {
             const double *c;
             if (full) {
-                c = values_lz + offs[col_at + p * side + q];
+                c = quant ? dequantised(order, quant, qv, lz + offs[col_at + p * side + q], qb, step, pad)
+                          : values_lz + offs[col_at + p * side + q];
             } else {
-                c = column_run(order, values, cols[col_at + p * side + q], lz, pad);
+                c = column_run(order, quant, values, qv, qb, step, cols[col_at + p * side + q], lz, pad);
                 if (c == NULL)
                     continue;
             }
@@ -293,16 +328,28 @@ GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, 
 }
 
 /* One brick table at a point: the full-column sum where the table's full map allows it,
- * the decoding one otherwise. */
+ * the decoding one otherwise; from quantised values when the spline has them. */
 GS_INLINE void brick_sum(const gs_spline *S, const int order, const int nderiv, const double *wx, const double *wy,
                          const double *wz, int64_t base, const int32_t *cols, const int32_t *offs,
                          const uint16_t *full, int64_t brick, int64_t lx, int64_t ly, int64_t lz, double inv_h,
                          double *result)
 {
-    if ((full[(brick << (2 * BRICK_BITS)) + (lx << BRICK_BITS) + ly] >> lz) & 1)
-        table_sum(S, order, nderiv, 1, wx, wy, wz, base, cols, offs, brick, lx, ly, lz, inv_h, result);
-    else
-        table_sum(S, order, nderiv, 0, wx, wy, wz, base, cols, offs, brick, lx, ly, lz, inv_h, result);
+    int is_full = (full[(brick << (2 * BRICK_BITS)) + (lx << BRICK_BITS) + ly] >> lz) & 1;
+    if (S->qwidth == 2) {
+        if (is_full)
+            table_sum(S, order, nderiv, 1, 2, wx, wy, wz, base, cols, offs, brick, lx, ly, lz, inv_h, result);
+        else
+            table_sum(S, order, nderiv, 0, 2, wx, wy, wz, base, cols, offs, brick, lx, ly, lz, inv_h, result);
+    } else if (S->qwidth == 4) {
+        if (is_full)
+            table_sum(S, order, nderiv, 1, 4, wx, wy, wz, base, cols, offs, brick, lx, ly, lz, inv_h, result);
+        else
+            table_sum(S, order, nderiv, 0, 4, wx, wy, wz, base, cols, offs, brick, lx, ly, lz, inv_h, result);
+    } else if (is_full) {
+        table_sum(S, order, nderiv, 1, 0, wx, wy, wz, base, cols, offs, brick, lx, ly, lz, inv_h, result);
+    } else {
+        table_sum(S, order, nderiv, 0, 0, wx, wy, wz, base, cols, offs, brick, lx, ly, lz, inv_h, result);
+    }
 }
 
 /* The brick of level lev holding the point (x, y, z), or -1; cell gets the point's cell
@@ -739,10 +786,19 @@ GS_INLINE void latlon_locate(const gs_spline *S, const int order, double x_, dou
         L->ly = cell[1] & BRICK_MASK;
         L->lz = cell[2] & BRICK_MASK;
         const int32_t *row = S->fold_offs + (brick * side + L->lx) * side + L->ly;
-        const double *v = S->values + S->fold_base[brick] + L->lz;
-        for (int p = 0; p < order; ++p) { /* a row's first and last coefficients */
-            __builtin_prefetch(v + row[p * side]);
-            __builtin_prefetch(v + row[p * side + order - 1] + order - 1);
+        if (S->qwidth) {
+            const char *v = (const char *)S->qvalues + S->qwidth * (S->fold_base[brick] + L->lz);
+            __builtin_prefetch(S->qbase + brick);
+            for (int p = 0; p < order; ++p) { /* a row's first and last coefficients */
+                __builtin_prefetch(v + S->qwidth * row[p * side]);
+                __builtin_prefetch(v + S->qwidth * (row[p * side + order - 1] + order - 1));
+            }
+        } else {
+            const double *v = S->values + S->fold_base[brick] + L->lz;
+            for (int p = 0; p < order; ++p) { /* a row's first and last coefficients */
+                __builtin_prefetch(v + row[p * side]);
+                __builtin_prefetch(v + row[p * side + order - 1] + order - 1);
+            }
         }
         return;
     }
@@ -995,6 +1051,165 @@ GS_EXPORT int64_t gs_own_table_row(const int64_t *brick_start, int64_t nb, const
         }
     }
     return at;
+}
+
+/* The own table of one row of a level's bricks (brick index row on the first axis)
+ * straight from the level's sorted keys: the same bricks, column entries and values as
+ * gs_brick_row_entries then gs_own_table_row give, without listing the (brick,
+ * coefficient) pairs (building a single-level index: 5 times faster). keys: the n keys
+ * whose first index is in [row S - order + 1, row S + S - 1] (S = 2**BRICK_BITS), sorted;
+ * coefficients: theirs. With values NULL only counts: sizes = (bricks, values). Otherwise
+ * fills brick_keys (bricks), base (bricks), cols (bricks, side, side; zeroed by the
+ * caller) and values (zeroed). Returns 0, or -1 when memory ran out. */
+GS_EXPORT int64_t gs_own_table_keys(const int64_t *keys, int64_t n, const double *coefficients, int64_t order,
+                                    int64_t row, int64_t *brick_keys, int64_t *base, int32_t *cols, double *values,
+                                    int64_t *sizes)
+{
+    const int64_t bits = BRICK_BITS, side = (1 << BRICK_BITS) + order - 1;
+    const int64_t big = ((int64_t)1) << 40;
+    int64_t lo1 = big, hi1 = -big, lo2 = big, hi2 = -big;
+    for (int64_t c = 0; c < n; ++c) {
+        int64_t a1 = ((keys[c] >> GS_KEY_BITS) & GS_KEY_MASK) - GS_KEY_OFFSET;
+        int64_t a2 = (keys[c] & GS_KEY_MASK) - GS_KEY_OFFSET;
+        if ((a1 >> bits) < lo1) lo1 = a1 >> bits;
+        if (((a1 + order - 1) >> bits) > hi1) hi1 = (a1 + order - 1) >> bits;
+        if ((a2 >> bits) < lo2) lo2 = a2 >> bits;
+        if (((a2 + order - 1) >> bits) > hi2) hi2 = (a2 + order - 1) >> bits;
+    }
+    int64_t n1 = hi1 - lo1 + 1 > 0 ? hi1 - lo1 + 1 : 0, n2 = hi2 - lo2 + 1 > 0 ? hi2 - lo2 + 1 : 0;
+    int32_t *brick_of_cell = malloc(sizeof(int32_t) * (size_t)(n1 * n2 + 1));
+    if (!brick_of_cell)
+        return -1;
+    for (int64_t cell = 0; cell < n1 * n2; ++cell)
+        brick_of_cell[cell] = -1;
+    /* the bricks: wherever a B-spline touches a cell; numbered in key order */
+    for (int64_t c = 0; c < n; ++c) {
+        int64_t a1 = ((keys[c] >> GS_KEY_BITS) & GS_KEY_MASK) - GS_KEY_OFFSET;
+        int64_t a2 = (keys[c] & GS_KEY_MASK) - GS_KEY_OFFSET;
+        for (int64_t b1 = a1 >> bits; b1 <= (a1 + order - 1) >> bits; ++b1)
+            for (int64_t b2 = a2 >> bits; b2 <= (a2 + order - 1) >> bits; ++b2)
+                brick_of_cell[(b1 - lo1) * n2 + (b2 - lo2)] = 0;
+    }
+    int64_t nb = 0;
+    for (int64_t cell = 0; cell < n1 * n2; ++cell)
+        if (brick_of_cell[cell] == 0) {
+            if (values)
+                brick_keys[nb] = gs_pack(row, lo1 + cell / n2, lo2 + cell % n2);
+            brick_of_cell[cell] = (int32_t)nb++;
+        }
+    /* per column of each brick: its first and last local k */
+    int8_t *k_first = malloc((size_t)(2 * nb * side * side + 1)), *k_last = k_first + nb * side * side;
+    if (!k_first) {
+        free(brick_of_cell);
+        return -1;
+    }
+    memset(k_first, 127, (size_t)(nb * side * side));
+    memset(k_last, -1, (size_t)(nb * side * side));
+    for (int pass = 0; pass < 2; ++pass) { /* 0: the runs' bounds; 1: the values */
+        for (int64_t c = 0; c < n; ++c) {
+            int64_t a0 = ((keys[c] >> (2 * GS_KEY_BITS)) & GS_KEY_MASK) - GS_KEY_OFFSET;
+            int64_t a1 = ((keys[c] >> GS_KEY_BITS) & GS_KEY_MASK) - GS_KEY_OFFSET;
+            int64_t a2 = (keys[c] & GS_KEY_MASK) - GS_KEY_OFFSET;
+            int64_t l0 = a0 - (row << bits) + order - 1;
+            for (int64_t b1 = a1 >> bits; b1 <= (a1 + order - 1) >> bits; ++b1)
+                for (int64_t b2 = a2 >> bits; b2 <= (a2 + order - 1) >> bits; ++b2) {
+                    int64_t b = brick_of_cell[(b1 - lo1) * n2 + (b2 - lo2)];
+                    int64_t col = (b * side + l0) * side + a1 - (b1 << bits) + order - 1;
+                    int64_t l2 = a2 - (b2 << bits) + order - 1;
+                    if (pass == 0) {
+                        if (l2 < k_first[col]) k_first[col] = (int8_t)l2;
+                        if (l2 > k_last[col]) k_last[col] = (int8_t)l2;
+                    } else {
+                        values[base[b] + (cols[col] >> COL_SHIFT) + l2 - k_first[col]] = coefficients[c];
+                    }
+                }
+        }
+        /* the runs in (brick, column) order */
+        int64_t at = 0;
+        for (int64_t b = 0; pass == 0 && b < nb; ++b) {
+            int64_t b_base = at;
+            if (values)
+                base[b] = at;
+            for (int64_t col = b * side * side; col < (b + 1) * side * side; ++col) {
+                if (k_last[col] < 0)
+                    continue;
+                int64_t length = (int64_t)k_last[col] - k_first[col] + 1;
+                if (values)
+                    cols[col] = (int32_t)(((at - b_base) << COL_SHIFT) | ((int64_t)k_first[col] << COL_KBITS) | length);
+                at += length;
+            }
+        }
+        if (pass == 0) {
+            sizes[0] = nb;
+            sizes[1] = at;
+            if (!values)
+                break;
+        }
+    }
+    free(k_first);
+    free(brick_of_cell);
+    return 0;
+}
+
+/* The least k <= max_halvings such that every one of the n coefficients is bitwise
+ * (double)(int32) q * (step / 2**k) for an integer q (as a store's decoder makes them:
+ * its tiles are quantised with the manifest's step or a power-of-two fraction of it, and
+ * a multiple of step / 2**k is one of step / 2**(k + 1), bitwise: scaling by 2 is exact),
+ * or -1 when there is none. */
+GS_EXPORT int64_t gs_finest_step(const double *coefficients, int64_t n, double step, int64_t max_halvings)
+{
+    int64_t k = 0;
+    double s = step;
+    for (int64_t c = 0; c < n; ++c)
+        for (;;) {
+            double r = rint(coefficients[c] / s);
+            double back = fabs(r) < 2147483648.0 ? (double)(int32_t)r * s : NAN;
+            if (memcmp(&back, &coefficients[c], sizeof back) == 0)
+                break;
+            if (++k > max_halvings)
+                return -1;
+            s *= 0.5;
+        }
+    return k;
+}
+
+/* A table's values (total, bricks by base (nb): brick b owns [base[b], base[b + 1]) as
+ * integers q[v] = c / step - qbase[b] when every value c is (double)(int32) q * step
+ * bitwise (a store's coefficients are): width 2, int16 (qbase[b] = the brick's least q +
+ * 32768; its q must span at most 65,535 steps), or 4, int32 (qbase 0). Returns 0, or the
+ * first brick that is not so (+ 1): q and qbase are then partly written. */
+GS_EXPORT int64_t gs_quantise_table(const double *values, int64_t total, const int64_t *base, int64_t nb,
+                                    double step, int64_t width, void *q, int32_t *qbase)
+{
+    for (int64_t b = 0; b < nb; ++b) {
+        int64_t lo = base[b], hi = b + 1 < nb ? base[b + 1] : total;
+        int64_t q_min = INT64_MAX, q_max = INT64_MIN;
+        for (int64_t v = lo; v < hi; ++v) {
+            double r = rint(values[v] / step);
+            if (!(fabs(r) < 2147483648.0))
+                return b + 1;
+            int64_t qv = (int64_t)r;
+            double back = (double)(int32_t)qv * step;
+            if (memcmp(&back, &values[v], sizeof back) != 0) /* bitwise: -0.0 is not 0.0 */
+                return b + 1;
+            if (qv < q_min) q_min = qv;
+            if (qv > q_max) q_max = qv;
+        }
+        if (width == 2 && hi > lo && q_max - q_min > 65535)
+            return b + 1;
+        int64_t qb = width == 2 && hi > lo ? q_min + 32768 : 0;
+        if (qb > INT32_MAX || qb < INT32_MIN)
+            return b + 1;
+        qbase[b] = (int32_t)qb;
+        for (int64_t v = lo; v < hi; ++v) {
+            int64_t qv = (int64_t)rint(values[v] / step) - qb;
+            if (width == 2)
+                ((int16_t *)q)[v] = (int16_t)qv;
+            else
+                ((int32_t *)q)[v] = (int32_t)qv;
+        }
+    }
+    return 0;
 }
 
 /* The full-column maps of a table (gs_spline's *_offs and *_full, see table_sum) from its
