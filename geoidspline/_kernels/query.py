@@ -151,29 +151,39 @@ def own_table_row(brick_start, local, coef_index, coefficients, side):
     return base, cols, values
 
 
-def own_table_keys(keys, coefficients, order, row):
-    """The own table of one row of a level's bricks straight from its keys: ``(brick keys
-    (B,), base (B,), columns (B, side, side) int32, values)``, the same as
+def own_table_sizes(keys, order, row):
+    """``(bricks, values)`` of the own table of one row of a level's bricks
+    (:func:`own_table_fill`)."""
+    keys = c_in(keys, np.int64)
+    sizes = np.zeros(2, np.int64)
+    if _own_table_keys(ptr(keys), keys.size, None, int(order), int(row), None, None, None, None, ptr(sizes)) != 0:
+        raise MemoryError("own_table_keys: out of memory")
+    return int(sizes[0]), int(sizes[1])
+
+
+def own_table_fill(keys, coefficients, order, row, brick_keys, base, cols, values):
+    """The own table of one row of a level's bricks straight from its keys, written into
+    ``brick_keys`` (B,), ``base`` (B,), ``cols`` (B, side, side) int32 and ``values``
+    (zeroed, C-contiguous; sizes from :func:`own_table_sizes`): the same as
     :func:`brick_row_entries` then :func:`own_table_row` give.
 
     ``keys``: the level's sorted keys whose first index is in ``[row S - order + 1, row S
-    + S - 1]`` (``S = 2**BRICK_BITS``), ``coefficients`` theirs. Two passes: count, then fill.
+    + S - 1]`` (``S = 2**BRICK_BITS``), ``coefficients`` theirs.
     """
     keys = c_in(keys, np.int64)
     coefficients = c_in(coefficients, np.float64)
     side = (1 << BRICK_BITS) + int(order) - 1
+    for name, array, dtype, shape in (("brick_keys", brick_keys, np.int64, None), ("base", base, np.int64, None),
+                                      ("cols", cols, np.int32, (brick_keys.shape[0], side, side)),
+                                      ("values", values, np.float64, None)):
+        if array.dtype != dtype or not array.flags.c_contiguous or (shape and array.shape != shape):
+            raise TypeError(f"{name} must be a C-contiguous {np.dtype(dtype)} array of the table's size")
     sizes = np.zeros(2, np.int64)
-    args = (ptr(keys), keys.size, ptr(coefficients), int(order), int(row))
-    if _own_table_keys(*args, None, None, None, None, ptr(sizes)) != 0:
+    if _own_table_keys(ptr(keys), keys.size, ptr(coefficients), int(order), int(row), ptr(brick_keys), ptr(base),
+                       ptr(cols), ptr(values), ptr(sizes)) != 0:
         raise MemoryError("own_table_keys: out of memory")
-    nb, total = int(sizes[0]), int(sizes[1])
-    brick_keys = np.empty(nb, np.int64)
-    base = np.empty(nb, np.int64)
-    cols = np.zeros((nb, side, side), np.int32)
-    values = np.zeros(total)
-    if _own_table_keys(*args, ptr(brick_keys), ptr(base), ptr(cols), ptr(values), ptr(sizes)) != 0:
-        raise MemoryError("own_table_keys: out of memory")
-    return brick_keys, base, cols, values
+    if sizes[0] != brick_keys.shape[0] or sizes[1] != values.shape[0]:
+        raise ValueError("own_table_fill: arrays not of the sizes own_table_sizes gives")
 
 
 def finest_step(coefficients, step, max_halvings):

@@ -33,6 +33,14 @@ _SAME_H_RTOL = 1e-12
 _STEP_HALVINGS = 8  # a store's tiles are quantised with its step or down to 1/256 of it
 
 
+QUANTISE_FROM_COEFFICIENTS = 50_000_000
+"""From this many coefficients on (about 0.9 GB of float64 tables, beyond the caches), the
+tables of a spline with a known value step hold its integers (:class:`BrickIndex`):
+dequantising costs time per point where the tables are cached (EGM96 2 mm store, 6.5 M
+coefficients: 1.4 times slower), little where memory dominates, and saves 2.5 times the
+memory (benchmarks/README.md, "Query index")."""
+
+
 def _merge_levels(levels):
     """Non-empty levels sorted coarse to fine; levels of one spacing summed into one."""
     groups = []
@@ -188,36 +196,45 @@ class _Members:
 
 
 def _own_tables(lv, order, quantised):
-    """The own table of a level, built one row of bricks at a time straight from its keys
-    (:func:`geoidspline._kernels.query.own_table_keys`): (brick keys, value base per
-    brick, int32 columns (nb, side, side) and values as lists of parts, the number of
-    values).
+    """The own table of a level straight from its keys, one row of bricks at a time
+    (:func:`geoidspline._kernels.query.own_table_fill`) into arrays of the level's size
+    (counted first: no parts joined): (brick keys, value base per brick, int32 columns
+    (nb, side, side) and values as lists of parts, the number of values).
 
-    ``quantised`` (a :class:`_Quantised`) not None: the values go to it instead (no value
-    parts returned), or :class:`_NotQuantisable` is raised."""
-    keys_parts, base_parts, col_parts, value_parts = [], [], [], []
-    value_base = 0
+    ``quantised`` (a :class:`_Quantised`) not None: the values go to it instead, row by
+    row (no value parts returned), or :class:`_NotQuantisable` is raised."""
+    side = (1 << _qk.BRICK_BITS) + order - 1
+    rows = []
     for row in _brick_rows(lv, order):
         lo, hi = _row_span(lv, order, row)
-        if lo == hi:
-            continue
-        brick_keys, base, cols, own = _qk.own_table_keys(lv.keys[lo:hi], lv.coefficients[lo:hi], order, row)
+        if lo < hi:
+            nb, total = _qk.own_table_sizes(lv.keys[lo:hi], order, row)
+            if nb:
+                rows.append((row, lo, hi, nb, total))
+    n_bricks = sum(r[3] for r in rows)
+    n_values = sum(r[4] for r in rows)
+    brick_keys = np.empty(n_bricks, np.int64)
+    base = np.empty(n_bricks, np.int64)
+    cols = np.zeros((n_bricks, side, side), np.int32)
+    values = np.zeros(n_values) if quantised is None else None
+    b_at = v_at = 0
+    for row, lo, hi, nb, total in rows:
+        part = values[v_at:v_at + total] if quantised is None else np.zeros(total)
+        _qk.own_table_fill(lv.keys[lo:hi], lv.coefficients[lo:hi], order, row, brick_keys[b_at:b_at + nb],
+                           base[b_at:b_at + nb], cols[b_at:b_at + nb], part)
         if quantised is not None:
-            quantised.add(own, base)
-        else:
-            value_parts.append(own)
-        keys_parts.append(brick_keys)
-        base_parts.append(base + value_base)
-        col_parts.append(cols)
-        value_base += own.size
-    if not keys_parts:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64), [], [], 0
-    return np.concatenate(keys_parts), np.concatenate(base_parts), col_parts, value_parts, value_base
+            quantised.add(part, base[b_at:b_at + nb].copy())
+        base[b_at:b_at + nb] += v_at
+        b_at += nb
+        v_at += total
+    return brick_keys, base, [cols] if n_bricks else [], [values] if values is not None and n_bricks else [], v_at
 
 
 def _joined(parts, dtype, shape):
     """``np.concatenate(parts)``, letting each part go once copied (``parts`` is emptied):
-    the index is never held twice."""
+    the index is never held twice. One part of that dtype is returned as it is."""
+    if len(parts) == 1 and parts[0].dtype == dtype:
+        return parts.pop()
     total = sum(p.shape[0] for p in parts)
     out = np.empty((total,) + tuple(np.atleast_1d(shape)[1:]), dtype)
     at = 0
@@ -296,7 +313,7 @@ class BrickIndex:
     thread-safe.
     """
 
-    def __init__(self, levels, order, fold=True, value_step=None):
+    def __init__(self, levels, order, fold=True, value_step=None, quantise=False):
         bits = _qk.BRICK_BITS
         cells = 1 << bits
         side = cells + order - 1
@@ -311,7 +328,8 @@ class BrickIndex:
         # without folded tables every value is a level's own coefficient: a store's are
         # multiples of its step, held as int16 (2 bytes, not 8) when they all are
         self.value_step = None
-        if value_step is not None and not any(folded) and self.levels:
+        large = sum(len(lv) for lv in self.levels) >= QUANTISE_FROM_COEFFICIENTS
+        if value_step is not None and not any(folded) and self.levels and (large or quantise):
             steps = [_qk.finest_step(lv.coefficients, float(value_step), _STEP_HALVINGS) for lv in self.levels]
             self.value_step = None if None in steps else min(steps)
         try:

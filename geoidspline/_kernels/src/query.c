@@ -166,6 +166,58 @@ GS_INLINE void lanes_axpy(const int order, lanes *a, double w, const double *c)
         a->one += w * c[order - 1];
 }
 
+/* Coefficient i of a quantised table's values qv (quant: 2 int16, 4 int32): (double)(qb +
+ * q) * step, the decoder's product (gs_spline). */
+GS_INLINE double dequantised_at(const int quant, const void *qv, int64_t i, int32_t qb, double step)
+{
+    int32_t q = quant == 2 ? (int32_t)((const int16_t *)qv)[i] : ((const int32_t *)qv)[i];
+    return (double)(qb + q) * step;
+}
+
+/* The order coefficients of a quantised table (quant 2: int16, 4: int32) at qv + at, as
+ * lanes (laid out as lanes_axpy reads a column): (double)(qb + q) * step per lane, the
+ * decoder's product (gs_spline), converted in vector registers (a column dequantised
+ * into memory and loaded back as vectors waits on store forwarding: 3 times slower). */
+typedef int32_t gs_i32x4 __attribute__((vector_size(16)));
+typedef int16_t gs_i16x4 __attribute__((vector_size(8)));
+typedef int32_t gs_i32x2 __attribute__((vector_size(8)));
+typedef int16_t gs_i16x2 __attribute__((vector_size(4)));
+
+GS_INLINE gs_v4 dequantised4(const int quant, const void *qv, int64_t at, int32_t qb, double step)
+{
+    gs_i32x4 q;
+    if (quant == 2) {
+        gs_i16x4 h;
+        memcpy(&h, (const int16_t *)qv + at, sizeof h);
+        q = __builtin_convertvector(h, gs_i32x4);
+    } else {
+        memcpy(&q, (const int32_t *)qv + at, sizeof q);
+    }
+    return __builtin_convertvector(q + qb, gs_v4) * step;
+}
+
+GS_INLINE void lanes_dequantised(const int order, const int quant, const void *qv, int64_t at, int32_t qb,
+                                 double step, lanes *c)
+{
+    for (int k = 0; k < LANE_V(order); ++k)
+        c->v[k] = dequantised4(quant, qv, at + 4 * k, qb, step);
+    if (LANE_OVER(order))
+        c->over = dequantised4(quant, qv, at + order - 4, qb, step);
+    if (LANE_PAIR(order)) {
+        gs_i32x2 q;
+        if (quant == 2) {
+            gs_i16x2 h;
+            memcpy(&h, (const int16_t *)qv + at + 4 * LANE_V(order), sizeof h);
+            q = __builtin_convertvector(h, gs_i32x2);
+        } else {
+            memcpy(&q, (const int32_t *)qv + at + 4 * LANE_V(order), sizeof q);
+        }
+        c->pair = __builtin_convertvector(q + qb, gs_v2) * step;
+    }
+    if (LANE_ONE(order))
+        c->one = dequantised_at(quant, qv, at + order - 1, qb, step);
+}
+
 /* a += w b */
 GS_INLINE void lanes_add(const int order, lanes *a, double w, const lanes *b)
 {
@@ -197,14 +249,6 @@ GS_INLINE double lanes_dot(const int order, const lanes *a, const double *w)
     if (LANE_ONE(order))
         s += w[order - 1] * a->one;
     return s;
-}
-
-/* Coefficient i of a quantised table's values qv (quant: 2 int16, 4 int32): (double)(qb +
- * q) * step, the decoder's product (gs_spline). */
-GS_INLINE double dequantised_at(const int quant, const void *qv, int64_t i, int32_t qb, double step)
-{
-    int32_t q = quant == 2 ? (int32_t)((const int16_t *)qv)[i] : ((const int32_t *)qv)[i];
-    return (double)(qb + q) * step;
 }
 
 /* order coefficients of a quantised table from qv + at into pad */
@@ -257,11 +301,14 @@ GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, 
 {
     const int64_t side = (1 << BRICK_BITS) + order - 1;
     const int64_t col_at = (brick * side + lx) * side + ly;
-    const double *values = quant ? NULL : S->values + base;
-    const double *values_lz = quant ? NULL : values + lz;
-    const void *qv = quant == 2 ? (const void *)((const int16_t *)S->qvalues + base)
-                   : (const void *)((const int32_t *)S->qvalues + base); /* quant: see gs_spline */
-    const int32_t qb = quant ? S->qbase[brick] : 0;
+    /* quant (a constant): the table's values are quantised, width 2 (int16) or 4 (int32)
+     * bytes (see gs_spline); else float64 */
+    const int width = quant ? (int)S->qwidth : 0;
+    const double *values = width ? NULL : S->values + base;
+    const double *values_lz = width ? NULL : values + lz;
+    const void *qv = width == 2 ? (const void *)((const int16_t *)S->qvalues + base)
+                                : (const void *)((const int32_t *)S->qvalues + base);
+    const int32_t qb = width ? S->qbase[brick] : 0;
     const double step = S->value_step;
     /* A per derivative (x, y): 00 value; 10 01 first; 20 02 11 second */
     lanes a00, a10, a01, a20, a02, a11;
@@ -285,11 +332,21 @@ GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, 
             lanes_zero(order, &b2);
         for (int q = 0; q < order; ++q) {
             const double *c;
+            if (full && quant) {
+                lanes col;
+                lanes_zero(order, &col); /* the lanes it does not fill (unread: for the compiler) */
+                lanes_dequantised(order, width, qv, lz + offs[col_at + p * side + q], qb, step, &col);
+                lanes_add(order, &b0, wy[q], &col);
+                if (nderiv >= 1)
+                    lanes_add(order, &b1, wy[order + q], &col);
+                if (nderiv >= 2)
+                    lanes_add(order, &b2, wy[2 * order + q], &col);
+                continue;
+            }
             if (full) {
-                c = quant ? dequantised(order, quant, qv, lz + offs[col_at + p * side + q], qb, step, pad)
-                          : values_lz + offs[col_at + p * side + q];
+                c = values_lz + offs[col_at + p * side + q];
             } else {
-                c = column_run(order, quant, values, qv, qb, step, cols[col_at + p * side + q], lz, pad);
+                c = column_run(order, width, values, qv, qb, step, cols[col_at + p * side + q], lz, pad);
                 if (c == NULL)
                     continue;
             }
@@ -328,28 +385,60 @@ GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, 
 }
 
 /* One brick table at a point: the full-column sum where the table's full map allows it,
- * the decoding one otherwise; from quantised values when the spline has them. */
+ * the decoding one otherwise (quant: from quantised values). */
+GS_INLINE void table_sums(const gs_spline *S, const int order, const int nderiv, const int quant, const double *wx,
+                          const double *wy, const double *wz, int64_t base, const int32_t *cols,
+                          const int32_t *offs, const uint16_t *full, int64_t brick, int64_t lx, int64_t ly,
+                          int64_t lz, double inv_h, double *result)
+{
+    if ((full[(brick << (2 * BRICK_BITS)) + (lx << BRICK_BITS) + ly] >> lz) & 1)
+        table_sum(S, order, nderiv, 1, quant, wx, wy, wz, base, cols, offs, brick, lx, ly, lz, inv_h, result);
+    else
+        table_sum(S, order, nderiv, 0, quant, wx, wy, wz, base, cols, offs, brick, lx, ly, lz, inv_h, result);
+}
+
+/* table_sums of quantised tables, one function per (order, nderiv) that the callers call
+ * (inlined into each of them, like the float64 one, it tripled the kernels' compile
+ * time); order 0: any order, given as order_. */
+#define GS_QUANTISED_SUMS(o, d)                                                                                       \
+    GS_HOT static void quantised_sums_##o##_##d(const gs_spline *S, int order_, const double *wx, const double *wy, \
+                                                const double *wz, int64_t base, const int32_t *cols,                 \
+                                                const int32_t *offs, const uint16_t *full, int64_t brick, int64_t lx, \
+                                                int64_t ly, int64_t lz, double inv_h, double *result)                \
+    {                                                                                                                 \
+        table_sums(S, (o) ? (o) : order_, d, 1, wx, wy, wz, base, cols, offs, full, brick, lx, ly, lz, inv_h,        \
+                   result);                                                                                           \
+    }
+GS_QUANTISED_SUMS(4, 0)
+GS_QUANTISED_SUMS(4, 1)
+GS_QUANTISED_SUMS(4, 2)
+GS_QUANTISED_SUMS(6, 0)
+GS_QUANTISED_SUMS(6, 1)
+GS_QUANTISED_SUMS(6, 2)
+GS_QUANTISED_SUMS(0, 0)
+GS_QUANTISED_SUMS(0, 1)
+GS_QUANTISED_SUMS(0, 2)
+
+/* One brick table at a point (table_sums), from quantised values when the spline has them. */
 GS_INLINE void brick_sum(const gs_spline *S, const int order, const int nderiv, const double *wx, const double *wy,
                          const double *wz, int64_t base, const int32_t *cols, const int32_t *offs,
                          const uint16_t *full, int64_t brick, int64_t lx, int64_t ly, int64_t lz, double inv_h,
                          double *result)
 {
-    int is_full = (full[(brick << (2 * BRICK_BITS)) + (lx << BRICK_BITS) + ly] >> lz) & 1;
-    if (S->qwidth == 2) {
-        if (is_full)
-            table_sum(S, order, nderiv, 1, 2, wx, wy, wz, base, cols, offs, brick, lx, ly, lz, inv_h, result);
-        else
-            table_sum(S, order, nderiv, 0, 2, wx, wy, wz, base, cols, offs, brick, lx, ly, lz, inv_h, result);
-    } else if (S->qwidth == 4) {
-        if (is_full)
-            table_sum(S, order, nderiv, 1, 4, wx, wy, wz, base, cols, offs, brick, lx, ly, lz, inv_h, result);
-        else
-            table_sum(S, order, nderiv, 0, 4, wx, wy, wz, base, cols, offs, brick, lx, ly, lz, inv_h, result);
-    } else if (is_full) {
-        table_sum(S, order, nderiv, 1, 0, wx, wy, wz, base, cols, offs, brick, lx, ly, lz, inv_h, result);
-    } else {
-        table_sum(S, order, nderiv, 0, 0, wx, wy, wz, base, cols, offs, brick, lx, ly, lz, inv_h, result);
+    if (!S->qwidth) {
+        table_sums(S, order, nderiv, 0, wx, wy, wz, base, cols, offs, full, brick, lx, ly, lz, inv_h, result);
+        return;
     }
+#define GS_QUANTISED_CALL(o, d)                                                                                       \
+    quantised_sums_##o##_##d(S, order, wx, wy, wz, base, cols, offs, full, brick, lx, ly, lz, inv_h, result)
+    if (order == 4) {
+        if (nderiv == 0) GS_QUANTISED_CALL(4, 0); else if (nderiv == 1) GS_QUANTISED_CALL(4, 1); else GS_QUANTISED_CALL(4, 2);
+    } else if (order == 6) {
+        if (nderiv == 0) GS_QUANTISED_CALL(6, 0); else if (nderiv == 1) GS_QUANTISED_CALL(6, 1); else GS_QUANTISED_CALL(6, 2);
+    } else {
+        if (nderiv == 0) GS_QUANTISED_CALL(0, 0); else if (nderiv == 1) GS_QUANTISED_CALL(0, 1); else GS_QUANTISED_CALL(0, 2);
+    }
+#undef GS_QUANTISED_CALL
 }
 
 /* The brick of level lev holding the point (x, y, z), or -1; cell gets the point's cell
