@@ -309,6 +309,14 @@ class BrickIndex:
     With ``fold=False`` no folded tables are built (every level is evaluated from its
     own table and the levels are summed): a fraction of the build time and memory
     (small batches are evaluated with numpy instead, see :class:`AmbientSpline`).
+    Without folded tables (one level, or none nested) every value is a level's own
+    coefficient; given ``value_step`` (metres: a store's, whose coefficients are
+    multiples of it or of a power-of-two fraction of it, bitwise), the tables of a spline
+    of :data:`QUANTISE_FROM_COEFFICIENTS` coefficients or more (or any, ``quantise=True``)
+    hold those integers instead of float64: int16 with a base per brick, or int32 where a
+    brick spans more than 65,535 steps; the kernels multiply them back exactly as the
+    store's decoder does, so every result has the same bits. Such an index holds one copy
+    of its column tables (own and folded are the same).
     Memory: :attr:`nbytes`. Immutable once built; evaluation is
     thread-safe.
     """
