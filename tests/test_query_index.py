@@ -484,10 +484,13 @@ def test_own_tables_from_keys_equal_those_from_brick_entries(order):
                 continue
             want_base, want_cols, want_values = _kernels.own_table_row(slab.brick_start, slab.local, slab.coef_index,
                                                                        lv.coefficients, side)
-            nb, total = _kernels.own_table_sizes(lv.keys[lo:hi], order, row)
+            none = (np.empty(0, np.int64), np.empty(0, np.int64), np.zeros((0, side, side), np.int32), np.zeros(0))
+            nb, total, written = _kernels.own_table_fill(lv.keys[lo:hi], lv.coefficients[lo:hi], order, row, *none)
+            assert not written and nb > 0  # sizes only: nothing fits
             keys, base = np.empty(nb, np.int64), np.empty(nb, np.int64)
             cols, values = np.zeros((nb, side, side), np.int32), np.zeros(total)
-            _kernels.own_table_fill(lv.keys[lo:hi], lv.coefficients[lo:hi], order, row, keys, base, cols, values)
+            assert _kernels.own_table_fill(lv.keys[lo:hi], lv.coefficients[lo:hi], order, row, keys, base, cols,
+                                           values) == (nb, total, True)
             np.testing.assert_array_equal(keys, slab.brick_keys)
             np.testing.assert_array_equal(base, want_base)
             np.testing.assert_array_equal(cols, want_cols)
@@ -564,3 +567,19 @@ def test_a_store_read_back_states_its_value_step(small_store):
 
     step = json.loads((small_store.path / "manifest.json").read_text())["spline"]["value_step_m"]
     assert TileStore.open(small_store.path).spline.full.value_step == step
+
+
+def test_own_tables_grow_beyond_their_first_capacity(monkeypatch):
+    """The own tables start with room for what single-level stores need and grow when a
+    row needs more: the same index either way, quantised or not."""
+    from geoidspline.bspline import index as index_module
+
+    levels = [_quantised_level(95, 4, 0.01, 1000)]
+    want = [index_module.BrickIndex(levels, 4, value_step=0.01, quantise=q) for q in (False, True)]
+    monkeypatch.setattr(index_module, "_BRICKS_PER_COEFFICIENT", 0.0)
+    monkeypatch.setattr(index_module, "_VALUES_PER_COEFFICIENT", 0.0)
+    got = [index_module.BrickIndex(levels, 4, value_step=0.01, quantise=q) for q in (False, True)]
+    for a, b in zip(want, got):
+        for name in ("slots", "own_base", "own_cols", "own_offs", "own_full", "values", "qvalues", "qbase"):
+            np.testing.assert_array_equal(getattr(b, name), getattr(a, name), err_msg=name)
+    assert got[1].qvalues is not None and got[0].values.size > 0

@@ -86,7 +86,8 @@ _build_hash = function("gs_build_hash", PTR, I64, PTR, I64)
 _brick_row_entries = function("gs_brick_row_entries", PTR, I64, I64, I64, I64, I64, PTR, PTR, PTR, PTR, PTR, PTR,
                               restype=I64)
 _own_table_row = function("gs_own_table_row", PTR, I64, PTR, PTR, PTR, I64, PTR, PTR, PTR, restype=I64)
-_own_table_keys = function("gs_own_table_keys", PTR, I64, PTR, I64, I64, PTR, PTR, PTR, PTR, PTR, restype=I64)
+_own_table_keys = function("gs_own_table_keys", PTR, I64, PTR, I64, I64, I64, I64, PTR, PTR, PTR, PTR, PTR,
+                           restype=I64)
 _finest_step = function("gs_finest_step", PTR, I64, F64, I64, restype=I64)
 _quantise_table = function("gs_quantise_table", PTR, I64, PTR, I64, F64, I64, PTR, PTR, restype=I64)
 _full_columns = function("gs_full_columns", PTR, I64, I64, PTR, PTR)
@@ -151,21 +152,11 @@ def own_table_row(brick_start, local, coef_index, coefficients, side):
     return base, cols, values
 
 
-def own_table_sizes(keys, order, row):
-    """``(bricks, values)`` of the own table of one row of a level's bricks
-    (:func:`own_table_fill`)."""
-    keys = c_in(keys, np.int64)
-    sizes = np.zeros(2, np.int64)
-    if _own_table_keys(ptr(keys), keys.size, None, int(order), int(row), None, None, None, None, ptr(sizes)) != 0:
-        raise MemoryError("own_table_keys: out of memory")
-    return int(sizes[0]), int(sizes[1])
-
-
 def own_table_fill(keys, coefficients, order, row, brick_keys, base, cols, values):
     """The own table of one row of a level's bricks straight from its keys, written into
     ``brick_keys`` (B,), ``base`` (B,), ``cols`` (B, side, side) int32 and ``values``
-    (zeroed, C-contiguous; sizes from :func:`own_table_sizes`): the same as
-    :func:`brick_row_entries` then :func:`own_table_row` give.
+    (zeroed, C-contiguous) when it fits them: returns ``(bricks, values, written)``. The
+    same table as :func:`brick_row_entries` then :func:`own_table_row` give.
 
     ``keys``: the level's sorted keys whose first index is in ``[row S - order + 1, row S
     + S - 1]`` (``S = 2**BRICK_BITS``), ``coefficients`` theirs.
@@ -173,17 +164,19 @@ def own_table_fill(keys, coefficients, order, row, brick_keys, base, cols, value
     keys = c_in(keys, np.int64)
     coefficients = c_in(coefficients, np.float64)
     side = (1 << BRICK_BITS) + int(order) - 1
-    for name, array, dtype, shape in (("brick_keys", brick_keys, np.int64, None), ("base", base, np.int64, None),
-                                      ("cols", cols, np.int32, (brick_keys.shape[0], side, side)),
-                                      ("values", values, np.float64, None)):
-        if array.dtype != dtype or not array.flags.c_contiguous or (shape and array.shape != shape):
-            raise TypeError(f"{name} must be a C-contiguous {np.dtype(dtype)} array of the table's size")
+    for name, array, dtype in (("brick_keys", brick_keys, np.int64), ("base", base, np.int64),
+                               ("cols", cols, np.int32), ("values", values, np.float64)):
+        if array.dtype != dtype or not array.flags.c_contiguous:
+            raise TypeError(f"{name} must be a C-contiguous {np.dtype(dtype)} array")
+    capacity = min(brick_keys.shape[0], base.shape[0], cols.shape[0])
+    if cols.shape[1:] != (side, side):
+        raise TypeError(f"cols must be (bricks, {side}, {side})")
     sizes = np.zeros(2, np.int64)
-    if _own_table_keys(ptr(keys), keys.size, ptr(coefficients), int(order), int(row), ptr(brick_keys), ptr(base),
-                       ptr(cols), ptr(values), ptr(sizes)) != 0:
+    done = _own_table_keys(ptr(keys), keys.size, ptr(coefficients), int(order), int(row), capacity, values.shape[0],
+                           ptr(brick_keys), ptr(base), ptr(cols), ptr(values), ptr(sizes))
+    if done < 0:
         raise MemoryError("own_table_keys: out of memory")
-    if sizes[0] != brick_keys.shape[0] or sizes[1] != values.shape[0]:
-        raise ValueError("own_table_fill: arrays not of the sizes own_table_sizes gives")
+    return int(sizes[0]), int(sizes[1]), done == 0
 
 
 def finest_step(coefficients, step, max_halvings):

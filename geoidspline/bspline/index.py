@@ -195,39 +195,61 @@ class _Members:
             flat_dense[block, flat] += self.coefficients[slab.coef_index[entry]]
 
 
+_BRICKS_PER_COEFFICIENT = 1 / 256  # the own tables' first capacity (grown when a row needs more)
+_VALUES_PER_COEFFICIENT = 3.0
+
+
+def _grown(array, used, size):
+    """A zeroed array of ``size`` rows holding ``array``'s first ``used`` rows."""
+    out = np.zeros((size,) + array.shape[1:], array.dtype)
+    out[:used] = array[:used]
+    return out
+
+
 def _own_tables(lv, order, quantised):
     """The own table of a level straight from its keys, one row of bricks at a time
-    (:func:`geoidspline._kernels.query.own_table_fill`) into arrays of the level's size
-    (counted first: no parts joined): (brick keys, value base per brick, int32 columns
-    (nb, side, side) and values as lists of parts, the number of values).
+    (:func:`geoidspline._kernels.query.own_table_fill`), into arrays of the level's size
+    (no parts joined; their capacity is what single-level stores need, 2.3 values and
+    1/940 bricks a coefficient at order 6, grown when a row needs more): (brick keys,
+    value base per brick, int32 columns (nb, side, side) and values as lists of parts,
+    the number of values).
 
     ``quantised`` (a :class:`_Quantised`) not None: the values go to it instead, row by
     row (no value parts returned), or :class:`_NotQuantisable` is raised."""
     side = (1 << _qk.BRICK_BITS) + order - 1
-    rows = []
+    n = len(lv)
+    max_bricks = int(n * _BRICKS_PER_COEFFICIENT) + 64
+    brick_keys = np.empty(max_bricks, np.int64)
+    base = np.empty(max_bricks, np.int64)
+    cols = np.zeros((max_bricks, side, side), np.int32)
+    values = np.zeros(int(n * _VALUES_PER_COEFFICIENT) + 64)  # the level's, or one row's when quantised (zeroed again after use)
+    b_at = v_at = 0
     for row in _brick_rows(lv, order):
         lo, hi = _row_span(lv, order, row)
-        if lo < hi:
-            nb, total = _qk.own_table_sizes(lv.keys[lo:hi], order, row)
-            if nb:
-                rows.append((row, lo, hi, nb, total))
-    n_bricks = sum(r[3] for r in rows)
-    n_values = sum(r[4] for r in rows)
-    brick_keys = np.empty(n_bricks, np.int64)
-    base = np.empty(n_bricks, np.int64)
-    cols = np.zeros((n_bricks, side, side), np.int32)
-    values = np.zeros(n_values) if quantised is None else None
-    b_at = v_at = 0
-    for row, lo, hi, nb, total in rows:
-        part = values[v_at:v_at + total] if quantised is None else np.zeros(total)
-        _qk.own_table_fill(lv.keys[lo:hi], lv.coefficients[lo:hi], order, row, brick_keys[b_at:b_at + nb],
-                           base[b_at:b_at + nb], cols[b_at:b_at + nb], part)
+        if lo == hi:
+            continue
+        while True:
+            nb, total, written = _qk.own_table_fill(lv.keys[lo:hi], lv.coefficients[lo:hi], order, row,
+                                                    brick_keys[b_at:], base[b_at:], cols[b_at:],
+                                                    values if quantised is not None else values[v_at:])
+            if written:
+                break
+            if b_at + nb > brick_keys.shape[0]:
+                grown = max(2 * brick_keys.shape[0], b_at + nb)
+                brick_keys, base, cols = (_grown(a, b_at, grown) for a in (brick_keys, base, cols))
+            need = total if quantised is not None else v_at + total
+            if need > values.shape[0]:
+                values = _grown(values, 0 if quantised is not None else v_at, max(2 * values.shape[0], need))
         if quantised is not None:
-            quantised.add(part, base[b_at:b_at + nb].copy())
+            quantised.add(values[:total].copy(), base[b_at:b_at + nb].copy())
+            values[:total] = 0.0
         base[b_at:b_at + nb] += v_at
         b_at += nb
         v_at += total
-    return brick_keys, base, [cols] if n_bricks else [], [values] if values is not None and n_bricks else [], v_at
+    if not b_at:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), [], [], 0
+    value_parts = [values[:v_at]] if quantised is None else []
+    return brick_keys[:b_at], base[:b_at], [cols[:b_at]], value_parts, v_at
 
 
 def _joined(parts, dtype, shape):

@@ -1147,12 +1147,13 @@ GS_EXPORT int64_t gs_own_table_row(const int64_t *brick_start, int64_t nb, const
  * gs_brick_row_entries then gs_own_table_row give, without listing the (brick,
  * coefficient) pairs (building a single-level index: 5 times faster). keys: the n keys
  * whose first index is in [row S - order + 1, row S + S - 1] (S = 2**BRICK_BITS), sorted;
- * coefficients: theirs. With values NULL only counts: sizes = (bricks, values). Otherwise
- * fills brick_keys (bricks), base (bricks), cols (bricks, side, side; zeroed by the
- * caller) and values (zeroed). Returns 0, or -1 when memory ran out. */
+ * coefficients: theirs. sizes = (bricks, values) always; when they are within the
+ * capacities (max_bricks, max_values) fills brick_keys, base, cols (bricks, side, side;
+ * zeroed by the caller) and values (zeroed) and returns 0, else returns 1 (nothing
+ * written); -1 when memory ran out. */
 GS_EXPORT int64_t gs_own_table_keys(const int64_t *keys, int64_t n, const double *coefficients, int64_t order,
-                                    int64_t row, int64_t *brick_keys, int64_t *base, int32_t *cols, double *values,
-                                    int64_t *sizes)
+                                    int64_t row, int64_t max_bricks, int64_t max_values, int64_t *brick_keys,
+                                    int64_t *base, int32_t *cols, double *values, int64_t *sizes)
 {
     const int64_t bits = BRICK_BITS, side = (1 << BRICK_BITS) + order - 1;
     const int64_t big = ((int64_t)1) << 40;
@@ -1181,11 +1182,10 @@ GS_EXPORT int64_t gs_own_table_keys(const int64_t *keys, int64_t n, const double
     }
     int64_t nb = 0;
     for (int64_t cell = 0; cell < n1 * n2; ++cell)
-        if (brick_of_cell[cell] == 0) {
-            if (values)
-                brick_keys[nb] = gs_pack(row, lo1 + cell / n2, lo2 + cell % n2);
+        if (brick_of_cell[cell] == 0)
             brick_of_cell[cell] = (int32_t)nb++;
-        }
+    sizes[0] = nb;
+    sizes[1] = 0;
     /* per column of each brick: its first and last local k */
     int8_t *k_first = malloc((size_t)(2 * nb * side * side + 1)), *k_last = k_first + nb * side * side;
     if (!k_first) {
@@ -1194,6 +1194,7 @@ GS_EXPORT int64_t gs_own_table_keys(const int64_t *keys, int64_t n, const double
     }
     memset(k_first, 127, (size_t)(nb * side * side));
     memset(k_last, -1, (size_t)(nb * side * side));
+    int64_t result = 0;
     for (int pass = 0; pass < 2; ++pass) { /* 0: the runs' bounds; 1: the values */
         for (int64_t c = 0; c < n; ++c) {
             int64_t a0 = ((keys[c] >> (2 * GS_KEY_BITS)) & GS_KEY_MASK) - GS_KEY_OFFSET;
@@ -1213,31 +1214,35 @@ GS_EXPORT int64_t gs_own_table_keys(const int64_t *keys, int64_t n, const double
                     }
                 }
         }
-        /* the runs in (brick, column) order */
+        if (pass == 1)
+            break;
+        int64_t total = 0;
+        for (int64_t col = 0; col < nb * side * side; ++col)
+            total += k_last[col] >= 0 ? (int64_t)k_last[col] - k_first[col] + 1 : 0;
+        sizes[1] = total;
+        if (nb > max_bricks || total > max_values) {
+            result = 1;
+            break;
+        }
+        /* the bricks' keys and the runs in (brick, column) order */
+        for (int64_t cell = 0; cell < n1 * n2; ++cell)
+            if (brick_of_cell[cell] >= 0)
+                brick_keys[brick_of_cell[cell]] = gs_pack(row, lo1 + cell / n2, lo2 + cell % n2);
         int64_t at = 0;
-        for (int64_t b = 0; pass == 0 && b < nb; ++b) {
-            int64_t b_base = at;
-            if (values)
-                base[b] = at;
+        for (int64_t b = 0; b < nb; ++b) {
+            base[b] = at;
             for (int64_t col = b * side * side; col < (b + 1) * side * side; ++col) {
                 if (k_last[col] < 0)
                     continue;
                 int64_t length = (int64_t)k_last[col] - k_first[col] + 1;
-                if (values)
-                    cols[col] = (int32_t)(((at - b_base) << COL_SHIFT) | ((int64_t)k_first[col] << COL_KBITS) | length);
+                cols[col] = (int32_t)(((at - base[b]) << COL_SHIFT) | ((int64_t)k_first[col] << COL_KBITS) | length);
                 at += length;
             }
-        }
-        if (pass == 0) {
-            sizes[0] = nb;
-            sizes[1] = at;
-            if (!values)
-                break;
         }
     }
     free(k_first);
     free(brick_of_cell);
-    return 0;
+    return result;
 }
 
 /* The least k <= max_halvings such that every one of the n coefficients is bitwise
