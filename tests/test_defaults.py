@@ -235,7 +235,8 @@ def test_no_progress_on_a_non_terminal_without_v_and_stage_lines_with_v(syntheti
     start = next(line for line in stages if line.startswith("progress: level 0 blocks: "))
     total = int(start.split(": ")[2].split()[0].replace(",", ""))
     assert total >= 1
-    assert f"progress: level 0 blocks: {total:,}/{total:,} blocks in " in verbose.stderr
+    unit = "block" if total == 1 else "blocks"
+    assert f"progress: level 0 blocks: {total:,}/{total:,} {unit} in " in verbose.stderr
 
 
 def test_line_progress_reports_count_and_eta():
@@ -252,6 +253,18 @@ def test_line_progress_reports_count_and_eta():
     # 7 blocks in 10.5 s: 33 left at 1.5 s each
     assert lines[1].endswith("ETA 00:49")
     assert lines[-1] == "progress: level 1 blocks: 10/40 blocks in 15.0 s"
+
+
+def test_line_progress_names_one_unit_in_the_singular_and_axes_in_the_plural():
+    stream = io.StringIO()
+    progress = LineProgress(stream, clock=lambda: 0.0)
+    with progress.stage("write", 1, "store") as advance:
+        advance(1)
+    with progress.stage("prefilter", 3, "axis") as advance:
+        advance(3)
+    assert stream.getvalue().splitlines() == [
+        "progress: write: 1 store", "progress: write: 1/1 store in 0.0 s",
+        "progress: prefilter: 3 axes", "progress: prefilter: 3/3 axes in 0.0 s"]
 
 
 def test_for_terminal_picks_bars_lines_or_nothing():

@@ -70,6 +70,14 @@ class BarProgress(Progress):
             yield bar.update
 
 
+_IRREGULAR_PLURALS = {"axis": "axes"}
+
+
+def _count(n: int, unit: str) -> str:
+    """``n`` units in words, the unit in the plural unless ``n`` is 1 ("1 store", "3 axes")."""
+    return f"{n:,} {unit if n == 1 else _IRREGULAR_PLURALS.get(unit, unit + 's')}"
+
+
 class LineProgress(Progress):
     """A line a stage when it starts and ends, and at most every ``interval`` seconds in
     between (count of total, elapsed, ETA from the rate so far)."""
@@ -88,7 +96,7 @@ class LineProgress(Progress):
 
         start = last = self.clock()
         done = 0
-        self._line(f"{name}: {total:,} {unit}s")
+        self._line(f"{name}: {_count(total, unit)}")
 
         def advance(n=1):
             nonlocal done, last
@@ -98,11 +106,11 @@ class LineProgress(Progress):
                 last = now
                 elapsed = now - start
                 eta = elapsed / done * (total - done) if done else float("nan")
-                self._line(f"{name}: {done:,}/{total:,} {unit}s, {tqdm.format_interval(elapsed)} elapsed, "
+                self._line(f"{name}: {done:,}/{_count(total, unit)}, {tqdm.format_interval(elapsed)} elapsed, "
                            f"ETA {tqdm.format_interval(eta) if eta == eta else '?'}")
 
         yield advance
-        self._line(f"{name}: {done:,}/{total:,} {unit}s in {self.clock() - start:.1f} s")
+        self._line(f"{name}: {done:,}/{_count(total, unit)} in {self.clock() - start:.1f} s")
 
 
 def for_terminal(quiet: bool, verbose: int, stream=None) -> Progress:
