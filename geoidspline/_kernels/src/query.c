@@ -35,7 +35,7 @@
 #endif
 
 #if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && !defined(GS_NO_CLONES)
-#define GS_HOT __attribute__((target_clones("arch=x86-64-v3", "default")))
+#define GS_HOT __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
 #else
 #define GS_HOT
 #endif
@@ -171,23 +171,23 @@ GS_INLINE void lanes_add(const int order, lanes *a, double w, const lanes *b)
         a->one += w * b->one;
 }
 
-/* sum_r w[r] a[r], r in order */
-GS_INLINE double lanes_dot(const int order, const lanes *a, const double *w)
+/* sum_r w[r ws] a[r], r in order (ws: the weights' stride) */
+GS_INLINE double lanes_dot(const int order, const lanes *a, const double *w, const int ws)
 {
     double s = 0.0;
     for (int k = 0; k < LANE_V(order); ++k)
         for (int j = 0; j < 4; ++j)
-            s += w[4 * k + j] * a->v[k][j];
+            s += w[(4 * k + j) * ws] * a->v[k][j];
     if (LANE_OVER(order)) {
-        s += w[order - 2] * a->over[2];
-        s += w[order - 1] * a->over[3];
+        s += w[(order - 2) * ws] * a->over[2];
+        s += w[(order - 1) * ws] * a->over[3];
     }
     if (LANE_PAIR(order)) {
-        s += w[4 * LANE_V(order)] * a->pair[0];
-        s += w[4 * LANE_V(order) + 1] * a->pair[1];
+        s += w[4 * LANE_V(order) * ws] * a->pair[0];
+        s += w[(4 * LANE_V(order) + 1) * ws] * a->pair[1];
     }
     if (LANE_ONE(order))
-        s += w[order - 1] * a->one;
+        s += w[(order - 1) * ws] * a->one;
     return s;
 }
 
@@ -222,7 +222,7 @@ GS_INLINE const double *column_run(const int order, const double *values, int32_
  * its entry (column_run), an empty one skipped, one cut by the run's end read through a
  * zero-padded copy. Both add the same products in the same order (the same bits). */
 GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, const int full, const double *wx,
-                         const double *wy, const double *wz, int64_t base, const int32_t *cols, const int32_t *offs,
+                         const double *wy, const double *wz, const int ws, int64_t base, const int32_t *cols, const int32_t *offs,
                          int64_t brick, int64_t lx, int64_t ly, int64_t lz, double inv_h, double *result)
 {
     const int64_t side = (1 << BRICK_BITS) + order - 1;
@@ -258,51 +258,51 @@ GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, 
                 if (c == NULL)
                     continue;
             }
-            lanes_axpy(order, &b0, wy[q], c);
+            lanes_axpy(order, &b0, wy[q * ws], c);
             if (nderiv >= 1)
-                lanes_axpy(order, &b1, wy[order + q], c);
+                lanes_axpy(order, &b1, wy[(order + q) * ws], c);
             if (nderiv >= 2)
-                lanes_axpy(order, &b2, wy[2 * order + q], c);
+                lanes_axpy(order, &b2, wy[(2 * order + q) * ws], c);
         }
-        lanes_add(order, &a00, wx[p], &b0);
+        lanes_add(order, &a00, wx[p * ws], &b0);
         if (nderiv >= 1) {
-            lanes_add(order, &a10, wx[order + p], &b0);
-            lanes_add(order, &a01, wx[p], &b1);
+            lanes_add(order, &a10, wx[(order + p) * ws], &b0);
+            lanes_add(order, &a01, wx[p * ws], &b1);
         }
         if (nderiv >= 2) {
-            lanes_add(order, &a20, wx[2 * order + p], &b0);
-            lanes_add(order, &a02, wx[p], &b2);
-            lanes_add(order, &a11, wx[order + p], &b1);
+            lanes_add(order, &a20, wx[(2 * order + p) * ws], &b0);
+            lanes_add(order, &a02, wx[p * ws], &b2);
+            lanes_add(order, &a11, wx[(order + p) * ws], &b1);
         }
     }
-    result[0] += lanes_dot(order, &a00, wz);
+    result[0] += lanes_dot(order, &a00, wz, ws);
     if (nderiv >= 1) {
-        result[1] += lanes_dot(order, &a10, wz) * inv_h;
-        result[2] += lanes_dot(order, &a01, wz) * inv_h;
-        result[3] += lanes_dot(order, &a00, wz + order) * inv_h;
+        result[1] += lanes_dot(order, &a10, wz, ws) * inv_h;
+        result[2] += lanes_dot(order, &a01, wz, ws) * inv_h;
+        result[3] += lanes_dot(order, &a00, wz + order * ws, ws) * inv_h;
     }
     if (nderiv >= 2) {
         double ih2 = inv_h * inv_h;
-        result[4] += lanes_dot(order, &a20, wz) * ih2;
-        result[5] += lanes_dot(order, &a02, wz) * ih2;
-        result[6] += lanes_dot(order, &a00, wz + 2 * order) * ih2;
-        result[7] += lanes_dot(order, &a11, wz) * ih2;
-        result[8] += lanes_dot(order, &a10, wz + order) * ih2;
-        result[9] += lanes_dot(order, &a01, wz + order) * ih2;
+        result[4] += lanes_dot(order, &a20, wz, ws) * ih2;
+        result[5] += lanes_dot(order, &a02, wz, ws) * ih2;
+        result[6] += lanes_dot(order, &a00, wz + 2 * order * ws, ws) * ih2;
+        result[7] += lanes_dot(order, &a11, wz, ws) * ih2;
+        result[8] += lanes_dot(order, &a10, wz + order * ws, ws) * ih2;
+        result[9] += lanes_dot(order, &a01, wz + order * ws, ws) * ih2;
     }
 }
 
 /* One brick table at a point: the full-column sum where the table's full map allows it,
  * the decoding one otherwise. */
 GS_INLINE void brick_sum(const gs_spline *S, const int order, const int nderiv, const double *wx, const double *wy,
-                         const double *wz, int64_t base, const int32_t *cols, const int32_t *offs,
+                         const double *wz, const int ws, int64_t base, const int32_t *cols, const int32_t *offs,
                          const uint16_t *full, int64_t brick, int64_t lx, int64_t ly, int64_t lz, double inv_h,
                          double *result)
 {
     if ((full[(brick << (2 * BRICK_BITS)) + (lx << BRICK_BITS) + ly] >> lz) & 1)
-        table_sum(S, order, nderiv, 1, wx, wy, wz, base, cols, offs, brick, lx, ly, lz, inv_h, result);
+        table_sum(S, order, nderiv, 1, wx, wy, wz, ws, base, cols, offs, brick, lx, ly, lz, inv_h, result);
     else
-        table_sum(S, order, nderiv, 0, wx, wy, wz, base, cols, offs, brick, lx, ly, lz, inv_h, result);
+        table_sum(S, order, nderiv, 0, wx, wy, wz, ws, base, cols, offs, brick, lx, ly, lz, inv_h, result);
 }
 
 /* The brick of level lev holding the point (x, y, z), or -1; cell gets the point's cell
@@ -358,11 +358,11 @@ GS_INLINE void point_sum(const gs_spline *S, const int order, const int nderiv, 
         gs_weights(t[2], order, nderiv, wz, order);
         int64_t lx = cell[0] & BRICK_MASK, ly = cell[1] & BRICK_MASK, lz = cell[2] & BRICK_MASK;
         if (S->band_lo2[lev] <= r2 && r2 <= S->band_hi2[lev]) {
-            brick_sum(S, order, nderiv, wx, wy, wz, S->fold_base[brick], S->fold_cols, S->fold_offs, S->fold_full,
+            brick_sum(S, order, nderiv, wx, wy, wz, 1, S->fold_base[brick], S->fold_cols, S->fold_offs, S->fold_full,
                       brick, lx, ly, lz, inv_h, result);
             break;
         }
-        brick_sum(S, order, nderiv, wx, wy, wz, S->own_base[brick], S->own_cols, S->own_offs, S->own_full, brick, lx,
+        brick_sum(S, order, nderiv, wx, wy, wz, 1, S->own_base[brick], S->own_cols, S->own_offs, S->own_full, brick, lx,
                   ly, lz, inv_h, result);
     }
 }
@@ -703,6 +703,26 @@ static void latlon_refine(void *ctx, int64_t task)
     }
 }
 
+/* The value weights of a point's three axes at once (t: its position in its cell per axis):
+ * w[j] = {wx_j, wy_j, wz_j, unused}, the closed forms of gs_weights lane by lane for
+ * orders 4 and 6 (the same operations, so the same bits, in a third of the instructions). */
+GS_INLINE void weights_xyz(const int order, const double t[3], gs_v4 *w)
+{
+    const gs_v4 tv = {t[0], t[1], t[2], 0.0};
+    if (order == 4) {
+        GS_WEIGHTS4(gs_v4, tv, w[0], w[1], w[2], w[3]);
+    } else if (order == 6) {
+        GS_WEIGHTS6(gs_v4, tv, w[0], w[1], w[2], w[3], w[4], w[5]);
+    } else {
+        double wx[GS_MAX_ORDER], wy[GS_MAX_ORDER], wz[GS_MAX_ORDER];
+        gs_weights(t[0], order, 0, wx, order);
+        gs_weights(t[1], order, 0, wy, order);
+        gs_weights(t[2], order, 0, wz, order);
+        for (int j = 0; j < order; ++j)
+            w[j] = (gs_v4){wx[j], wy[j], wz[j], 0.0};
+    }
+}
+
 /* A point of the latitude/longitude loop between locating it and summing it: its
  * direction and, when the first level with a brick at it holds it in its band (points on
  * the sphere: always but at the edges of coverage), that brick (else brick -1: point_sum
@@ -785,11 +805,10 @@ GS_INLINE void latlon_range(const latlon_job *J, const int order, int64_t lo, in
         const located *L = &ring[e % LL_AHEAD];
         double result[1] = {0.0};
         if (L->brick >= 0) {
-            double wx[GS_MAX_ORDER], wy[GS_MAX_ORDER], wz[GS_MAX_ORDER];
-            gs_weights(L->t[0], order, 0, wx, order);
-            gs_weights(L->t[1], order, 0, wy, order);
-            gs_weights(L->t[2], order, 0, wz, order);
-            brick_sum(S, order, 0, wx, wy, wz, S->fold_base[L->brick], S->fold_cols, S->fold_offs, S->fold_full,
+            gs_v4 w[GS_MAX_ORDER]; /* {wx, wy, wz, -} per B-spline */
+            weights_xyz(order, L->t, w);
+            const double *wx = (const double *)w;
+            brick_sum(S, order, 0, wx, wx + 1, wx + 2, 4, S->fold_base[L->brick], S->fold_cols, S->fold_offs, S->fold_full,
                       L->brick, L->lx, L->ly, L->lz, S->inv_hs[L->lev], result);
             J->ordered[e] = result[0];
         } else if (L->lev >= 0) {
