@@ -486,33 +486,6 @@ GS_EXPORT void gs_query_order(const double *points, int64_t m, int64_t *key, int
 #define LL_LOW_BITS 10 /* the sort's second pass: the low bits of the Morton code */
 #define LL_BUCKETS (1 << (LL_LAT_BITS + LL_LON_BITS - LL_LOW_BITS)) /* of the first pass; one more for NaN */
 
-GS_INLINE uint32_t spread2(uint32_t v)
-{
-    v &= 0xFFFF;
-    v = (v | (v << 8)) & 0x00FF00FF;
-    v = (v | (v << 4)) & 0x0F0F0F0F;
-    v = (v | (v << 2)) & 0x33333333;
-    v = (v | (v << 1)) & 0x55555555;
-    return v;
-}
-
-/* Morton code of the point's cell on the latitude/longitude sort grid; its bucket of the
- * sort's first pass (a 5.6 degree cell) is code >> LL_LOW_BITS. NaN: bucket LL_BUCKETS. */
-GS_INLINE uint32_t latlon_code(double la, double lo)
-{
-    const int lat_bits = LL_LAT_BITS, lon_bits = LL_LON_BITS;
-    if (la != la || lo != lo)
-        return (uint32_t)LL_BUCKETS << LL_LOW_BITS;
-    double fi = (la + 90.0) * ((1 << lat_bits) / 180.0);
-    uint32_t i = fi < 0.0 ? 0 : (fi >= (1 << lat_bits) ? (1 << lat_bits) - 1 : (uint32_t)fi);
-    double w = lo + 180.0;
-    if (w < 0.0 || w >= 360.0)
-        w -= 360.0 * floor(w / 360.0);
-    double fj = w * ((1 << lon_bits) / 360.0);
-    uint32_t j = fj < 0.0 ? 0 : (fj >= (1 << lon_bits) ? (1 << lon_bits) - 1 : (uint32_t)fj);
-    return spread2(j) | (spread2(i) << 1);
-}
-
 /* Directions are computed 4 points at a time, one vector lane each (GCC's vector
  * extensions: one vector in the x86-64-v3 clone, two halves in the baseline one); a lane
  * does the operations a scalar would, in the same order, so the bits do not depend on the
@@ -586,6 +559,40 @@ GS_INLINE void directions4(const gs_v4 *latitude_, const gs_v4 *longitude_, gs_v
     *z = sin_phi;
 }
 
+typedef uint32_t gs_u4 __attribute__((vector_size(16)));
+
+GS_INLINE gs_u4 spread2(gs_u4 v)
+{
+    v &= 0xFFFF;
+    v = (v | (v << 8)) & 0x00FF00FF;
+    v = (v | (v << 4)) & 0x0F0F0F0F;
+    v = (v | (v << 2)) & 0x33333333;
+    v = (v | (v << 1)) & 0x55555555;
+    return v;
+}
+
+/* Morton codes of 4 points' cells on the latitude/longitude sort grid, one lane each;
+ * a code's bucket of the sort's first pass (a 5.6 degree cell) is code >> LL_LOW_BITS.
+ * NaN: bucket LL_BUCKETS. (The codes only order the points: a value does not depend on
+ * them.) */
+GS_INLINE gs_u4 latlon_code4(gs_v4 la, gs_v4 lo)
+{
+    const double lat_cells = 1 << LL_LAT_BITS, lon_cells = 1 << LL_LON_BITS;
+    gs_v4 fi = (la + 90.0) * (lat_cells / 180.0);
+    gs_v4 w = lo + 180.0;
+    w = v4_select((w < 0.0) | (w >= 360.0), w - 360.0 * v4_floor(w / 360.0), w);
+    gs_v4 fj = w * (lon_cells / 360.0);
+    /* clamped to the grid (NaN to 0 here, its own bucket below), then truncated */
+    fi = v4_select(fi >= lat_cells, v4_splat(lat_cells - 1.0), v4_select(fi >= 0.0, fi, v4_splat(0.0)));
+    fj = v4_select(fj >= lon_cells, v4_splat(lon_cells - 1.0), v4_select(fj >= 0.0, fj, v4_splat(0.0)));
+    typedef int32_t gs_w4 __attribute__((vector_size(16)));
+    gs_u4 i = (gs_u4)__builtin_convertvector(fi, gs_w4), j = (gs_u4)__builtin_convertvector(fj, gs_w4);
+    gs_u4 code = spread2(j) | (spread2(i) << 1);
+    gs_i4 nan = (la != la) | (lo != lo);
+    gs_u4 nan32 = __builtin_convertvector(nan, gs_u4); /* all ones or zero */
+    return (code & ~nan32) | (nan32 & ((uint32_t)LL_BUCKETS << LL_LOW_BITS));
+}
+
 typedef struct {
     const double *latitude, *longitude;
     double *out;
@@ -639,18 +646,26 @@ typedef struct {
     double *ordered;           /* their values in that order (by_bucket's memory, free by then) */
 } latlon_job;
 
-static void latlon_count(void *ctx, int64_t blk)
+GS_HOT static void latlon_count(void *ctx, int64_t blk)
 {
     latlon_job *J = ctx;
     int64_t *counts = J->counts + blk * (LL_BUCKETS + 1), bad = 0;
     int64_t lo = blk * J->size, hi = lo + J->size < J->m ? lo + J->size : J->m;
-    for (int64_t s = lo; s < hi; ++s) {
-        double la = J->latitude[s], lo_ = J->longitude[s];
-        if (fabs(la) > 90.0 || fabs(lo_) == INFINITY)
-            bad += 1;
-        uint32_t code = latlon_code(la, lo_);
-        J->code[s] = code;
-        counts[code >> LL_LOW_BITS] += 1;
+    for (int64_t s = lo; s < hi; s += 4) {
+        gs_v4 la, lo_;
+        for (int i = 0; i < 4; ++i) { /* past the end: the last point again, not counted */
+            la[i] = J->latitude[s + i < hi ? s + i : hi - 1];
+            lo_[i] = J->longitude[s + i < hi ? s + i : hi - 1];
+        }
+        const gs_i4 sign = {INT64_MIN, INT64_MIN, INT64_MIN, INT64_MIN};
+        gs_v4 abs_la = (gs_v4)((gs_i4)la & ~sign), abs_lo = (gs_v4)((gs_i4)lo_ & ~sign);
+        gs_i4 wrong = (abs_la > 90.0) | (abs_lo == INFINITY);
+        gs_u4 code = latlon_code4(la, lo_);
+        for (int i = 0; i < 4 && s + i < hi; ++i) {
+            bad -= wrong[i]; /* -1 where wrong */
+            J->code[s + i] = code[i];
+            counts[code[i] >> LL_LOW_BITS] += 1;
+        }
     }
     J->invalid[blk] = bad;
 }
@@ -787,7 +802,7 @@ GS_INLINE void latlon_range(const latlon_job *J, const int order, int64_t lo, in
             __builtin_prefetch(&J->longitude[KEY_AT(J->sorted[p + 16])]);
         }
         if (p < hi) {
-            int64_t i = (p - lo) % 4;
+            int64_t i = (p - lo) & 3; /* p >= lo: masks, not signed remainders */
             if (i == 0) { /* the next 4 points' directions at once */
                 gs_v4 la, lo_;
                 for (int k = 0; k < 4; ++k) {
@@ -797,12 +812,12 @@ GS_INLINE void latlon_range(const latlon_job *J, const int order, int64_t lo, in
                 }
                 directions4(&la, &lo_, &dx, &dy, &dz);
             }
-            latlon_locate(S, order, dx[i], dy[i], dz[i], &ring[p % LL_AHEAD], last_key, last_brick);
+            latlon_locate(S, order, dx[i], dy[i], dz[i], &ring[(uint64_t)p % LL_AHEAD], last_key, last_brick);
         }
         int64_t e = p - (LL_AHEAD - 1); /* summed now */
         if (e < lo)
             continue;
-        const located *L = &ring[e % LL_AHEAD];
+        const located *L = &ring[(uint64_t)e % LL_AHEAD];
         double result[1] = {0.0};
         if (L->brick >= 0) {
             gs_v4 w[GS_MAX_ORDER]; /* {wx, wy, wz, -} per B-spline */
