@@ -11,6 +11,8 @@ independence on Ω = ∪ ω^ℓ.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -530,23 +532,73 @@ def test_normal_matrix_in_slices_is_the_one_of_a_whole_table(monkeypatch):
     assert sliced.nnz == whole.nnz
 
 
+def _blocks_of_a_random_system(rng, n=60):
+    a = rng.normal(size=(n, n)) * (rng.uniform(size=(n, n)) < 0.2)
+    whole = a @ a.T + n * np.eye(n)
+    blocks = [np.arange(0, 25), np.arange(20, 45), np.sort(rng.choice(n, 30, replace=False)), np.arange(59, 60)]
+    return whole, blocks
+
+
 def test_schwarz_preconditioner_solves_each_block_and_sums():
-    """The packed Cholesky factors applied in one call give Σ_b R_bᵀ S_bb⁻¹ R_b r."""
+    """The packed Cholesky factors, held in float32 and applied in one call, give
+    Σ_b R_bᵀ (L̃_b L̃_bᵀ)⁻¹ R_b r for the rounded factors L̃_b (numpy's triangular solves
+    in float64 on the same rounded factors), which is S_bb⁻¹ to float32's rounding."""
+    from scipy.linalg import cholesky, solve_triangular
+
     from geoidspline.fitting.hierarchical import SchwarzPreconditioner, SymmetricMatrix
 
     rng = np.random.default_rng(3)
-    n = 60
-    a = rng.normal(size=(n, n)) * (rng.uniform(size=(n, n)) < 0.2)
-    whole = a @ a.T + n * np.eye(n)
+    whole, blocks = _blocks_of_a_random_system(rng)
+    n = whole.shape[0]
     system = SymmetricMatrix(sp.csr_matrix(np.triu(whole)))
     np.testing.assert_allclose(system @ np.arange(n, dtype=float), whole @ np.arange(n), rtol=1e-13)
-    blocks = [np.arange(0, 25), np.arange(20, 45), np.sort(rng.choice(n, 30, replace=False)), np.arange(59, 60)]
     precondition = SchwarzPreconditioner(system, blocks)
+    assert precondition.factors.dtype == np.float32
     r = rng.normal(size=n)
-    expected = np.zeros(n)
+    rounded_factors, exact = np.zeros(n), np.zeros(n)
     for idx in blocks:
-        expected[idx] += np.linalg.solve(whole[np.ix_(idx, idx)], r[idx])
-    np.testing.assert_allclose(precondition(r), expected, rtol=1e-11, atol=1e-14)
+        factor = cholesky(whole[np.ix_(idx, idx)], lower=True).astype(np.float32).astype(np.float64)
+        y = solve_triangular(factor, r[idx], lower=True)
+        rounded_factors[idx] += solve_triangular(factor.T, y, lower=False)
+        exact[idx] += np.linalg.solve(whole[np.ix_(idx, idx)], r[idx])
+    z = precondition(r)
+    np.testing.assert_allclose(z, rounded_factors, rtol=1e-12, atol=1e-15)
+    assert 1e-9 < np.abs(z - exact).max() / np.abs(exact).max() < 1e-5  # float32's rounding, no more
+
+
+def test_float32_factors_reach_the_solution_of_exact_local_solves():
+    """Conjugate gradients preconditioned by the float32 factors stop within their
+    tolerance of the solution, as with exact (float64) local solves, in about as many
+    iterations, on a system whose blocks are ill-conditioned (a ridge of 1e-8)."""
+    from geoidspline.fitting.hierarchical import SchwarzPreconditioner, SymmetricMatrix, conjugate_gradients
+
+    rng = np.random.default_rng(11)
+    n = 400
+    # a 1-D chain of overlapping supports: banded and nearly singular, as B-splines' AᵀA
+    sites = rng.uniform(0, 100, size=3000)
+    a = np.maximum(0.0, 1.0 - np.abs(sites[:, None] / 0.25 - np.arange(n)[None, :]) / 2.0)
+    whole = a.T @ a + 1e-8 * np.eye(n)
+    system = SymmetricMatrix(sp.csr_matrix(np.triu(whole)))
+    rhs = a.T @ np.sin(sites / 7.0)
+    blocks = [np.arange(s, min(n, s + 60)) for s in range(0, n, 50)]
+
+    def exact_local_solves(r):
+        z = np.zeros_like(r)
+        for idx in blocks:
+            z[idx] += np.linalg.solve(whole[np.ix_(idx, idx)], r[idx])
+        return z
+
+    solution = np.linalg.solve(whole, rhs)
+    tolerance = 1e-6
+    x32, it32, reached32 = conjugate_gradients(system, rhs, SchwarzPreconditioner(system, blocks), np.zeros(n),
+                                               tolerance)
+    x64, it64, reached64 = conjugate_gradients(system, rhs, exact_local_solves, np.zeros(n), tolerance)
+    assert reached32 <= tolerance and reached64 <= tolerance
+    assert it64 > 5 and it32 <= it64 + 2
+    for x in (x32, x64):  # the energy norm of the error: what the stopping rule bounds
+        error = x - solution
+        assert math.sqrt(error @ whole @ error) < 10 * tolerance
+    np.testing.assert_allclose(a @ x32, a @ x64, atol=1e-6)  # the fitted values at the sites
 
 
 def test_a_block_that_is_not_positive_definite_is_factorised_shifted():

@@ -74,9 +74,10 @@ def cholesky_packed(lower, shift, out):
 
 def schwarz_apply(block_at, index, factor_at, factors, r):
     """``Σ_b R_bᵀ (L_b L_bᵀ)⁻¹ R_b r`` over the blocks ``index[block_at[b]:block_at[b+1]]``
-    with their Cholesky factors packed by rows at ``factors[factor_at[b]:]``."""
+    with their Cholesky factors packed by rows at ``factors[factor_at[b]:]`` in float32
+    (the solves accumulate in float64)."""
     block_at, index, factor_at = c_in(block_at, np.int64), c_in(index, np.int64), c_in(factor_at, np.int64)
-    factors, r = c_in(factors, np.float64), c_in(r, np.float64)
+    factors, r = c_in(factors, np.float32), c_in(r, np.float64)
     z = np.zeros_like(r)
     work = np.empty(int(np.diff(block_at).max()) if block_at.size > 1 else 0)
     _schwarz_apply(block_at.size - 1, ptr(block_at), ptr(index), ptr(factor_at), ptr(factors), ptr(r), ptr(z),

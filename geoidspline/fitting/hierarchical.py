@@ -94,19 +94,34 @@ SCHWARZ_OVERLAP = 0.0
 #: since its dense factor costs the cube of its size.
 SCHWARZ_MAX_UNKNOWNS = 2_000
 
+#: The type the cubes' packed Cholesky factors are held in (:class:`SchwarzPreconditioner`;
+#: factorised in float64): float32, half the bytes of the largest part of a step's memory.
+FACTOR_DTYPE = np.float32
+
 #: Conjugate gradients stop when the fitted values at the sites are within this
 #: fraction of the tolerance (RMS over the sites) of the whole problem's solution.
 SOLVE_FRACTION = 0.01
 MAX_ITERATIONS = 1_000
 
-#: Peak memory of a fit per unknown of its largest step (bytes): the upper triangle of
-#: the whole problem (about 85 non-zeros a row), the cubes' packed Cholesky factors (about
-#: 2.5 local unknowns per unknown, about 3.5 kB), the slices of the normal equations being
-#: assembled, and the data nodes (global EGM96 15' grid at 0.1 m, 2026-12-03: 1.70 GB peak
-#: resident for 281,071 unknowns, 6,040 bytes each; at 0.5 m 1.07 GB for 172,152, 6,200;
-#: benchmarks/README.md, issue 21's memory). A step needing more than the memory
-#: available is not built (:class:`BasisTooLarge`).
-BYTES_PER_UNKNOWN = 6_500
+#: Entries of the cubes' packed Cholesky factors per unknown of a step (about 2.5 local
+#: unknowns per unknown, a packed row each of about half its cube's size): global EGM96
+#: 15' grid at 0.1 m with the cell centres, 2026-12-03, 156 million for 296,315 unknowns
+#: (528 each; 465 at 238,311), benchmarks/README.md, issue 21's memory.
+FACTOR_ENTRIES_PER_UNKNOWN = 530
+
+#: The rest of a fit's peak per unknown of its largest step (bytes): the upper triangle of
+#: the whole problem (about 85 non-zeros a row), the slices of the normal equations being
+#: assembled, and the data nodes and cell centres (the global 15' grid at 0.5 m, the
+#: matrix's grid row with the most nodes per unknown: 1.10 GB peak resident for 172,651
+#: unknowns, 6,350 bytes each, of which about 1,750 the factors).
+OTHER_BYTES_PER_UNKNOWN = 4_400
+
+#: Peak memory of a fit per unknown of its largest step (bytes; about 6,500 with float32
+#: factors, 8,600 with float64 ones): global 15' grid at 0.1 m 1.46 GB for 296,339
+#: unknowns (4,940 each), at 0.5 m 6,350 (benchmarks/README.md). A step needing more
+#: than the memory available is not built (:class:`BasisTooLarge`), and
+#: :func:`geoidspline.fitting.memory.plan` plans level 0 with it.
+BYTES_PER_UNKNOWN = OTHER_BYTES_PER_UNKNOWN + FACTOR_ENTRIES_PER_UNKNOWN * np.dtype(FACTOR_DTYPE).itemsize
 
 #: Cell centres of a grid (:mod:`geoidspline.fitting.cell_centres`) as sites: their weight
 #: relative to a node's.
@@ -469,20 +484,29 @@ def schwarz_blocks(basis: HierarchicalBasis, size: float, overlap: float, max_un
 
 class SchwarzPreconditioner:
     """Additive Schwarz: ``z = Σ_b R_bᵀ S_bb⁻¹ R_b r`` over overlapping subdomains, each
-    principal block of the whole matrix factorised once by dense Cholesky, its factor
-    packed (the lower triangle by rows, one array for all blocks) and all blocks applied
-    by one compiled call (:func:`geoidspline._kernels.fitting.schwarz_apply`). The blocks
-    are nearly full, so the packed triangle is the least they can be held in; sparse LDLᵀ
-    factors (qdldl) of the same blocks took 1.5 times the memory (benchmarks/README.md)."""
+    principal block of the whole matrix factorised once by dense Cholesky (in float64), its
+    factor packed (the lower triangle by rows, one array for all blocks) and held in
+    :data:`FACTOR_DTYPE`, and all blocks applied by one compiled call
+    (:func:`geoidspline._kernels.fitting.schwarz_apply`, accumulating in float64). The
+    blocks are nearly full, so the packed triangle is the least they can be held in.
+    Rounding the factors changes the preconditioner, not the problem solved: ``L̃ L̃ᵀ``
+    stays positive definite, and conjugate gradients stop on the same rule, at an iterate
+    that differs within it (benchmarks/README.md, issue 21's memory: iterations and
+    stores of float32 factors against float64 ones)."""
 
     def __init__(self, system: SymmetricMatrix, index_sets, advance=None):
         sizes = np.array([idx.size for idx in index_sets], dtype=np.int64)
         self.block_at = np.r_[0, np.cumsum(sizes)]
         self.index = np.concatenate(index_sets).astype(np.int64) if index_sets else _EMPTY
-        self.factor_at = np.r_[0, np.cumsum(sizes * (sizes + 1) // 2)]
-        self.factors = np.empty(int(self.factor_at[-1]))
+        packed_sizes = sizes * (sizes + 1) // 2
+        self.factor_at = np.r_[0, np.cumsum(packed_sizes)]
+        self.factors = np.empty(int(self.factor_at[-1]), dtype=FACTOR_DTYPE)
+        # each block is factorised in float64 here, then rounded into its place
+        scratch = np.empty(int(packed_sizes.max()) if sizes.size else 0)
         for b, idx in enumerate(index_sets):
-            _cholesky(system.principal_lower(idx), self.factors[self.factor_at[b]:self.factor_at[b + 1]])
+            packed = scratch[:packed_sizes[b]]
+            _cholesky(system.principal_lower(idx), packed)
+            self.factors[self.factor_at[b]:self.factor_at[b + 1]] = packed
             if advance is not None:
                 advance(1)
 

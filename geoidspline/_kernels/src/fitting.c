@@ -114,47 +114,52 @@ GS_EXPORT void gs_normal_compress(const double *table, const int64_t *keys, int6
     }
 }
 
-/* sum_k a[k] b[k], k < n, in four partial sums: independent chains the compiler can keep
- * in flight; the factorisation and the triangular solve share it, so their sums agree */
-GS_INLINE double dot4(const double *a, const double *b, int64_t n)
-{
-    double s0 = 0.0, s1 = 0.0, s2 = 0.0, s3 = 0.0;
-    int64_t k = 0;
-    for (; k + 4 <= n; k += 4) {
-        s0 += a[k] * b[k];
-        s1 += a[k + 1] * b[k + 1];
-        s2 += a[k + 2] * b[k + 2];
-        s3 += a[k + 3] * b[k + 3];
+/* sum_k a[k] b[k], k < n, accumulated in double in four partial sums: independent chains
+ * the compiler can keep in flight. One body for both types of a: double rows of the
+ * factorisation (dot4) and the float rows of the stored factors (dot4_float). */
+#define GS_DOT4(NAME, A_TYPE)                                                                    \
+    GS_INLINE double NAME(const A_TYPE *a, const double *b, int64_t n)                           \
+    {                                                                                            \
+        double s0 = 0.0, s1 = 0.0, s2 = 0.0, s3 = 0.0;                                           \
+        int64_t k = 0;                                                                           \
+        for (; k + 4 <= n; k += 4) {                                                             \
+            s0 += (double)a[k] * b[k];                                                           \
+            s1 += (double)a[k + 1] * b[k + 1];                                                   \
+            s2 += (double)a[k + 2] * b[k + 2];                                                   \
+            s3 += (double)a[k + 3] * b[k + 3];                                                   \
+        }                                                                                        \
+        for (; k < n; ++k)                                                                       \
+            s0 += (double)a[k] * b[k];                                                           \
+        return (s0 + s1) + (s2 + s3);                                                            \
     }
-    for (; k < n; ++k)
-        s0 += a[k] * b[k];
-    return (s0 + s1) + (s2 + s3);
-}
+GS_DOT4(dot4, double)
+GS_DOT4(dot4_float, float)
 
 /* Additive Schwarz preconditioner z = Σ_b R_bᵀ (L_b L_bᵀ)⁻¹ R_b r (z zeroed by the caller):
  * block b holds the indices index[block_at[b] .. block_at[b + 1]) (m of them) and its
  * Cholesky factor L_b packed by rows (row i: L[i][0..i]) at factors[factor_at[b] ..],
- * m (m + 1) / 2 values; work holds the largest m. */
+ * m (m + 1) / 2 values in float (half the memory; the solves accumulate in double, the
+ * preconditioner need not be exact); work holds the largest m. */
 GS_EXPORT void gs_schwarz_apply(int64_t blocks, const int64_t *block_at, const int64_t *index,
-                                const int64_t *factor_at, const double *factors, const double *r, double *z,
+                                const int64_t *factor_at, const float *factors, const double *r, double *z,
                                 double *work)
 {
     for (int64_t b = 0; b < blocks; ++b) {
         const int64_t *idx = index + block_at[b];
         int64_t m = block_at[b + 1] - block_at[b];
-        const double *l = factors + factor_at[b];
+        const float *l = factors + factor_at[b];
         /* L y = r: row i of L is contiguous */
         for (int64_t i = 0; i < m; ++i) {
-            const double *row = l + i * (i + 1) / 2;
-            work[i] = (r[idx[i]] - dot4(row, work, i)) / row[i];
+            const float *row = l + i * (i + 1) / 2;
+            work[i] = (r[idx[i]] - dot4_float(row, work, i)) / (double)row[i];
         }
         /* Lᵀ z = y, by rows of L from the last: z_i final, then taken out of the rows above */
         for (int64_t i = m - 1; i >= 0; --i) {
-            const double *row = l + i * (i + 1) / 2;
-            double zi = work[i] / row[i];
+            const float *row = l + i * (i + 1) / 2;
+            double zi = work[i] / (double)row[i];
             work[i] = zi;
             for (int64_t k = 0; k < i; ++k)
-                work[k] -= row[k] * zi;
+                work[k] -= (double)row[k] * zi;
         }
         for (int64_t i = 0; i < m; ++i)
             z[idx[i]] += work[i];
