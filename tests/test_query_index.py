@@ -352,6 +352,32 @@ def test_latlon_batches_refuse_bad_coordinates():
     np.testing.assert_array_equal(AmbientSpline([]).undulation(lat, lon), 0.0)
 
 
+def test_latlon_kernel_counts_each_bad_coordinate_once():
+    """The compiled batch counts invalid coordinates 4 points at a time: a batch whose
+    length is not a multiple of 4 counts each bad point once (the last vector's spare
+    lanes repeat the last point), NaN is not invalid, and the good points' values are
+    those of a batch without the bad ones."""
+    spline = AmbientSpline(random_overlays(2, nlevels=2))
+    rng = np.random.default_rng(7)
+    for count in (4099, 4098, 4097):  # 1, 2 and 3 points in the last vector
+        lat = rng.uniform(-80.0, 80.0, count)
+        lon = rng.uniform(-180.0, 180.0, count)
+        good, invalid = spline.index.undulation_latlon(lat, lon)
+        assert invalid == 0
+        bad = {0: (91.0, 0.0), 1000: (0.0, np.inf), count - 2: (-np.inf, 5.0), count - 1: (-90.5, -np.inf)}
+        la, lo = lat.copy(), lon.copy()
+        for at, (bad_lat, bad_lon) in bad.items():
+            la[at], lo[at] = bad_lat, bad_lon
+        la[7], lo[8] = np.nan, np.nan
+        assert spline.index.undulation_latlon(la, lo)[1] == len(bad)
+        la, lo = lat.copy(), lon.copy()
+        la[7], lo[8] = np.nan, np.nan
+        values, invalid = spline.index.undulation_latlon(la, lo)
+        assert invalid == 0 and np.isnan(values[7:9]).all()
+        np.testing.assert_array_equal(np.delete(values, [7, 8]), np.delete(good, [7, 8]))
+        assert np.abs(good).max() > 0.1
+
+
 def test_compiled_directions_agree_with_numpy_trigonometry():
     """Large batches compute directions with their own sin/cos (fdlibm polynomials):
     within 2.3e-16 of numpy's per component (2 ulp of 1), unit length to 4.5e-16,
@@ -384,8 +410,8 @@ def test_dense_latlon_batches_equal_directions_then_points():
 
     spline = AmbientSpline(random_overlays(51, nlevels=3))
     rng = np.random.default_rng(52)
-    lat = rng.uniform(10.0, 12.5, 50_000)
-    lon = rng.uniform(-181.0, -178.0, 50_000)  # across the antimeridian
+    lat = rng.uniform(10.0, 12.5, 50_003)  # not a multiple of 4: the vector passes' last points
+    lon = rng.uniform(-181.0, -178.0, 50_003)  # across the antimeridian
     lat[::97] = np.nan
     want = spline.evaluate_points(directions(lat, lon))
     threads = _clib.threads()
