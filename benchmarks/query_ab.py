@@ -15,7 +15,10 @@ own as ``pip install`` compiles the package's (setuptools' ``build_ext`` with th
 Both libraries are loaded in this one process and called alternately (A, B, A, B, ...)
 on the same 1,000,000 points with the same query tables (the index the installed
 package builds from the store; its ``Spline`` record must be laid out as each library
-expects: fields added at the end are fine for the older one). Timed is
+expects: fields added at the end are fine for the older one; a library from before the
+quantised tables, without ``gs_quantise_table``, is given the same spline's float64
+tables, ``BrickIndex(levels, order)``, and the store's values stay bitwise the same).
+Timed is
 ``gs_undulation_latlon`` alone: CPU time of the calling thread with ``--threads 1`` (the
 kernel then runs on it; CPU time moves much less with other processes' load than wall
 time), wall time otherwise. Medians and min..max of ``--repeat`` calls each, B / A, and
@@ -98,12 +101,13 @@ def build_library(root: Path, extra_cflags: list[str]) -> Path:
 
 
 def kernel(library: Path):
+    """(gs_undulation_latlon, whether the library reads quantised tables)"""
     lib = ctypes.CDLL(str(library))
     f = lib.gs_undulation_latlon
     f.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64,
                   ctypes.c_void_p, ctypes.c_int64]
     f.restype = ctypes.c_int64
-    return f
+    return f, hasattr(lib, "gs_quantise_table")
 
 
 def main(argv=None):
@@ -123,13 +127,15 @@ def main(argv=None):
     import geoidspline
 
     work = Path(tempfile.mkdtemp(prefix="query_ab_"))
-    libs, labels = {}, {}
+    from geoidspline.bspline.index import BrickIndex
+
+    libs, labels, quantised = {}, {}, {}
     try:
         for side, spec, flags in (("A", args.a, args.a_cflags), ("B", args.b, args.b_cflags)):
             root = work / side
             labels[side] = fetch_sources(spec, root) + (f" {flags}" if flags else "")
             t0 = time.perf_counter()
-            libs[side] = kernel(build_library(root, flags.split()))
+            libs[side], quantised[side] = kernel(build_library(root, flags.split()))
             print(f"{side}: {labels[side]}, built in {time.perf_counter() - t0:.1f} s")
         batches = {"global": random_points(args.points),
                    "regional": random_points(args.points, SEED + 1, EUROPE)}  # query_benchmark.py's batches
@@ -142,8 +148,10 @@ def main(argv=None):
         print("|---|---|---:|---:|---:|---|---|")
         clock = time.thread_time if args.threads == 1 else time.perf_counter
         for store in args.store:
-            index = geoidspline.open_store(store).spline.full.index
-            spline = ctypes.addressof(index.spline)
+            full = geoidspline.open_store(store).spline.full
+            index = full.index
+            float_index = BrickIndex(full.levels, full.order) if index.values.size == 0 else index
+            splines = {side: ctypes.addressof((index if quantised[side] else float_index).spline) for side in libs}
             for name in args.batch or ["global"]:
                 lat, lon = (np.ascontiguousarray(a) for a in batches[name])
                 m = lat.size
@@ -151,12 +159,12 @@ def main(argv=None):
                 outs = {side: np.empty(m) for side in libs}
                 samples = {side: [] for side in libs}
                 for side, f in libs.items():  # untimed first calls: page faults, caches
-                    f(spline, lat.ctypes.data, lon.ctypes.data, m, nblocks, outs[side].ctypes.data, args.threads)
+                    f(splines[side], lat.ctypes.data, lon.ctypes.data, m, nblocks, outs[side].ctypes.data, args.threads)
                 load = os.getloadavg()[0]
                 for _ in range(args.repeat):
                     for side, f in libs.items():
                         t0 = clock()
-                        f(spline, lat.ctypes.data, lon.ctypes.data, m, nblocks, outs[side].ctypes.data, args.threads)
+                        f(splines[side], lat.ctypes.data, lon.ctypes.data, m, nblocks, outs[side].ctypes.data, args.threads)
                         samples[side].append((clock() - t0) / m * 1e9)
                 load = (load, os.getloadavg()[0])
                 med = {side: statistics.median(s) for side, s in samples.items()}

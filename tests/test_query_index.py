@@ -352,6 +352,32 @@ def test_latlon_batches_refuse_bad_coordinates():
     np.testing.assert_array_equal(AmbientSpline([]).undulation(lat, lon), 0.0)
 
 
+def test_latlon_kernel_counts_each_bad_coordinate_once():
+    """The compiled batch counts invalid coordinates 4 points at a time: a batch whose
+    length is not a multiple of 4 counts each bad point once (the last vector's spare
+    lanes repeat the last point), NaN is not invalid, and the good points' values are
+    those of a batch without the bad ones."""
+    spline = AmbientSpline(random_overlays(2, nlevels=2))
+    rng = np.random.default_rng(7)
+    for count in (4099, 4098, 4097):  # 1, 2 and 3 points in the last vector
+        lat = rng.uniform(-80.0, 80.0, count)
+        lon = rng.uniform(-180.0, 180.0, count)
+        good, invalid = spline.index.undulation_latlon(lat, lon)
+        assert invalid == 0
+        bad = {0: (91.0, 0.0), 1000: (0.0, np.inf), count - 2: (-np.inf, 5.0), count - 1: (-90.5, -np.inf)}
+        la, lo = lat.copy(), lon.copy()
+        for at, (bad_lat, bad_lon) in bad.items():
+            la[at], lo[at] = bad_lat, bad_lon
+        la[7], lo[8] = np.nan, np.nan
+        assert spline.index.undulation_latlon(la, lo)[1] == len(bad)
+        la, lo = lat.copy(), lon.copy()
+        la[7], lo[8] = np.nan, np.nan
+        values, invalid = spline.index.undulation_latlon(la, lo)
+        assert invalid == 0 and np.isnan(values[7:9]).all()
+        np.testing.assert_array_equal(np.delete(values, [7, 8]), np.delete(good, [7, 8]))
+        assert np.abs(good).max() > 0.1
+
+
 def test_compiled_directions_agree_with_numpy_trigonometry():
     """Large batches compute directions with their own sin/cos (fdlibm polynomials):
     within 2.3e-16 of numpy's per component (2 ulp of 1), unit length to 4.5e-16,
@@ -384,8 +410,8 @@ def test_dense_latlon_batches_equal_directions_then_points():
 
     spline = AmbientSpline(random_overlays(51, nlevels=3))
     rng = np.random.default_rng(52)
-    lat = rng.uniform(10.0, 12.5, 50_000)
-    lon = rng.uniform(-181.0, -178.0, 50_000)  # across the antimeridian
+    lat = rng.uniform(10.0, 12.5, 50_003)  # not a multiple of 4: the vector passes' last points
+    lon = rng.uniform(-181.0, -178.0, 50_003)  # across the antimeridian
     lat[::97] = np.nan
     want = spline.evaluate_points(directions(lat, lon))
     threads = _clib.threads()
@@ -465,3 +491,121 @@ def test_full_columns_give_the_bits_of_decoded_columns(order):
     for a, b in zip(fast, decoded):
         np.testing.assert_array_equal(a, b)
     assert np.abs(fast[3]).max() > 1.0
+
+
+@pytest.mark.parametrize("order", [4, 6])
+def test_own_tables_from_keys_equal_those_from_brick_entries(order):
+    """own_table_fill builds a row of bricks' own table straight from the keys: the same
+    bricks, column entries and values as listing the (brick, coefficient) pairs first."""
+    from geoidspline.bspline.index import _Slab, _brick_rows, _row_span
+
+    side = (1 << _kernels.BRICK_BITS) + order - 1
+    rows_seen = 0
+    for lv in random_overlays(81, order=order, nlevels=3):
+        for row in _brick_rows(lv, order):
+            lo, hi = _row_span(lv, order, row)
+            slab = _Slab(lv, order, row)
+            if lo == hi:
+                assert slab.brick_keys.size == 0
+                continue
+            want_base, want_cols, want_values = _kernels.own_table_row(slab.brick_start, slab.local, slab.coef_index,
+                                                                       lv.coefficients, side)
+            none = (np.empty(0, np.int64), np.empty(0, np.int64), np.zeros((0, side, side), np.int32), np.zeros(0))
+            nb, total, written = _kernels.own_table_fill(lv.keys[lo:hi], lv.coefficients[lo:hi], order, row, *none)
+            assert not written and nb > 0  # sizes only: nothing fits
+            keys, base = np.empty(nb, np.int64), np.empty(nb, np.int64)
+            cols, values = np.zeros((nb, side, side), np.int32), np.zeros(total)
+            assert _kernels.own_table_fill(lv.keys[lo:hi], lv.coefficients[lo:hi], order, row, keys, base, cols,
+                                           values) == (nb, total, True)
+            np.testing.assert_array_equal(keys, slab.brick_keys)
+            np.testing.assert_array_equal(base, want_base)
+            np.testing.assert_array_equal(cols, want_cols)
+            np.testing.assert_array_equal(values, want_values)
+            rows_seen += nb > 0
+    assert rows_seen >= 5
+
+
+def _quantised_level(seed, order, step, spread_steps):
+    """One level over the sphere whose coefficients are multiples of step / 4, as a store
+    read back holds them (its tiles quantised with a fraction of the manifest's step)."""
+    rng = np.random.default_rng(seed)
+    h = 0.15
+    idx = patch_keys(rng, h, order, np.zeros(3), 1.0 + order * h, keep=0.95)
+    q = rng.integers(-spread_steps, spread_steps, len(idx)).astype(np.int32)
+    return LevelSpline.from_indices(0, h, order, idx, q * (step / 4))
+
+
+@pytest.mark.parametrize("order,spread_steps,dtype", [(4, 1000, np.int16), (6, 1000, np.int16),
+                                                      (4, 10**6, np.int32)])
+def test_quantised_tables_give_the_bits_of_float_tables(order, spread_steps, dtype):
+    """Tables holding a store's integers (int16 with a base per brick, or int32 where a
+    brick spans more than 65,535 steps) give every value, gradient and Hessian bitwise as
+    the float64 tables do, through the full-column and the decoding paths, on and off
+    the sphere and in latitude/longitude batches, in less memory."""
+    from geoidspline.bspline.index import BrickIndex
+
+    step = 0.01
+    level = _quantised_level(91, order, step, spread_steps)
+    plain = BrickIndex([level], order)
+    quantised = BrickIndex([level], order, value_step=step, quantise=True)
+    assert plain.qvalues is None and quantised.qvalues.dtype == dtype
+    assert quantised.value_step == step / 4 and quantised.values.size == 0
+    assert quantised.nbytes == (plain.nbytes - plain.values.nbytes + np.dtype(dtype).itemsize * plain.values.size
+                                + quantised.qbase.nbytes)
+    rng = np.random.default_rng(92)
+    points = np.concatenate(list(point_sets(rng, [level], count=1500).values()))
+    lat = np.degrees(np.arcsin(rng.uniform(-1, 1, 50_000)))
+    lon = rng.uniform(-180, 180, 50_000)
+
+    def results(index):
+        out = []
+        for nderiv in (0, 1, 2):
+            values = np.zeros((points.shape[0], {0: 1, 1: 4, 2: 10}[nderiv]))
+            index.add_to(points, values, nderiv)
+            out.append(values)
+        return out + [index.undulation_latlon(lat, lon)[0]]
+
+    want = results(plain)
+    assert np.abs(want[3]).max() > 1.0
+    for got, expected in zip(results(quantised), want):
+        np.testing.assert_array_equal(got, expected)
+    quantised.fold_full[:] = 0  # every point through the decoding path
+    for got, expected in zip(results(quantised), want):
+        np.testing.assert_array_equal(got, expected)
+
+
+def test_tables_stay_float_unless_every_coefficient_is_a_multiple_of_the_step():
+    """A value step the coefficients do not follow (or a folded index: its values are
+    sums) leaves the float64 tables; a store read back states its step."""
+    from geoidspline.bspline.index import BrickIndex
+
+    level = _quantised_level(93, 4, 0.01, 1000)
+    off = LevelSpline(0, level.h, 4, level.keys, level.coefficients + 1e-7)
+    assert BrickIndex([off], 4, value_step=0.01, quantise=True).qvalues is None
+    assert BrickIndex(random_overlays(94, nlevels=3), 4, value_step=0.01, quantise=True).qvalues is None
+    assert BrickIndex([level], 4, value_step=0.01).qvalues is None  # small: float64 is faster
+
+
+def test_a_store_read_back_states_its_value_step(small_store):
+    import json
+
+    from geoidspline.store.reader import TileStore
+
+    step = json.loads((small_store.path / "manifest.json").read_text())["spline"]["value_step_m"]
+    assert TileStore.open(small_store.path).spline.full.value_step == step
+
+
+def test_own_tables_grow_beyond_their_first_capacity(monkeypatch):
+    """The own tables start with room for what single-level stores need and grow when a
+    row needs more: the same index either way, quantised or not."""
+    from geoidspline.bspline import index as index_module
+
+    levels = [_quantised_level(95, 4, 0.01, 1000)]
+    want = [index_module.BrickIndex(levels, 4, value_step=0.01, quantise=q) for q in (False, True)]
+    monkeypatch.setattr(index_module, "_BRICKS_PER_COEFFICIENT", 0.0)
+    monkeypatch.setattr(index_module, "_VALUES_PER_COEFFICIENT", 0.0)
+    got = [index_module.BrickIndex(levels, 4, value_step=0.01, quantise=q) for q in (False, True)]
+    for a, b in zip(want, got):
+        for name in ("slots", "own_base", "own_cols", "own_offs", "own_full", "values", "qvalues", "qbase"):
+            np.testing.assert_array_equal(getattr(b, name), getattr(a, name), err_msg=name)
+    assert got[1].qvalues is not None and got[0].values.size > 0

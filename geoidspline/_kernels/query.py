@@ -42,16 +42,20 @@ class Spline(ctypes.Structure):
                 ("inv_hs", PTR), ("band_lo2", PTR), ("band_hi2", PTR), ("presence", PTR),
                 ("slots", PTR), ("slot_start", PTR), ("slot_mask", PTR),
                 ("fold_base", PTR), ("own_base", PTR), ("fold_cols", PTR), ("own_cols", PTR),
-                ("values", PTR), ("fold_offs", PTR), ("own_offs", PTR), ("fold_full", PTR), ("own_full", PTR)]
+                ("values", PTR), ("fold_offs", PTR), ("own_offs", PTR), ("fold_full", PTR), ("own_full", PTR),
+                ("qvalues", PTR), ("qbase", PTR), ("value_step", F64), ("qwidth", I64)]
 
     @classmethod
     def of(cls, order, inv_hs, band_lo2, band_hi2, presence, slots, slot_start, slot_mask, fold_base, fold_cols,
-           own_base, own_cols, values, fold_offs, fold_full, own_offs, own_full) -> "Spline":
+           own_base, own_cols, values, fold_offs, fold_full, own_offs, own_full, qvalues=None, qbase=None,
+           value_step=0.0) -> "Spline":
         """``presence`` (levels, PRESENCE_SIDE³) uint8; ``slots`` (capacity, 2) int64;
         ``fold_cols``/``own_cols`` and ``fold_offs``/``own_offs`` (bricks, side, side) int32,
         ``fold_full``/``own_full`` (bricks, 2**BRICK_BITS, 2**BRICK_BITS) uint16 (see
         :func:`full_columns`); the rest per level or per brick (int64) and ``values``
-        float64. Every array must be C-contiguous already."""
+        float64. Quantised tables (:func:`quantise_table`): ``qvalues`` int16 or int32 and
+        ``qbase`` int32 per brick with ``value_step`` (metres), ``values`` then unused;
+        ``None`` (the default): the float64 ``values``. Every array must be C-contiguous already."""
         arrays = dict(inv_hs=(inv_hs, np.float64), band_lo2=(band_lo2, np.float64),
                       band_hi2=(band_hi2, np.float64), presence=(presence, np.uint8), slots=(slots, np.int64),
                       slot_start=(slot_start, np.int64), slot_mask=(slot_mask, np.int64),
@@ -59,10 +63,15 @@ class Spline(ctypes.Structure):
                       fold_cols=(fold_cols, np.int32), own_cols=(own_cols, np.int32), values=(values, np.float64),
                       fold_offs=(fold_offs, np.int32), own_offs=(own_offs, np.int32),
                       fold_full=(fold_full, np.uint16), own_full=(own_full, np.uint16))
+        if qvalues is not None:
+            arrays.update(qvalues=(qvalues, np.int32 if qvalues.dtype == np.int32 else np.int16),
+                          qbase=(qbase, np.int32))
         for name, (array, dtype) in arrays.items():
             if array.dtype != np.dtype(dtype) or not array.flags.c_contiguous:
                 raise TypeError(f"{name} must be a C-contiguous {np.dtype(dtype)} array (got {array.dtype})")
         record = cls(order=int(order), nlev=int(inv_hs.shape[0]), side=(1 << BRICK_BITS) + int(order) - 1,
+                     value_step=float(value_step) if qvalues is not None else 0.0,
+                     qwidth=qvalues.dtype.itemsize if qvalues is not None else 0,
                      **{name: ptr(array) for name, (array, _) in arrays.items()})
         record._arrays = arrays  # the tables live as long as the record
         return record
@@ -77,6 +86,10 @@ _build_hash = function("gs_build_hash", PTR, I64, PTR, I64)
 _brick_row_entries = function("gs_brick_row_entries", PTR, I64, I64, I64, I64, I64, PTR, PTR, PTR, PTR, PTR, PTR,
                               restype=I64)
 _own_table_row = function("gs_own_table_row", PTR, I64, PTR, PTR, PTR, I64, PTR, PTR, PTR, restype=I64)
+_own_table_keys = function("gs_own_table_keys", PTR, I64, PTR, I64, I64, I64, I64, PTR, PTR, PTR, PTR, PTR,
+                           restype=I64)
+_finest_step = function("gs_finest_step", PTR, I64, F64, I64, restype=I64)
+_quantise_table = function("gs_quantise_table", PTR, I64, PTR, I64, F64, I64, PTR, PTR, restype=I64)
 _full_columns = function("gs_full_columns", PTR, I64, I64, PTR, PTR)
 _subdivide_bricks = function("gs_subdivide_bricks", PTR, I64, PTR, PTR, PTR, I64, PTR, I64, I64)
 
@@ -137,6 +150,57 @@ def own_table_row(brick_start, local, coef_index, coefficients, side):
     values = np.zeros(total)
     _own_table_row(*args, ptr(base), ptr(cols), ptr(values))
     return base, cols, values
+
+
+def own_table_fill(keys, coefficients, order, row, brick_keys, base, cols, values):
+    """The own table of one row of a level's bricks straight from its keys, written into
+    ``brick_keys`` (B,), ``base`` (B,), ``cols`` (B, side, side) int32 and ``values``
+    (zeroed, C-contiguous) when it fits them: returns ``(bricks, values, written)``. The
+    same table as :func:`brick_row_entries` then :func:`own_table_row` give.
+
+    ``keys``: the level's sorted keys whose first index is in ``[row S - order + 1, row S
+    + S - 1]`` (``S = 2**BRICK_BITS``), ``coefficients`` theirs.
+    """
+    keys = c_in(keys, np.int64)
+    coefficients = c_in(coefficients, np.float64)
+    side = (1 << BRICK_BITS) + int(order) - 1
+    for name, array, dtype in (("brick_keys", brick_keys, np.int64), ("base", base, np.int64),
+                               ("cols", cols, np.int32), ("values", values, np.float64)):
+        if array.dtype != dtype or not array.flags.c_contiguous:
+            raise TypeError(f"{name} must be a C-contiguous {np.dtype(dtype)} array")
+    capacity = min(brick_keys.shape[0], base.shape[0], cols.shape[0])
+    if cols.shape[1:] != (side, side):
+        raise TypeError(f"cols must be (bricks, {side}, {side})")
+    sizes = np.zeros(2, np.int64)
+    done = _own_table_keys(ptr(keys), keys.size, ptr(coefficients), int(order), int(row), capacity, values.shape[0],
+                           ptr(brick_keys), ptr(base), ptr(cols), ptr(values), ptr(sizes))
+    if done < 0:
+        raise MemoryError("own_table_keys: out of memory")
+    return int(sizes[0]), int(sizes[1]), done == 0
+
+
+def finest_step(coefficients, step, max_halvings):
+    """The coarsest ``step / 2**k`` (``k <= max_halvings``) of which every coefficient is a
+    multiple, bitwise as a store's decoder makes them (``(double)(int32) q * step``), or
+    ``None``."""
+    coefficients = c_in(coefficients, np.float64)
+    k = _finest_step(ptr(coefficients), coefficients.size, float(step), int(max_halvings))
+    return None if k < 0 else step / 2.0**k
+
+
+def quantise_table(values, base, step, dtype):
+    """A table's values (bricks from ``base``, each up to the next's) as ``(q, qbase int32
+    per brick)`` with ``values == (qbase[brick] + q) * step`` bitwise: ``dtype`` int16 (a
+    brick's q spanning at most 65,535 steps) or int32 (qbase 0). ``None`` when they are
+    not all multiples of ``step`` (as a store's decoder makes them) or do not fit."""
+    values = c_in(values, np.float64)
+    base = c_in(base, np.int64)
+    q = np.empty(values.size, dtype)
+    qbase = np.empty(base.size, np.int32)
+    if _quantise_table(ptr(values), values.size, ptr(base), base.size, float(step), q.itemsize, ptr(q),
+                       ptr(qbase)) != 0:
+        return None
+    return q, qbase
 
 
 def full_columns(cols, order):

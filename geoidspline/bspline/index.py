@@ -30,6 +30,17 @@ _FOLD_CHUNK_BRICKS = 512  # bricks folded at once (a dense (side³) block each, 
 _SAME_H_RTOL = 1e-12
 
 
+_STEP_HALVINGS = 8  # a store's tiles are quantised with its step or down to 1/256 of it
+
+
+QUANTISE_FROM_COEFFICIENTS = 50_000_000
+"""From this many coefficients on (about 0.9 GB of float64 tables, beyond the caches), the
+tables of a spline with a known value step hold its integers (:class:`BrickIndex`):
+dequantising costs time per point where the tables are cached (EGM96 2 mm store, 6.5 M
+coefficients: 1.4 times slower), little where memory dominates, and saves 2.5 times the
+memory (benchmarks/README.md, "Query index")."""
+
+
 def _merge_levels(levels):
     """Non-empty levels sorted coarse to fine; levels of one spacing summed into one."""
     groups = []
@@ -67,6 +78,58 @@ def _fold_depths(levels):
     return depths
 
 
+def _row_span(lv, order, row):
+    """The run of a level's sorted keys whose first index i is in ``[row S - order + 1,
+    row S + S - 1]`` (the B-splines of row ``row`` of its bricks; i is the keys' leading
+    field): ``(lo, hi)``."""
+    cells = 1 << _qk.BRICK_BITS
+    lo, hi = np.searchsorted(lv.keys, pack_keys(np.array([[row * cells - order + 1, -KEY_OFFSET, -KEY_OFFSET],
+                                                           [row * cells + cells, -KEY_OFFSET, -KEY_OFFSET]])))
+    return int(lo), int(hi)
+
+
+def _brick_rows(lv, order):
+    """The rows (first brick index) of a level's bricks."""
+    if not len(lv):
+        return range(0)
+    first_i = int((lv.keys[0] >> (2 * KEY_BITS)) - KEY_OFFSET)
+    last_i = int((lv.keys[-1] >> (2 * KEY_BITS)) - KEY_OFFSET)
+    return range(first_i >> _qk.BRICK_BITS, ((last_i + order - 1) >> _qk.BRICK_BITS) + 1)
+
+
+class _NotQuantisable(Exception):
+    """A level's coefficients are not all multiples of the index's value step (or a brick
+    spans more steps than int16 holds): the index is built with float64 values."""
+
+
+class _Quantised:
+    """An index's values held as integers of its step (:func:`geoidspline._kernels.query.quantise_table`):
+    int16 with a base per brick (2 bytes a value) while every brick spans at most 65,535
+    steps, else int32 (the parts so far widened then)."""
+
+    def __init__(self, step):
+        self.step = step
+        self.dtype = np.int16
+        self.values, self.qbases, self._bases = [], [], []
+
+    def add(self, values, base):
+        """Add one part of the table's values (bricks from ``base``, local to the part)."""
+        while True:
+            got = _qk.quantise_table(values, base, self.step, self.dtype)
+            if got is not None:
+                break
+            if self.dtype == np.int32:
+                raise _NotQuantisable
+            self.dtype = np.int32
+            for i, (q, qbase, start) in enumerate(zip(self.values, self.qbases, self._bases)):
+                counts = np.diff(np.r_[start, q.size])
+                self.values[i] = q.astype(np.int32) + np.repeat(qbase, counts)
+                self.qbases[i] = np.zeros_like(qbase)
+        self.values.append(got[0])
+        self.qbases.append(got[1])
+        self._bases.append(base)
+
+
 class _Slab:
     """One row of a level's bricks (those with brick index ``row`` along the first axis):
     each of the level's coefficients listed once per brick of the row whose table holds it.
@@ -79,11 +142,7 @@ class _Slab:
 
     def __init__(self, lv, order, row):
         bits = _qk.BRICK_BITS
-        cells = 1 << bits
-        # the coefficients with i in [row S - n + 1, row S + S - 1]: one contiguous run of
-        # the sorted keys (i is the keys' leading field)
-        lo, hi = np.searchsorted(lv.keys, pack_keys(np.array([[row * cells - order + 1, -KEY_OFFSET, -KEY_OFFSET],
-                                                               [row * cells + cells, -KEY_OFFSET, -KEY_OFFSET]])))
+        lo, hi = _row_span(lv, order, row)
         (self.brick_keys, self.brick_start, self.brick_of_entry, self.local,
          coef) = _qk.brick_row_entries(lv.keys[lo:hi], order, bits, row)
         self.coef_index = coef + np.int32(lo)  # int32 positions in the level's coefficients
@@ -103,12 +162,7 @@ class _Members:
         self.lv = lv
         self.order = order
         self.coefficients = lv.coefficients
-        if len(lv):
-            first_i = int((lv.keys[0] >> (2 * KEY_BITS)) - KEY_OFFSET)
-            last_i = int((lv.keys[-1] >> (2 * KEY_BITS)) - KEY_OFFSET)
-            self.rows = range(first_i >> _qk.BRICK_BITS, ((last_i + order - 1) >> _qk.BRICK_BITS) + 1)
-        else:
-            self.rows = range(0)
+        self.rows = _brick_rows(lv, order)
         self._cached = None
 
     def slab(self, row) -> _Slab:
@@ -141,32 +195,68 @@ class _Members:
             flat_dense[block, flat] += self.coefficients[slab.coef_index[entry]]
 
 
-def _own_tables(members, side):
-    """The own table of a level, built one row of bricks at a time: (brick keys, value
-    base per brick, int32 columns (nb, side, side) and values as lists of parts, the
-    number of values)."""
-    keys_parts, base_parts, col_parts, value_parts = [], [], [], []
-    value_base = 0
-    for row in members.rows:
-        slab = _Slab(members.lv, members.order, row)  # used once: not kept
-        nb = slab.brick_keys.size
-        if nb == 0:
+_BRICKS_PER_COEFFICIENT = 1 / 256  # the own tables' first capacity (grown when a row needs more)
+_VALUES_PER_COEFFICIENT = 3.0
+
+
+def _grown(array, used, size):
+    """A zeroed array of ``size`` rows holding ``array``'s first ``used`` rows."""
+    out = np.zeros((size,) + array.shape[1:], array.dtype)
+    out[:used] = array[:used]
+    return out
+
+
+def _own_tables(lv, order, quantised):
+    """The own table of a level straight from its keys, one row of bricks at a time
+    (:func:`geoidspline._kernels.query.own_table_fill`), into arrays of the level's size
+    (no parts joined; their capacity is what single-level stores need, 2.3 values and
+    1/940 bricks a coefficient at order 6, grown when a row needs more): (brick keys,
+    value base per brick, int32 columns (nb, side, side) and values as lists of parts,
+    the number of values).
+
+    ``quantised`` (a :class:`_Quantised`) not None: the values go to it instead, row by
+    row (no value parts returned), or :class:`_NotQuantisable` is raised."""
+    side = (1 << _qk.BRICK_BITS) + order - 1
+    n = len(lv)
+    max_bricks = int(n * _BRICKS_PER_COEFFICIENT) + 64
+    brick_keys = np.empty(max_bricks, np.int64)
+    base = np.empty(max_bricks, np.int64)
+    cols = np.zeros((max_bricks, side, side), np.int32)
+    values = np.zeros(int(n * _VALUES_PER_COEFFICIENT) + 64)  # the level's, or one row's when quantised (zeroed again after use)
+    b_at = v_at = 0
+    for row in _brick_rows(lv, order):
+        lo, hi = _row_span(lv, order, row)
+        if lo == hi:
             continue
-        base, cols, own = _qk.own_table_row(slab.brick_start, slab.local, slab.coef_index, members.coefficients,
-                                            side)
-        keys_parts.append(slab.brick_keys)
-        base_parts.append(base + value_base)
-        col_parts.append(cols)
-        value_parts.append(own)
-        value_base += own.size
-    if not keys_parts:
+        while True:
+            nb, total, written = _qk.own_table_fill(lv.keys[lo:hi], lv.coefficients[lo:hi], order, row,
+                                                    brick_keys[b_at:], base[b_at:], cols[b_at:],
+                                                    values if quantised is not None else values[v_at:])
+            if written:
+                break
+            if b_at + nb > brick_keys.shape[0]:
+                grown = max(2 * brick_keys.shape[0], b_at + nb)
+                brick_keys, base, cols = (_grown(a, b_at, grown) for a in (brick_keys, base, cols))
+            need = total if quantised is not None else v_at + total
+            if need > values.shape[0]:
+                values = _grown(values, 0 if quantised is not None else v_at, max(2 * values.shape[0], need))
+        if quantised is not None:
+            quantised.add(values[:total].copy(), base[b_at:b_at + nb].copy())
+            values[:total] = 0.0
+        base[b_at:b_at + nb] += v_at
+        b_at += nb
+        v_at += total
+    if not b_at:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), [], [], 0
-    return np.concatenate(keys_parts), np.concatenate(base_parts), col_parts, value_parts, value_base
+    value_parts = [values[:v_at]] if quantised is None else []
+    return brick_keys[:b_at], base[:b_at], [cols[:b_at]], value_parts, v_at
 
 
 def _joined(parts, dtype, shape):
     """``np.concatenate(parts)``, letting each part go once copied (``parts`` is emptied):
-    the index is never held twice."""
+    the index is never held twice. One part of that dtype is returned as it is."""
+    if len(parts) == 1 and parts[0].dtype == dtype:
+        return parts.pop()
     total = sum(p.shape[0] for p in parts)
     out = np.empty((total,) + tuple(np.atleast_1d(shape)[1:]), dtype)
     at = 0
@@ -241,11 +331,19 @@ class BrickIndex:
     With ``fold=False`` no folded tables are built (every level is evaluated from its
     own table and the levels are summed): a fraction of the build time and memory
     (small batches are evaluated with numpy instead, see :class:`AmbientSpline`).
+    Without folded tables (one level, or none nested) every value is a level's own
+    coefficient; given ``value_step`` (metres: a store's, whose coefficients are
+    multiples of it or of a power-of-two fraction of it, bitwise), the tables of a spline
+    of :data:`QUANTISE_FROM_COEFFICIENTS` coefficients or more (or any, ``quantise=True``)
+    hold those integers instead of float64: int16 with a base per brick, or int32 where a
+    brick spans more than 65,535 steps; the kernels multiply them back exactly as the
+    store's decoder does, so every result has the same bits. Such an index holds one copy
+    of its column tables (own and folded are the same).
     Memory: :attr:`nbytes`. Immutable once built; evaluation is
     thread-safe.
     """
 
-    def __init__(self, levels, order, fold=True):
+    def __init__(self, levels, order, fold=True, value_step=None, quantise=False):
         bits = _qk.BRICK_BITS
         cells = 1 << bits
         side = cells + order - 1
@@ -256,33 +354,50 @@ class BrickIndex:
         self.depths = tuple(_fold_depths(self.levels)) if self.levels else ()
         self._side = side
         self._weights = refinement_weights(order)
+        folded = [i > 0 and fold and d is not None for i, d in enumerate(self.depths)]
+        # without folded tables every value is a level's own coefficient: a store's are
+        # multiples of its step, held as int16 (2 bytes, not 8) when they all are
+        self.value_step = None
+        large = sum(len(lv) for lv in self.levels) >= QUANTISE_FROM_COEFFICIENTS
+        if value_step is not None and not any(folded) and self.levels and (large or quantise):
+            steps = [_qk.finest_step(lv.coefficients, float(value_step), _STEP_HALVINGS) for lv in self.levels]
+            self.value_step = None if None in steps else min(steps)
+        try:
+            self._build(folded)
+        except _NotQuantisable:
+            self.value_step = None
+            self._build(folded)
+
+    def _build(self, folded):
+        order, side = self.order, self._side
         members = [_Members(lv, order) for lv in self.levels]
         self._members_at_depth = {d: m for d, m in zip(self.depths, members) if d is not None}
         slot_tables, slot_start, slot_mask, presence = [], [], [], []
         fold_bases, fold_cols, own_bases, own_cols, values = [], [], [], [], []
+        quantised = _Quantised(self.value_step) if self.value_step is not None else None
         band_lo2, band_hi2 = [], []
         value_base = 0
         slot_base = 0
         brick_base = 0
-        for i, (lv, mem) in enumerate(zip(self.levels, members)):
-            brick_keys, base, col_parts, own_parts, own_size = _own_tables(mem, side)
+        for i, lv in enumerate(self.levels):
+            brick_keys, base, col_parts, own_parts, own_size = _own_tables(lv, order, quantised)
             nb = brick_keys.size
             own_bases.append(base + value_base)
             own_cols.extend(col_parts)
             values.extend(own_parts)
             value_base += own_size
-            if i == 0 or self.depths[i] is None or not fold:
+            if not folded[i]:
                 fold_bases.append(base + value_base - own_size)
                 fold_cols.append((brick_base, brick_base + nb))  # its own columns, copied once joined
                 band_lo2.append(-np.inf if i == 0 else np.inf)
                 band_hi2.append(np.inf if i == 0 else -np.inf)
             else:
                 width = FOLD_BAND_CELLS * lv.h
-                base, cols, folded = self._folded_tables(self.depths[i], lv.h, brick_keys, width)
+                base, cols, folded_values = self._folded_tables(self.depths[i], lv.h, brick_keys, width)
                 fold_bases.append(base + value_base)
                 fold_cols.append(cols)
-                values.append(folded)
-                value_base += folded.size
+                values.append(folded_values)
+                value_base += folded_values.size
                 band_lo2.append(max(0.0, 1.0 - width) ** 2)
                 band_hi2.append((1.0 + width) ** 2)
             slots = _qk.build_hash(brick_keys)
@@ -301,14 +416,24 @@ class BrickIndex:
         self.slots = cat(slot_tables, np.int64, (0, 2))
         self.slot_start = np.array(slot_start, dtype=np.int64)
         self.slot_mask = np.array(slot_mask, dtype=np.int64)
-        self.fold_base = cat(fold_bases, np.int64, 0)
         self.own_base = cat(own_bases, np.int64, 0)
         self.own_cols = cat(own_cols, np.int32, (0, side, side))
-        fold_cols = [self.own_cols[p[0]:p[1]] if isinstance(p, tuple) else p for p in fold_cols]
-        self.fold_cols = cat(fold_cols, np.int32, (0, side, side))
-        self.values = cat(values, np.float64, 0)
-        self.fold_offs, self.fold_full = _qk.full_columns(self.fold_cols, order)
+        if quantised is not None:
+            self.values = np.zeros(0)
+            self.qvalues = cat(quantised.values, quantised.dtype, 0)
+            self.qbase = cat(quantised.qbases, np.int32, 0)
+        else:
+            self.values = cat(values, np.float64, 0)
+            self.qvalues = self.qbase = None
         self.own_offs, self.own_full = _qk.full_columns(self.own_cols, order)
+        if any(folded):
+            self.fold_base = cat(fold_bases, np.int64, 0)
+            fold_cols = [self.own_cols[p[0]:p[1]] if isinstance(p, tuple) else p for p in fold_cols]
+            self.fold_cols = cat(fold_cols, np.int32, (0, side, side))
+            self.fold_offs, self.fold_full = _qk.full_columns(self.fold_cols, order)
+        else:  # every level evaluated from its own table: one copy of the tables
+            self.fold_base, self.fold_cols = self.own_base, self.own_cols
+            self.fold_offs, self.fold_full = self.own_offs, self.own_full
         n = _qk.PRESENCE_SIDE
         self.presence = np.stack(presence) if presence else np.zeros((0, n, n, n), np.uint8)
         self._spline = None
@@ -320,7 +445,8 @@ class BrickIndex:
             self._spline = _qk.Spline.of(self.order, self.inv_hs, self.band_lo2, self.band_hi2, self.presence,
                                          self.slots, self.slot_start, self.slot_mask, self.fold_base,
                                          self.fold_cols, self.own_base, self.own_cols, self.values,
-                                         self.fold_offs, self.fold_full, self.own_offs, self.own_full)
+                                         self.fold_offs, self.fold_full, self.own_offs, self.own_full,
+                                         self.qvalues, self.qbase, self.value_step or 0.0)
         return self._spline
 
     def __getstate__(self):
@@ -411,9 +537,10 @@ class BrickIndex:
 
     @property
     def nbytes(self) -> int:
-        return sum(a.nbytes for a in (self.slots, self.fold_base, self.fold_cols, self.own_base, self.own_cols,
-                                      self.values, self.presence, self.fold_offs, self.fold_full,
-                                      self.own_offs, self.own_full))
+        arrays = (self.slots, self.fold_base, self.fold_cols, self.own_base, self.own_cols, self.values,
+                  self.qvalues, self.qbase, self.presence, self.fold_offs, self.fold_full, self.own_offs,
+                  self.own_full)
+        return sum(a.nbytes for a in {id(a): a for a in arrays if a is not None}.values())  # shared ones once
 
     def add_to(self, points, out, nderiv=0):
         """Add the spline (nderiv 0) or value and derivatives (1, 2) at points (M, 3) to out.

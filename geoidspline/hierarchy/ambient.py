@@ -36,13 +36,16 @@ class AmbientSpline:
     and build identical ones.
     """
 
-    def __init__(self, levels):
+    def __init__(self, levels, value_step=None):
         levels = list(levels)
         orders = {lv.order for lv in levels}
         if len(orders) > 1:
             raise ValueError(f"all levels must share one spline order, got {sorted(orders)}")
         self.levels = tuple(levels)
         self.order = orders.pop() if orders else 4
+        #: metres: the coefficients are multiples of it (a store's, as read), so the index
+        #: may hold them as integers (:class:`BrickIndex`); None if not known
+        self.value_step = value_step
         self._folded = None
 
     @property
@@ -51,7 +54,7 @@ class AmbientSpline:
         if self._folded is None:
             from ..bspline.index import BrickIndex  # loads the compiled kernels: large batches only
 
-            self._folded = BrickIndex(self.levels, self.order)
+            self._folded = BrickIndex(self.levels, self.order, value_step=self.value_step)
         return self._folded
 
     @property

@@ -189,7 +189,8 @@ class StoreSpline:
                 raise StoreCorruptError(f"{self.path}: the tiles of level {level} disagree ({why})")
             if keys.size:
                 out.append(LevelSpline(level, self.h0 / 2.0**level, self.order, keys, val))
-        return AmbientSpline(out)
+        step = self.manifest["spline"].get("value_step_m")
+        return AmbientSpline(out, value_step=float(step) if step else None)
 
     def _count_mismatch(self, level, held):
         wanted = {int(lv["level"]): int(lv["coefficients"]) for lv in self.manifest["spline"]["levels"]}

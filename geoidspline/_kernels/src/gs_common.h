@@ -61,14 +61,33 @@ GS_INLINE double gs_pymod(double a, double b)
  * + (1+j-t) work[q-1][j]) / (q-1), B_q' = B_{q-1}(x) - B_{q-1}(x-1). Inline, so a caller
  * with a constant order gets its own specialisation. order <= GS_MAX_ORDER. */
 #define GS_MAX_ORDER 16
+/* The closed forms of the order-4 and order-6 weights (values, nderiv 0) for t of type T:
+ * double, or a GCC vector of doubles (query.c computes the three axes of a point in one
+ * vector, lane by lane the same operations, so the same bits). */
+#define GS_WEIGHTS4(T, t, w0, w1, w2, w3)                                                                             \
+    do {                                                                                                              \
+        T s_ = 1.0 - (t), t2_ = (t) * (t), t3_ = t2_ * (t);                                                           \
+        w0 = s_ * s_ * s_ / 6.0;                                                                                      \
+        w1 = (3.0 * t3_ - 6.0 * t2_ + 4.0) / 6.0;                                                                     \
+        w2 = (-3.0 * t3_ + 3.0 * t2_ + 3.0 * (t) + 1.0) / 6.0;                                                        \
+        w3 = t3_ / 6.0;                                                                                               \
+    } while (0)
+#define GS_WEIGHTS6(T, t, w0, w1, w2, w3, w4, w5)                                                                     \
+    do {                                                                                                              \
+        T s_ = 1.0 - (t), t2_ = (t) * (t), t3_ = t2_ * (t), t4_ = t2_ * t2_, t5_ = t4_ * (t);                         \
+        const double c_ = 1.0 / 120.0;                                                                                \
+        w0 = s_ * s_ * s_ * s_ * s_ * c_;                                                                             \
+        w1 = (26.0 - 50.0 * (t) + 20.0 * t2_ + 20.0 * t3_ - 20.0 * t4_ + 5.0 * t5_) * c_;                             \
+        w2 = (66.0 - 60.0 * t2_ + 30.0 * t4_ - 10.0 * t5_) * c_;                                                      \
+        w3 = (26.0 + 50.0 * (t) + 20.0 * t2_ - 20.0 * t3_ - 20.0 * t4_ + 10.0 * t5_) * c_;                            \
+        w4 = (1.0 + 5.0 * (t) + 10.0 * t2_ + 10.0 * t3_ + 5.0 * t4_ - 5.0 * t5_) * c_;                                \
+        w5 = t5_ * c_;                                                                                                \
+    } while (0)
 GS_INLINE void gs_weights(double t, const int order, const int nderiv, double *w, const int64_t ld)
 {
     if (order == 4) {
-        double s = 1.0 - t, t2 = t * t, t3 = t2 * t;
-        w[0] = s * s * s / 6.0;
-        w[1] = (3.0 * t3 - 6.0 * t2 + 4.0) / 6.0;
-        w[2] = (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) / 6.0;
-        w[3] = t3 / 6.0;
+        double s = 1.0 - t, t2 = t * t; /* the derivatives' */
+        GS_WEIGHTS4(double, t, w[0], w[1], w[2], w[3]);
         if (nderiv >= 1) {
             w[ld + 0] = -0.5 * s * s;
             w[ld + 1] = 1.5 * t2 - 2.0 * t;
@@ -96,13 +115,7 @@ GS_INLINE void gs_weights(double t, const int order, const int nderiv, double *w
             }
     }
     if (order == 6) {
-        double s = 1.0 - t, t2 = t * t, t3 = t2 * t, t4 = t2 * t2, t5 = t4 * t, c = 1.0 / 120.0;
-        w[0] = s * s * s * s * s * c;
-        w[1] = (26.0 - 50.0 * t + 20.0 * t2 + 20.0 * t3 - 20.0 * t4 + 5.0 * t5) * c;
-        w[2] = (66.0 - 60.0 * t2 + 30.0 * t4 - 10.0 * t5) * c;
-        w[3] = (26.0 + 50.0 * t + 20.0 * t2 - 20.0 * t3 - 20.0 * t4 + 10.0 * t5) * c;
-        w[4] = (1.0 + 5.0 * t + 10.0 * t2 + 10.0 * t3 + 5.0 * t4 - 5.0 * t5) * c;
-        w[5] = t5 * c;
+        GS_WEIGHTS6(double, t, w[0], w[1], w[2], w[3], w[4], w[5]);
     } else {
         for (int j = 0; j < order; ++j)
             w[j] = work[order][j];

@@ -35,7 +35,7 @@
 #endif
 
 #if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && !defined(GS_NO_CLONES)
-#define GS_HOT __attribute__((target_clones("arch=x86-64-v3", "default")))
+#define GS_HOT __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
 #else
 #define GS_HOT
 #endif
@@ -53,6 +53,14 @@ typedef struct {
     const double *values;
     const int32_t *fold_offs, *own_offs;        /* (bricks, side, side) per column: run offset - first k */
     const uint16_t *fold_full, *own_full;       /* (bricks, S, S) per cell column: bit lz = all columns full */
+    /* Quantised tables (qwidth 2 or 4; values then unused): the coefficient at value
+     * position v of brick b is (double)(qbase[b] + qvalues[v]) * value_step, bitwise what
+     * a store's decoder gives (codec.py: int32 q times the step); qvalues int16 (qwidth 2)
+     * or int32 (4, qbase 0): 2 or 4 bytes a value, not 8. */
+    const void *qvalues;
+    const int32_t *qbase; /* per brick */
+    double value_step;
+    int64_t qwidth; /* 0: float64 values */
 } gs_spline;
 
 /* ---- the brick hash --------------------------------------------------------------- */
@@ -158,6 +166,58 @@ GS_INLINE void lanes_axpy(const int order, lanes *a, double w, const double *c)
         a->one += w * c[order - 1];
 }
 
+/* Coefficient i of a quantised table's values qv (quant: 2 int16, 4 int32): (double)(qb +
+ * q) * step, the decoder's product (gs_spline). */
+GS_INLINE double dequantised_at(const int quant, const void *qv, int64_t i, int32_t qb, double step)
+{
+    int32_t q = quant == 2 ? (int32_t)((const int16_t *)qv)[i] : ((const int32_t *)qv)[i];
+    return (double)(qb + q) * step;
+}
+
+/* The order coefficients of a quantised table (quant 2: int16, 4: int32) at qv + at, as
+ * lanes (laid out as lanes_axpy reads a column): (double)(qb + q) * step per lane, the
+ * decoder's product (gs_spline), converted in vector registers (a column dequantised
+ * into memory and loaded back as vectors waits on store forwarding: 3 times slower). */
+typedef int32_t gs_i32x4 __attribute__((vector_size(16)));
+typedef int16_t gs_i16x4 __attribute__((vector_size(8)));
+typedef int32_t gs_i32x2 __attribute__((vector_size(8)));
+typedef int16_t gs_i16x2 __attribute__((vector_size(4)));
+
+GS_INLINE gs_v4 dequantised4(const int quant, const void *qv, int64_t at, int32_t qb, double step)
+{
+    gs_i32x4 q;
+    if (quant == 2) {
+        gs_i16x4 h;
+        memcpy(&h, (const int16_t *)qv + at, sizeof h);
+        q = __builtin_convertvector(h, gs_i32x4);
+    } else {
+        memcpy(&q, (const int32_t *)qv + at, sizeof q);
+    }
+    return __builtin_convertvector(q + qb, gs_v4) * step;
+}
+
+GS_INLINE void lanes_dequantised(const int order, const int quant, const void *qv, int64_t at, int32_t qb,
+                                 double step, lanes *c)
+{
+    for (int k = 0; k < LANE_V(order); ++k)
+        c->v[k] = dequantised4(quant, qv, at + 4 * k, qb, step);
+    if (LANE_OVER(order))
+        c->over = dequantised4(quant, qv, at + order - 4, qb, step);
+    if (LANE_PAIR(order)) {
+        gs_i32x2 q;
+        if (quant == 2) {
+            gs_i16x2 h;
+            memcpy(&h, (const int16_t *)qv + at + 4 * LANE_V(order), sizeof h);
+            q = __builtin_convertvector(h, gs_i32x2);
+        } else {
+            memcpy(&q, (const int32_t *)qv + at + 4 * LANE_V(order), sizeof q);
+        }
+        c->pair = __builtin_convertvector(q + qb, gs_v2) * step;
+    }
+    if (LANE_ONE(order))
+        c->one = dequantised_at(quant, qv, at + order - 1, qb, step);
+}
+
 /* a += w b */
 GS_INLINE void lanes_add(const int order, lanes *a, double w, const lanes *b)
 {
@@ -171,30 +231,41 @@ GS_INLINE void lanes_add(const int order, lanes *a, double w, const lanes *b)
         a->one += w * b->one;
 }
 
-/* sum_r w[r] a[r], r in order */
-GS_INLINE double lanes_dot(const int order, const lanes *a, const double *w)
+/* sum_r w[r ws] a[r], r in order (ws: the weights' stride) */
+GS_INLINE double lanes_dot(const int order, const lanes *a, const double *w, const int ws)
 {
     double s = 0.0;
     for (int k = 0; k < LANE_V(order); ++k)
         for (int j = 0; j < 4; ++j)
-            s += w[4 * k + j] * a->v[k][j];
+            s += w[(4 * k + j) * ws] * a->v[k][j];
     if (LANE_OVER(order)) {
-        s += w[order - 2] * a->over[2];
-        s += w[order - 1] * a->over[3];
+        s += w[(order - 2) * ws] * a->over[2];
+        s += w[(order - 1) * ws] * a->over[3];
     }
     if (LANE_PAIR(order)) {
-        s += w[4 * LANE_V(order)] * a->pair[0];
-        s += w[4 * LANE_V(order) + 1] * a->pair[1];
+        s += w[4 * LANE_V(order) * ws] * a->pair[0];
+        s += w[(4 * LANE_V(order) + 1) * ws] * a->pair[1];
     }
     if (LANE_ONE(order))
-        s += w[order - 1] * a->one;
+        s += w[(order - 1) * ws] * a->one;
     return s;
+}
+
+/* order coefficients of a quantised table from qv + at into pad */
+GS_INLINE const double *dequantised(const int order, const int quant, const void *qv, int64_t at, int32_t qb,
+                                    double step, double *pad)
+{
+    for (int r = 0; r < order; ++r)
+        pad[r] = dequantised_at(quant, qv, at + r, qb, step);
+    return pad;
 }
 
 /* The first of the order coefficients k = lz .. lz + order - 1 of column entry packed
  * (a run of length coefficients from local k0 at values + run offset), or pad filled with
- * them and zeros where the run does not reach; NULL when the column is empty. */
-GS_INLINE const double *column_run(const int order, const double *values, int32_t packed, int64_t lz, double *pad)
+ * them and zeros where the run does not reach; NULL when the column is empty. quant: the
+ * table is quantised (qv, qb, step; see gs_spline), the coefficients always go to pad. */
+GS_INLINE const double *column_run(const int order, const int quant, const double *values, const void *qv,
+                                   int32_t qb, double step, int32_t packed, int64_t lz, double *pad)
 {
     int64_t length = packed & COL_KMASK;
     if (length == 0)
@@ -202,9 +273,11 @@ GS_INLINE const double *column_run(const int order, const double *values, int32_
     int64_t start = lz - ((packed >> COL_KBITS) & COL_KMASK);
     int64_t offset = (int64_t)(packed >> COL_SHIFT) + start;
     if (start >= 0 && start + order <= length)
-        return values + offset;
+        return quant ? dequantised(order, quant, qv, offset, qb, step, pad) : values + offset;
     for (int r = 0; r < order; ++r)
-        pad[r] = (start + r >= 0 && start + r < length) ? values[offset + r] : 0.0;
+        pad[r] = (start + r >= 0 && start + r < length)
+                     ? (quant ? dequantised_at(quant, qv, offset + r, qb, step) : values[offset + r])
+                     : 0.0;
     return pad;
 }
 
@@ -221,14 +294,26 @@ GS_INLINE const double *column_run(const int order, const double *values, int32_
  * points: a folded table covers its band whole). Otherwise each column is decoded from
  * its entry (column_run), an empty one skipped, one cut by the run's end read through a
  * zero-padded copy. Both add the same products in the same order (the same bits). */
-GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, const int full, const double *wx,
-                         const double *wy, const double *wz, int64_t base, const int32_t *cols, const int32_t *offs,
+GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, const int full, const int quant,
+                         const double *wx, const double *wy, const double *wz, const int ws, int64_t base,
+                         const int32_t *cols, const int32_t *offs,
                          int64_t brick, int64_t lx, int64_t ly, int64_t lz, double inv_h, double *result)
 {
     const int64_t side = (1 << BRICK_BITS) + order - 1;
     const int64_t col_at = (brick * side + lx) * side + ly;
-    const double *values = S->values + base;
-    const double *values_lz = values + lz;
+    /* quant (a constant): the table's values are quantised, width 2 (int16) or 4 (int32)
+     * bytes (see gs_spline); else float64 */
+    const int width = quant ? (int)S->qwidth : 0;
+    const double *values = width ? NULL : S->values + base;
+    const double *values_lz = width ? NULL : values + lz;
+    /* the column address as one register plus the column's offset (a load's base and
+     * index): without this GCC adds base + lz to each offset, one more instruction a column */
+    if (!width)
+        __asm__("" : "+r"(values_lz));
+    const void *qv = width == 2 ? (const void *)((const int16_t *)S->qvalues + base)
+                                : (const void *)((const int32_t *)S->qvalues + base);
+    const int32_t qb = width ? S->qbase[brick] : 0;
+    const double step = S->value_step;
     /* A per derivative (x, y): 00 value; 10 01 first; 20 02 11 second */
     lanes a00, a10, a01, a20, a02, a11;
     double pad[GS_MAX_ORDER];
@@ -251,58 +336,113 @@ GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, 
             lanes_zero(order, &b2);
         for (int q = 0; q < order; ++q) {
             const double *c;
+            if (full && quant) {
+                lanes col;
+                lanes_zero(order, &col); /* the lanes it does not fill (unread: for the compiler) */
+                lanes_dequantised(order, width, qv, lz + offs[col_at + p * side + q], qb, step, &col);
+                lanes_add(order, &b0, wy[q * ws], &col);
+                if (nderiv >= 1)
+                    lanes_add(order, &b1, wy[(order + q) * ws], &col);
+                if (nderiv >= 2)
+                    lanes_add(order, &b2, wy[(2 * order + q) * ws], &col);
+                continue;
+            }
             if (full) {
                 c = values_lz + offs[col_at + p * side + q];
             } else {
-                c = column_run(order, values, cols[col_at + p * side + q], lz, pad);
+                c = column_run(order, width, values, qv, qb, step, cols[col_at + p * side + q], lz, pad);
                 if (c == NULL)
                     continue;
             }
-            lanes_axpy(order, &b0, wy[q], c);
+            lanes_axpy(order, &b0, wy[q * ws], c);
             if (nderiv >= 1)
-                lanes_axpy(order, &b1, wy[order + q], c);
+                lanes_axpy(order, &b1, wy[(order + q) * ws], c);
             if (nderiv >= 2)
-                lanes_axpy(order, &b2, wy[2 * order + q], c);
+                lanes_axpy(order, &b2, wy[(2 * order + q) * ws], c);
         }
-        lanes_add(order, &a00, wx[p], &b0);
+        lanes_add(order, &a00, wx[p * ws], &b0);
         if (nderiv >= 1) {
-            lanes_add(order, &a10, wx[order + p], &b0);
-            lanes_add(order, &a01, wx[p], &b1);
+            lanes_add(order, &a10, wx[(order + p) * ws], &b0);
+            lanes_add(order, &a01, wx[p * ws], &b1);
         }
         if (nderiv >= 2) {
-            lanes_add(order, &a20, wx[2 * order + p], &b0);
-            lanes_add(order, &a02, wx[p], &b2);
-            lanes_add(order, &a11, wx[order + p], &b1);
+            lanes_add(order, &a20, wx[(2 * order + p) * ws], &b0);
+            lanes_add(order, &a02, wx[p * ws], &b2);
+            lanes_add(order, &a11, wx[(order + p) * ws], &b1);
         }
     }
-    result[0] += lanes_dot(order, &a00, wz);
+    result[0] += lanes_dot(order, &a00, wz, ws);
     if (nderiv >= 1) {
-        result[1] += lanes_dot(order, &a10, wz) * inv_h;
-        result[2] += lanes_dot(order, &a01, wz) * inv_h;
-        result[3] += lanes_dot(order, &a00, wz + order) * inv_h;
+        result[1] += lanes_dot(order, &a10, wz, ws) * inv_h;
+        result[2] += lanes_dot(order, &a01, wz, ws) * inv_h;
+        result[3] += lanes_dot(order, &a00, wz + order * ws, ws) * inv_h;
     }
     if (nderiv >= 2) {
         double ih2 = inv_h * inv_h;
-        result[4] += lanes_dot(order, &a20, wz) * ih2;
-        result[5] += lanes_dot(order, &a02, wz) * ih2;
-        result[6] += lanes_dot(order, &a00, wz + 2 * order) * ih2;
-        result[7] += lanes_dot(order, &a11, wz) * ih2;
-        result[8] += lanes_dot(order, &a10, wz + order) * ih2;
-        result[9] += lanes_dot(order, &a01, wz + order) * ih2;
+        result[4] += lanes_dot(order, &a20, wz, ws) * ih2;
+        result[5] += lanes_dot(order, &a02, wz, ws) * ih2;
+        result[6] += lanes_dot(order, &a00, wz + 2 * order * ws, ws) * ih2;
+        result[7] += lanes_dot(order, &a11, wz, ws) * ih2;
+        result[8] += lanes_dot(order, &a10, wz + order * ws, ws) * ih2;
+        result[9] += lanes_dot(order, &a01, wz + order * ws, ws) * ih2;
     }
 }
 
 /* One brick table at a point: the full-column sum where the table's full map allows it,
- * the decoding one otherwise. */
+ * the decoding one otherwise (quant: from quantised values). */
+GS_INLINE void table_sums(const gs_spline *S, const int order, const int nderiv, const int quant, const double *wx,
+                          const double *wy, const double *wz, const int ws, int64_t base, const int32_t *cols,
+                          const int32_t *offs, const uint16_t *full, int64_t brick, int64_t lx, int64_t ly,
+                          int64_t lz, double inv_h, double *result)
+{
+    if ((full[(brick << (2 * BRICK_BITS)) + (lx << BRICK_BITS) + ly] >> lz) & 1)
+        table_sum(S, order, nderiv, 1, quant, wx, wy, wz, ws, base, cols, offs, brick, lx, ly, lz, inv_h, result);
+    else
+        table_sum(S, order, nderiv, 0, quant, wx, wy, wz, ws, base, cols, offs, brick, lx, ly, lz, inv_h, result);
+}
+
+/* table_sums of quantised tables, one function per (order, nderiv) that the callers call
+ * (inlined into each of them, like the float64 one, it tripled the kernels' compile
+ * time); order 0: any order, given as order_. */
+#define GS_QUANTISED_SUMS(o, d)                                                                                       \
+    GS_HOT static void quantised_sums_##o##_##d(const gs_spline *S, int order_, const double *wx, const double *wy, \
+                                                const double *wz, int ws, int64_t base, const int32_t *cols,         \
+                                                const int32_t *offs, const uint16_t *full, int64_t brick, int64_t lx, \
+                                                int64_t ly, int64_t lz, double inv_h, double *result)                \
+    {                                                                                                                 \
+        table_sums(S, (o) ? (o) : order_, d, 1, wx, wy, wz, ws, base, cols, offs, full, brick, lx, ly, lz, inv_h,    \
+                   result);                                                                                           \
+    }
+GS_QUANTISED_SUMS(4, 0)
+GS_QUANTISED_SUMS(4, 1)
+GS_QUANTISED_SUMS(4, 2)
+GS_QUANTISED_SUMS(6, 0)
+GS_QUANTISED_SUMS(6, 1)
+GS_QUANTISED_SUMS(6, 2)
+GS_QUANTISED_SUMS(0, 0)
+GS_QUANTISED_SUMS(0, 1)
+GS_QUANTISED_SUMS(0, 2)
+
+/* One brick table at a point (table_sums), from quantised values when the spline has them. */
 GS_INLINE void brick_sum(const gs_spline *S, const int order, const int nderiv, const double *wx, const double *wy,
-                         const double *wz, int64_t base, const int32_t *cols, const int32_t *offs,
+                         const double *wz, const int ws, int64_t base, const int32_t *cols, const int32_t *offs,
                          const uint16_t *full, int64_t brick, int64_t lx, int64_t ly, int64_t lz, double inv_h,
                          double *result)
 {
-    if ((full[(brick << (2 * BRICK_BITS)) + (lx << BRICK_BITS) + ly] >> lz) & 1)
-        table_sum(S, order, nderiv, 1, wx, wy, wz, base, cols, offs, brick, lx, ly, lz, inv_h, result);
-    else
-        table_sum(S, order, nderiv, 0, wx, wy, wz, base, cols, offs, brick, lx, ly, lz, inv_h, result);
+    if (!S->qwidth) {
+        table_sums(S, order, nderiv, 0, wx, wy, wz, ws, base, cols, offs, full, brick, lx, ly, lz, inv_h, result);
+        return;
+    }
+#define GS_QUANTISED_CALL(o, d)                                                                                       \
+    quantised_sums_##o##_##d(S, order, wx, wy, wz, ws, base, cols, offs, full, brick, lx, ly, lz, inv_h, result)
+    if (order == 4) {
+        if (nderiv == 0) GS_QUANTISED_CALL(4, 0); else if (nderiv == 1) GS_QUANTISED_CALL(4, 1); else GS_QUANTISED_CALL(4, 2);
+    } else if (order == 6) {
+        if (nderiv == 0) GS_QUANTISED_CALL(6, 0); else if (nderiv == 1) GS_QUANTISED_CALL(6, 1); else GS_QUANTISED_CALL(6, 2);
+    } else {
+        if (nderiv == 0) GS_QUANTISED_CALL(0, 0); else if (nderiv == 1) GS_QUANTISED_CALL(0, 1); else GS_QUANTISED_CALL(0, 2);
+    }
+#undef GS_QUANTISED_CALL
 }
 
 /* The brick of level lev holding the point (x, y, z), or -1; cell gets the point's cell
@@ -358,11 +498,11 @@ GS_INLINE void point_sum(const gs_spline *S, const int order, const int nderiv, 
         gs_weights(t[2], order, nderiv, wz, order);
         int64_t lx = cell[0] & BRICK_MASK, ly = cell[1] & BRICK_MASK, lz = cell[2] & BRICK_MASK;
         if (S->band_lo2[lev] <= r2 && r2 <= S->band_hi2[lev]) {
-            brick_sum(S, order, nderiv, wx, wy, wz, S->fold_base[brick], S->fold_cols, S->fold_offs, S->fold_full,
+            brick_sum(S, order, nderiv, wx, wy, wz, 1, S->fold_base[brick], S->fold_cols, S->fold_offs, S->fold_full,
                       brick, lx, ly, lz, inv_h, result);
             break;
         }
-        brick_sum(S, order, nderiv, wx, wy, wz, S->own_base[brick], S->own_cols, S->own_offs, S->own_full, brick, lx,
+        brick_sum(S, order, nderiv, wx, wy, wz, 1, S->own_base[brick], S->own_cols, S->own_offs, S->own_full, brick, lx,
                   ly, lz, inv_h, result);
     }
 }
@@ -486,33 +626,6 @@ GS_EXPORT void gs_query_order(const double *points, int64_t m, int64_t *key, int
 #define LL_LOW_BITS 10 /* the sort's second pass: the low bits of the Morton code */
 #define LL_BUCKETS (1 << (LL_LAT_BITS + LL_LON_BITS - LL_LOW_BITS)) /* of the first pass; one more for NaN */
 
-GS_INLINE uint32_t spread2(uint32_t v)
-{
-    v &= 0xFFFF;
-    v = (v | (v << 8)) & 0x00FF00FF;
-    v = (v | (v << 4)) & 0x0F0F0F0F;
-    v = (v | (v << 2)) & 0x33333333;
-    v = (v | (v << 1)) & 0x55555555;
-    return v;
-}
-
-/* Morton code of the point's cell on the latitude/longitude sort grid; its bucket of the
- * sort's first pass (a 5.6 degree cell) is code >> LL_LOW_BITS. NaN: bucket LL_BUCKETS. */
-GS_INLINE uint32_t latlon_code(double la, double lo)
-{
-    const int lat_bits = LL_LAT_BITS, lon_bits = LL_LON_BITS;
-    if (la != la || lo != lo)
-        return (uint32_t)LL_BUCKETS << LL_LOW_BITS;
-    double fi = (la + 90.0) * ((1 << lat_bits) / 180.0);
-    uint32_t i = fi < 0.0 ? 0 : (fi >= (1 << lat_bits) ? (1 << lat_bits) - 1 : (uint32_t)fi);
-    double w = lo + 180.0;
-    if (w < 0.0 || w >= 360.0)
-        w -= 360.0 * floor(w / 360.0);
-    double fj = w * ((1 << lon_bits) / 360.0);
-    uint32_t j = fj < 0.0 ? 0 : (fj >= (1 << lon_bits) ? (1 << lon_bits) - 1 : (uint32_t)fj);
-    return spread2(j) | (spread2(i) << 1);
-}
-
 /* Directions are computed 4 points at a time, one vector lane each (GCC's vector
  * extensions: one vector in the x86-64-v3 clone, two halves in the baseline one); a lane
  * does the operations a scalar would, in the same order, so the bits do not depend on the
@@ -586,6 +699,40 @@ GS_INLINE void directions4(const gs_v4 *latitude_, const gs_v4 *longitude_, gs_v
     *z = sin_phi;
 }
 
+typedef uint32_t gs_u4 __attribute__((vector_size(16)));
+
+GS_INLINE gs_u4 spread2(gs_u4 v)
+{
+    v &= 0xFFFF;
+    v = (v | (v << 8)) & 0x00FF00FF;
+    v = (v | (v << 4)) & 0x0F0F0F0F;
+    v = (v | (v << 2)) & 0x33333333;
+    v = (v | (v << 1)) & 0x55555555;
+    return v;
+}
+
+/* Morton codes of 4 points' cells on the latitude/longitude sort grid, one lane each;
+ * a code's bucket of the sort's first pass (a 5.6 degree cell) is code >> LL_LOW_BITS.
+ * NaN: bucket LL_BUCKETS. (The codes only order the points: a value does not depend on
+ * them.) */
+GS_INLINE gs_u4 latlon_code4(gs_v4 la, gs_v4 lo)
+{
+    const double lat_cells = 1 << LL_LAT_BITS, lon_cells = 1 << LL_LON_BITS;
+    gs_v4 fi = (la + 90.0) * (lat_cells / 180.0);
+    gs_v4 w = lo + 180.0;
+    w = v4_select((w < 0.0) | (w >= 360.0), w - 360.0 * v4_floor(w / 360.0), w);
+    gs_v4 fj = w * (lon_cells / 360.0);
+    /* clamped to the grid (NaN to 0 here, its own bucket below), then truncated */
+    fi = v4_select(fi >= lat_cells, v4_splat(lat_cells - 1.0), v4_select(fi >= 0.0, fi, v4_splat(0.0)));
+    fj = v4_select(fj >= lon_cells, v4_splat(lon_cells - 1.0), v4_select(fj >= 0.0, fj, v4_splat(0.0)));
+    typedef int32_t gs_w4 __attribute__((vector_size(16)));
+    gs_u4 i = (gs_u4)__builtin_convertvector(fi, gs_w4), j = (gs_u4)__builtin_convertvector(fj, gs_w4);
+    gs_u4 code = spread2(j) | (spread2(i) << 1);
+    gs_i4 nan = (la != la) | (lo != lo);
+    gs_u4 nan32 = __builtin_convertvector(nan, gs_u4); /* all ones or zero */
+    return (code & ~nan32) | (nan32 & ((uint32_t)LL_BUCKETS << LL_LOW_BITS));
+}
+
 typedef struct {
     const double *latitude, *longitude;
     double *out;
@@ -639,18 +786,26 @@ typedef struct {
     double *ordered;           /* their values in that order (by_bucket's memory, free by then) */
 } latlon_job;
 
-static void latlon_count(void *ctx, int64_t blk)
+GS_HOT static void latlon_count(void *ctx, int64_t blk)
 {
     latlon_job *J = ctx;
     int64_t *counts = J->counts + blk * (LL_BUCKETS + 1), bad = 0;
     int64_t lo = blk * J->size, hi = lo + J->size < J->m ? lo + J->size : J->m;
-    for (int64_t s = lo; s < hi; ++s) {
-        double la = J->latitude[s], lo_ = J->longitude[s];
-        if (fabs(la) > 90.0 || fabs(lo_) == INFINITY)
-            bad += 1;
-        uint32_t code = latlon_code(la, lo_);
-        J->code[s] = code;
-        counts[code >> LL_LOW_BITS] += 1;
+    for (int64_t s = lo; s < hi; s += 4) {
+        gs_v4 la, lo_;
+        for (int i = 0; i < 4; ++i) { /* past the end: the last point again, not counted */
+            la[i] = J->latitude[s + i < hi ? s + i : hi - 1];
+            lo_[i] = J->longitude[s + i < hi ? s + i : hi - 1];
+        }
+        const gs_i4 sign = {INT64_MIN, INT64_MIN, INT64_MIN, INT64_MIN};
+        gs_v4 abs_la = (gs_v4)((gs_i4)la & ~sign), abs_lo = (gs_v4)((gs_i4)lo_ & ~sign);
+        gs_i4 wrong = (abs_la > 90.0) | (abs_lo == INFINITY);
+        gs_u4 code = latlon_code4(la, lo_);
+        for (int i = 0; i < 4 && s + i < hi; ++i) {
+            bad -= wrong[i]; /* -1 where wrong */
+            J->code[s + i] = code[i];
+            counts[code[i] >> LL_LOW_BITS] += 1;
+        }
     }
     J->invalid[blk] = bad;
 }
@@ -703,6 +858,26 @@ static void latlon_refine(void *ctx, int64_t task)
     }
 }
 
+/* The value weights of a point's three axes at once (t: its position in its cell per axis):
+ * w[j] = {wx_j, wy_j, wz_j, unused}, the closed forms of gs_weights lane by lane for
+ * orders 4 and 6 (the same operations, so the same bits, in a third of the instructions). */
+GS_INLINE void weights_xyz(const int order, const double t[3], gs_v4 *w)
+{
+    const gs_v4 tv = {t[0], t[1], t[2], 0.0};
+    if (order == 4) {
+        GS_WEIGHTS4(gs_v4, tv, w[0], w[1], w[2], w[3]);
+    } else if (order == 6) {
+        GS_WEIGHTS6(gs_v4, tv, w[0], w[1], w[2], w[3], w[4], w[5]);
+    } else {
+        double wx[GS_MAX_ORDER], wy[GS_MAX_ORDER], wz[GS_MAX_ORDER];
+        gs_weights(t[0], order, 0, wx, order);
+        gs_weights(t[1], order, 0, wy, order);
+        gs_weights(t[2], order, 0, wz, order);
+        for (int j = 0; j < order; ++j)
+            w[j] = (gs_v4){wx[j], wy[j], wz[j], 0.0};
+    }
+}
+
 /* A point of the latitude/longitude loop between locating it and summing it: its
  * direction and, when the first level with a brick at it holds it in its band (points on
  * the sphere: always but at the edges of coverage), that brick (else brick -1: point_sum
@@ -739,10 +914,19 @@ GS_INLINE void latlon_locate(const gs_spline *S, const int order, double x_, dou
         L->ly = cell[1] & BRICK_MASK;
         L->lz = cell[2] & BRICK_MASK;
         const int32_t *row = S->fold_offs + (brick * side + L->lx) * side + L->ly;
-        const double *v = S->values + S->fold_base[brick] + L->lz;
-        for (int p = 0; p < order; ++p) { /* a row's first and last coefficients */
-            __builtin_prefetch(v + row[p * side]);
-            __builtin_prefetch(v + row[p * side + order - 1] + order - 1);
+        if (S->qwidth) {
+            const char *v = (const char *)S->qvalues + S->qwidth * (S->fold_base[brick] + L->lz);
+            __builtin_prefetch(S->qbase + brick);
+            for (int p = 0; p < order; ++p) { /* a row's first and last coefficients */
+                __builtin_prefetch(v + S->qwidth * row[p * side]);
+                __builtin_prefetch(v + S->qwidth * (row[p * side + order - 1] + order - 1));
+            }
+        } else {
+            const double *v = S->values + S->fold_base[brick] + L->lz;
+            for (int p = 0; p < order; ++p) { /* a row's first and last coefficients */
+                __builtin_prefetch(v + row[p * side]);
+                __builtin_prefetch(v + row[p * side + order - 1] + order - 1);
+            }
         }
         return;
     }
@@ -767,7 +951,7 @@ GS_INLINE void latlon_range(const latlon_job *J, const int order, int64_t lo, in
             __builtin_prefetch(&J->longitude[KEY_AT(J->sorted[p + 16])]);
         }
         if (p < hi) {
-            int64_t i = (p - lo) % 4;
+            int64_t i = (p - lo) & 3; /* p >= lo: masks, not signed remainders */
             if (i == 0) { /* the next 4 points' directions at once */
                 gs_v4 la, lo_;
                 for (int k = 0; k < 4; ++k) {
@@ -777,19 +961,18 @@ GS_INLINE void latlon_range(const latlon_job *J, const int order, int64_t lo, in
                 }
                 directions4(&la, &lo_, &dx, &dy, &dz);
             }
-            latlon_locate(S, order, dx[i], dy[i], dz[i], &ring[p % LL_AHEAD], last_key, last_brick);
+            latlon_locate(S, order, dx[i], dy[i], dz[i], &ring[(uint64_t)p % LL_AHEAD], last_key, last_brick);
         }
         int64_t e = p - (LL_AHEAD - 1); /* summed now */
         if (e < lo)
             continue;
-        const located *L = &ring[e % LL_AHEAD];
+        const located *L = &ring[(uint64_t)e % LL_AHEAD];
         double result[1] = {0.0};
         if (L->brick >= 0) {
-            double wx[GS_MAX_ORDER], wy[GS_MAX_ORDER], wz[GS_MAX_ORDER];
-            gs_weights(L->t[0], order, 0, wx, order);
-            gs_weights(L->t[1], order, 0, wy, order);
-            gs_weights(L->t[2], order, 0, wz, order);
-            brick_sum(S, order, 0, wx, wy, wz, S->fold_base[L->brick], S->fold_cols, S->fold_offs, S->fold_full,
+            gs_v4 w[GS_MAX_ORDER]; /* {wx, wy, wz, -} per B-spline */
+            weights_xyz(order, L->t, w);
+            const double *wx = (const double *)w;
+            brick_sum(S, order, 0, wx, wx + 1, wx + 2, 4, S->fold_base[L->brick], S->fold_cols, S->fold_offs, S->fold_full,
                       L->brick, L->lx, L->ly, L->lz, S->inv_hs[L->lev], result);
             J->ordered[e] = result[0];
         } else if (L->lev >= 0) {
@@ -995,6 +1178,170 @@ GS_EXPORT int64_t gs_own_table_row(const int64_t *brick_start, int64_t nb, const
         }
     }
     return at;
+}
+
+/* The own table of one row of a level's bricks (brick index row on the first axis)
+ * straight from the level's sorted keys: the same bricks, column entries and values as
+ * gs_brick_row_entries then gs_own_table_row give, without listing the (brick,
+ * coefficient) pairs (building a single-level index: 5 times faster). keys: the n keys
+ * whose first index is in [row S - order + 1, row S + S - 1] (S = 2**BRICK_BITS), sorted;
+ * coefficients: theirs. sizes = (bricks, values) always; when they are within the
+ * capacities (max_bricks, max_values) fills brick_keys, base, cols (bricks, side, side;
+ * zeroed by the caller) and values (zeroed) and returns 0, else returns 1 (nothing
+ * written); -1 when memory ran out. */
+GS_EXPORT int64_t gs_own_table_keys(const int64_t *keys, int64_t n, const double *coefficients, int64_t order,
+                                    int64_t row, int64_t max_bricks, int64_t max_values, int64_t *brick_keys,
+                                    int64_t *base, int32_t *cols, double *values, int64_t *sizes)
+{
+    const int64_t bits = BRICK_BITS, side = (1 << BRICK_BITS) + order - 1;
+    const int64_t big = ((int64_t)1) << 40;
+    int64_t lo1 = big, hi1 = -big, lo2 = big, hi2 = -big;
+    for (int64_t c = 0; c < n; ++c) {
+        int64_t a1 = ((keys[c] >> GS_KEY_BITS) & GS_KEY_MASK) - GS_KEY_OFFSET;
+        int64_t a2 = (keys[c] & GS_KEY_MASK) - GS_KEY_OFFSET;
+        if ((a1 >> bits) < lo1) lo1 = a1 >> bits;
+        if (((a1 + order - 1) >> bits) > hi1) hi1 = (a1 + order - 1) >> bits;
+        if ((a2 >> bits) < lo2) lo2 = a2 >> bits;
+        if (((a2 + order - 1) >> bits) > hi2) hi2 = (a2 + order - 1) >> bits;
+    }
+    int64_t n1 = hi1 - lo1 + 1 > 0 ? hi1 - lo1 + 1 : 0, n2 = hi2 - lo2 + 1 > 0 ? hi2 - lo2 + 1 : 0;
+    int32_t *brick_of_cell = malloc(sizeof(int32_t) * (size_t)(n1 * n2 + 1));
+    if (!brick_of_cell)
+        return -1;
+    for (int64_t cell = 0; cell < n1 * n2; ++cell)
+        brick_of_cell[cell] = -1;
+    /* the bricks: wherever a B-spline touches a cell; numbered in key order */
+    for (int64_t c = 0; c < n; ++c) {
+        int64_t a1 = ((keys[c] >> GS_KEY_BITS) & GS_KEY_MASK) - GS_KEY_OFFSET;
+        int64_t a2 = (keys[c] & GS_KEY_MASK) - GS_KEY_OFFSET;
+        for (int64_t b1 = a1 >> bits; b1 <= (a1 + order - 1) >> bits; ++b1)
+            for (int64_t b2 = a2 >> bits; b2 <= (a2 + order - 1) >> bits; ++b2)
+                brick_of_cell[(b1 - lo1) * n2 + (b2 - lo2)] = 0;
+    }
+    int64_t nb = 0;
+    for (int64_t cell = 0; cell < n1 * n2; ++cell)
+        if (brick_of_cell[cell] == 0)
+            brick_of_cell[cell] = (int32_t)nb++;
+    sizes[0] = nb;
+    sizes[1] = 0;
+    /* per column of each brick: its first and last local k */
+    int8_t *k_first = malloc((size_t)(2 * nb * side * side + 1)), *k_last = k_first + nb * side * side;
+    if (!k_first) {
+        free(brick_of_cell);
+        return -1;
+    }
+    memset(k_first, 127, (size_t)(nb * side * side));
+    memset(k_last, -1, (size_t)(nb * side * side));
+    int64_t result = 0;
+    for (int pass = 0; pass < 2; ++pass) { /* 0: the runs' bounds; 1: the values */
+        for (int64_t c = 0; c < n; ++c) {
+            int64_t a0 = ((keys[c] >> (2 * GS_KEY_BITS)) & GS_KEY_MASK) - GS_KEY_OFFSET;
+            int64_t a1 = ((keys[c] >> GS_KEY_BITS) & GS_KEY_MASK) - GS_KEY_OFFSET;
+            int64_t a2 = (keys[c] & GS_KEY_MASK) - GS_KEY_OFFSET;
+            int64_t l0 = a0 - (row << bits) + order - 1;
+            for (int64_t b1 = a1 >> bits; b1 <= (a1 + order - 1) >> bits; ++b1)
+                for (int64_t b2 = a2 >> bits; b2 <= (a2 + order - 1) >> bits; ++b2) {
+                    int64_t b = brick_of_cell[(b1 - lo1) * n2 + (b2 - lo2)];
+                    int64_t col = (b * side + l0) * side + a1 - (b1 << bits) + order - 1;
+                    int64_t l2 = a2 - (b2 << bits) + order - 1;
+                    if (pass == 0) {
+                        if (l2 < k_first[col]) k_first[col] = (int8_t)l2;
+                        if (l2 > k_last[col]) k_last[col] = (int8_t)l2;
+                    } else {
+                        values[base[b] + (cols[col] >> COL_SHIFT) + l2 - k_first[col]] = coefficients[c];
+                    }
+                }
+        }
+        if (pass == 1)
+            break;
+        int64_t total = 0;
+        for (int64_t col = 0; col < nb * side * side; ++col)
+            total += k_last[col] >= 0 ? (int64_t)k_last[col] - k_first[col] + 1 : 0;
+        sizes[1] = total;
+        if (nb > max_bricks || total > max_values) {
+            result = 1;
+            break;
+        }
+        /* the bricks' keys and the runs in (brick, column) order */
+        for (int64_t cell = 0; cell < n1 * n2; ++cell)
+            if (brick_of_cell[cell] >= 0)
+                brick_keys[brick_of_cell[cell]] = gs_pack(row, lo1 + cell / n2, lo2 + cell % n2);
+        int64_t at = 0;
+        for (int64_t b = 0; b < nb; ++b) {
+            base[b] = at;
+            for (int64_t col = b * side * side; col < (b + 1) * side * side; ++col) {
+                if (k_last[col] < 0)
+                    continue;
+                int64_t length = (int64_t)k_last[col] - k_first[col] + 1;
+                cols[col] = (int32_t)(((at - base[b]) << COL_SHIFT) | ((int64_t)k_first[col] << COL_KBITS) | length);
+                at += length;
+            }
+        }
+    }
+    free(k_first);
+    free(brick_of_cell);
+    return result;
+}
+
+/* The least k <= max_halvings such that every one of the n coefficients is bitwise
+ * (double)(int32) q * (step / 2**k) for an integer q (as a store's decoder makes them:
+ * its tiles are quantised with the manifest's step or a power-of-two fraction of it, and
+ * a multiple of step / 2**k is one of step / 2**(k + 1), bitwise: scaling by 2 is exact),
+ * or -1 when there is none. */
+GS_EXPORT int64_t gs_finest_step(const double *coefficients, int64_t n, double step, int64_t max_halvings)
+{
+    int64_t k = 0;
+    double s = step;
+    for (int64_t c = 0; c < n; ++c)
+        for (;;) {
+            double r = rint(coefficients[c] / s);
+            double back = fabs(r) < 2147483648.0 ? (double)(int32_t)r * s : NAN;
+            if (memcmp(&back, &coefficients[c], sizeof back) == 0)
+                break;
+            if (++k > max_halvings)
+                return -1;
+            s *= 0.5;
+        }
+    return k;
+}
+
+/* A table's values (total, bricks by base (nb): brick b owns [base[b], base[b + 1]) as
+ * integers q[v] = c / step - qbase[b] when every value c is (double)(int32) q * step
+ * bitwise (a store's coefficients are): width 2, int16 (qbase[b] = the brick's least q +
+ * 32768; its q must span at most 65,535 steps), or 4, int32 (qbase 0). Returns 0, or the
+ * first brick that is not so (+ 1): q and qbase are then partly written. */
+GS_EXPORT int64_t gs_quantise_table(const double *values, int64_t total, const int64_t *base, int64_t nb,
+                                    double step, int64_t width, void *q, int32_t *qbase)
+{
+    for (int64_t b = 0; b < nb; ++b) {
+        int64_t lo = base[b], hi = b + 1 < nb ? base[b + 1] : total;
+        int64_t q_min = INT64_MAX, q_max = INT64_MIN;
+        for (int64_t v = lo; v < hi; ++v) {
+            double r = rint(values[v] / step);
+            if (!(fabs(r) < 2147483648.0))
+                return b + 1;
+            int64_t qv = (int64_t)r;
+            double back = (double)(int32_t)qv * step;
+            if (memcmp(&back, &values[v], sizeof back) != 0) /* bitwise: -0.0 is not 0.0 */
+                return b + 1;
+            if (qv < q_min) q_min = qv;
+            if (qv > q_max) q_max = qv;
+        }
+        if (width == 2 && hi > lo && q_max - q_min > 65535)
+            return b + 1;
+        int64_t qb = width == 2 && hi > lo ? q_min + 32768 : 0;
+        if (qb > INT32_MAX || qb < INT32_MIN)
+            return b + 1;
+        qbase[b] = (int32_t)qb;
+        for (int64_t v = lo; v < hi; ++v) {
+            int64_t qv = (int64_t)rint(values[v] / step) - qb;
+            if (width == 2)
+                ((int16_t *)q)[v] = (int16_t)qv;
+            else
+                ((int32_t *)q)[v] = (int32_t)qv;
+        }
+    }
+    return 0;
 }
 
 /* The full-column maps of a table (gs_spline's *_offs and *_full, see table_sum) from its
