@@ -164,14 +164,10 @@ static int radial_pass(int64_t n, const int64_t *keys, int64_t order, int64_t co
     int64_t *slab_keys = malloc((size_t)n * sizeof *slab_keys); /* packed (a, b, c), sorted */
     int64_t *foot = malloc((size_t)n * sizeof *foot);            /* each row's foot prediction */
     uint8_t *footed = calloc((size_t)n, 1);                       /* whether it had one */
-    if (!start || !perm || !slab_keys || !foot || !footed) {
-        free(start);
-        free(perm);
-        free(slab_keys);
-        free(foot);
-        free(footed);
-        return -1;
-    }
+    int32_t *box = NULL;
+    int status = -1; /* until the pass is done: memory ran out */
+    if (!start || !perm || !slab_keys || !foot || !footed)
+        goto done;
     /* a stable counting sort by the a index keeps key order, (b, c), within a slab */
     for (int64_t i = 0; i < n; ++i)
         start[unpack(keys[i], a) - lo_a + 1]++;
@@ -192,7 +188,6 @@ static int radial_pass(int64_t n, const int64_t *keys, int64_t order, int64_t co
      * leaves it: a tap is a fixed offset in it */
     int64_t whole[WHOLE_TAPS][3], small_offsets[SMALL_TAPS][3], box_lo[3] = {lo_a - 2, 0, 0}, span[3] = {slabs + 2, 0, 0};
     int64_t whole_linear[WHOLE_TAPS], small_linear[SMALL_TAPS];
-    int32_t *box = NULL;
     if (shift) {
         template_offsets(shift, whole, small_offsets);
         int64_t pad = 0;
@@ -215,14 +210,8 @@ static int radial_pass(int64_t n, const int64_t *keys, int64_t order, int64_t co
         for (int t = 0; t < SMALL_TAPS; ++t)
             small_linear[t] = (small_offsets[t][0] * span[1] + small_offsets[t][1]) * span[2] + small_offsets[t][2];
         box = malloc((size_t)(span[0] * span[1] * span[2]) * sizeof *box);
-        if (!box) {
-            free(start);
-            free(perm);
-            free(slab_keys);
-            free(foot);
-            free(footed);
-            return -1;
-        }
+        if (!box)
+            goto done;
         for (int64_t i = 0; i < span[0] * span[1] * span[2]; ++i)
             box[i] = -1;
         for (int64_t r = 0; r < n; ++r)
@@ -354,13 +343,15 @@ static int radial_pass(int64_t n, const int64_t *keys, int64_t order, int64_t co
         else
             residuals[row] = values[row] - prediction;
     }
+    status = 0;
+done:
     free(start);
     free(perm);
     free(slab_keys);
     free(foot);
     free(footed);
     free(box);
-    return 0;
+    return status;
 }
 
 /* Format 3: the radial foot alone (radial_pass without a template). */
