@@ -50,6 +50,7 @@ import numpy as np
 from ..bspline.domain import active_cells
 from ..bspline.keys import pack_keys, touching_keys, unpack_keys
 from ..bspline.level import LevelSpline, cube_of_support_centres, tiles_of_directions
+from .._kernels.query import query_order
 from ..errors import FitError
 from ..hierarchy.ambient import AmbientSpline
 from ..sphere.coordinates import directions
@@ -103,8 +104,9 @@ def band_latitudes(band: int, tile_size: float) -> tuple[float, float]:
 
 def band_of_directions(dirs, tile_size: float) -> np.ndarray:
     """The tile slab of each unit direction (M, 3): the ``z`` index of its storage tile
-    (:func:`~geoidspline.bspline.level.tiles_of_directions`)."""
-    return unpack_keys(tiles_of_directions(dirs, tile_size))[:, 2]
+    (:func:`~geoidspline.bspline.level.tiles_of_directions`), from ``z`` alone (a polar
+    band's 22 M nodes: no (M, 3) temporaries)."""
+    return np.floor(np.asarray(dirs)[:, 2] / tile_size).astype(np.int64)
 
 
 def band_margin_deg(params: FitParameters, overlay_reach: bool = False) -> float:
@@ -335,12 +337,22 @@ def band_step(spline: AmbientSpline, owned, node_dirs, fit_errors, rounding: Rou
         """(node errors, each node's largest error at most) of the band's rounded values."""
         change = AmbientSpline([LevelSpline(lv.level, lv.h, lv.order, lv.keys[m], r - lv.coefficients[m])
                                 for lv, m, r in zip(spline.levels, owned, rounded)])
-        errors = fit_errors - change.evaluate_points(node_dirs, any_batch=True) if node_dirs.size \
-            else np.empty(0)
+        errors = fit_errors - at_nodes(change) if node_dirs.size else np.empty(0)
         worst = np.abs(errors)
         if edge_dirs.size and errors.size:
             worst[edge] = with_neighbours(errors[edge]) + bound_overlays
         return errors, worst + EVALUATION_ROUNDING_M
+
+    # every rounding is evaluated at the same nodes: sorted into the evaluation's
+    # locality order once (the same values, bit for bit, as each evaluation sorting them
+    # again; held for the search only, not while the neighbours' or the stored spline are made)
+    visit = query_order(node_dirs) if node_dirs.size else np.empty(0, np.int64)
+    visited_dirs = np.take(node_dirs, visit, axis=0)
+
+    def at_nodes(change):
+        values = np.zeros(node_dirs.shape[0])
+        values[visit] += change.evaluate_points(visited_dirs, any_batch=True, ordered=True)
+        return values
 
     fit_ms = float(np.mean(fit_errors ** 2)) if fit_errors.size else 0.0
     rms_target = None
@@ -361,6 +373,7 @@ def band_step(spline: AmbientSpline, owned, node_dirs, fit_errors, rounding: Rou
                     or not _nudge(first, owned[0], movable, rounded[0], step, rounding, node_dirs[over], errors[over]):
                 break
         if (not over.any() and not noisy) or step / 2.0 < 1e-6:
+            visit = visited_dirs = None
             stored = AmbientSpline([LevelSpline(lv.level, lv.h, lv.order, lv.keys, _owned_replaced(lv.coefficients, m, r))
                                     for lv, m, r in zip(spline.levels, owned, rounded)])
             return step, stored, errors, largest
