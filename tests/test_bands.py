@@ -462,8 +462,8 @@ def test_a_bands_node_errors_are_the_stored_splines_bit_for_bit_with_many_nodes(
     spline = AmbientSpline([LevelSpline(0, h, order, keys, rng.normal(0.0, 1.0, keys.size))])
     owned = [cube_of_support_centres(spline.levels[0].indices, h, order, 1.0)[:, 2] == 0]
     fit_errors = rng.uniform(-0.03, 0.03, count)
-    step, stored, errors, largest = band_step(spline, owned, dirs, fit_errors,
-                                              Rounding(start, tolerance, stored_values), Band(0, 0), 1.0)
+    _, stored, errors, largest = band_step(spline, owned, dirs, fit_errors,
+                                           Rounding(start, tolerance, stored_values), Band(0, 0), 1.0)
     lv, kept = spline.levels[0], stored.levels[0].coefficients
     change = AmbientSpline([LevelSpline(0, h, order, lv.keys[owned[0]], kept[owned[0]] - lv.coefficients[owned[0]])])
     np.testing.assert_array_equal(errors, fit_errors - change.evaluate_points(dirs, any_batch=True))

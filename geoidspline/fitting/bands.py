@@ -47,10 +47,10 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .._kernels.query import query_order
 from ..bspline.domain import active_cells
 from ..bspline.keys import pack_keys, touching_keys, unpack_keys
 from ..bspline.level import LevelSpline, cube_of_support_centres, tiles_of_directions
-from .._kernels.query import query_order
 from ..errors import FitError
 from ..hierarchy.ambient import AmbientSpline
 from ..sphere.coordinates import directions
