@@ -423,3 +423,90 @@ def test_bands_are_committed_in_order_behind_the_fit_and_a_failed_fit_keeps_the_
 
     with pytest.raises(StoreError, match="disk full"):
         _commit_behind(fitted(), broken, lambda: None)
+
+
+def test_a_directions_band_is_its_storage_tiles_slab_on_and_between_slab_edges():
+    """The slab of a direction (from ``z`` alone) is the ``z`` index of its storage tile,
+    for directions on slab edges, at the poles and between."""
+    from geoidspline.bspline.keys import unpack_keys
+    from geoidspline.bspline.level import tiles_of_directions
+    from geoidspline.fitting.bands import band_of_directions
+    from geoidspline.sphere.coordinates import directions
+
+    tile = 0.05
+    rng = np.random.default_rng(8)
+    lat = np.concatenate([rng.uniform(-90, 90, 5000), [-90.0, 90.0, 0.0],
+                          np.degrees(np.arcsin(np.arange(-20, 21) * tile))])  # z on the slab edges
+    dirs = directions(lat, rng.uniform(-180, 180, lat.size))
+    slabs = band_of_directions(dirs, tile)
+    np.testing.assert_array_equal(slabs, unpack_keys(tiles_of_directions(dirs, tile))[:, 2])
+    assert slabs.min() == -20 and slabs.max() == 20  # the poles' own slabs
+
+
+def test_a_bands_node_errors_are_the_stored_splines_bit_for_bit_with_many_nodes():
+    """Above the evaluation's ordering threshold (20,000 points) the band sorts its nodes
+    once for every rounding it measures: the node errors it returns are, bit for bit,
+    the fit's minus its stored change evaluated at the nodes as they come."""
+    from geoidspline.bspline.keys import touching_keys
+    from geoidspline.bspline.level import LevelSpline, cube_of_support_centres
+    from geoidspline.fitting.bands import Rounding, band_step
+    from geoidspline.hierarchy.ambient import AmbientSpline
+    from geoidspline.sphere.coordinates import directions
+    from geoidspline.store.codec import stored_values
+
+    rng = np.random.default_rng(9)
+    h, order, start, tolerance = 0.05, 4, 0.02, 0.1
+    count = 30_000
+    dirs = directions(rng.uniform(25, 35, count), rng.uniform(-10, 10, count))  # no edge
+    keys = touching_keys(np.unique(np.floor(dirs / h).astype(np.int64), axis=0), order)
+    spline = AmbientSpline([LevelSpline(0, h, order, keys, rng.normal(0.0, 1.0, keys.size))])
+    owned = [cube_of_support_centres(spline.levels[0].indices, h, order, 1.0)[:, 2] == 0]
+    fit_errors = rng.uniform(-0.03, 0.03, count)
+    _, stored, errors, largest = band_step(spline, owned, dirs, fit_errors,
+                                           Rounding(start, tolerance, stored_values), Band(0, 0), 1.0)
+    lv, kept = spline.levels[0], stored.levels[0].coefficients
+    change = AmbientSpline([LevelSpline(0, h, order, lv.keys[owned[0]], kept[owned[0]] - lv.coefficients[owned[0]])])
+    np.testing.assert_array_equal(errors, fit_errors - change.evaluate_points(dirs, any_batch=True))
+    assert np.abs(errors - fit_errors).max() > 0.0 and largest <= tolerance
+
+
+def test_a_step_plainly_too_noisy_is_halved_on_its_estimate_with_the_same_result(monkeypatch):
+    """A band with many nodes estimates each step's rounding noise on every
+    ``SCREEN_STRIDE``-th node first: a step whose estimate is plainly over the RMS
+    budget is halved without measuring every node, and the band ends with the step,
+    stored values and node errors of measuring them all."""
+    from geoidspline.fitting import bands
+    from geoidspline.bspline.keys import touching_keys
+    from geoidspline.bspline.level import LevelSpline, cube_of_support_centres
+    from geoidspline.hierarchy.ambient import AmbientSpline
+    from geoidspline.sphere.coordinates import directions
+    from geoidspline.store.codec import quantisation_change, stored_values
+
+    rng = np.random.default_rng(10)
+    h, order, start, tolerance = 0.05, 4, 0.2, 0.15
+    dirs = directions(rng.uniform(25, 35, 4000), rng.uniform(-10, 10, 4000))  # no edge
+    keys = touching_keys(np.unique(np.floor(dirs / h).astype(np.int64), axis=0), order)
+    spline = AmbientSpline([LevelSpline(0, h, order, keys, rng.normal(0.0, 1.0, keys.size))])
+    owned = [cube_of_support_centres(spline.levels[0].indices, h, order, 1.0)[:, 2] == 0]
+    fit_errors = rng.uniform(-0.002, 0.002, dirs.shape[0])
+    budget = 0.3 * float(np.sqrt(np.mean(quantisation_change(spline, start, dirs) ** 2)))
+    rounding = bands.Rounding(start, tolerance, stored_values, budget)
+    measured_all = []
+    evaluate = AmbientSpline.evaluate_points
+
+    def counted(self, points, *args, **kwargs):
+        measured_all.append(np.asarray(points).shape[0] == dirs.shape[0])
+        return evaluate(self, points, *args, **kwargs)
+
+    monkeypatch.setattr(AmbientSpline, "evaluate_points", counted)
+    exact = bands.band_step(spline, owned, dirs, fit_errors, rounding, bands.Band(0, 0), 1.0)
+    exact_count = sum(measured_all)
+    monkeypatch.setattr(bands, "SCREEN_NODES_MIN", 1000)
+    monkeypatch.setattr(bands, "SCREEN_STRIDE", 4)
+    measured_all.clear()
+    screened = bands.band_step(spline, owned, dirs, fit_errors, rounding, bands.Band(0, 0), 1.0)
+    assert exact[0] <= start / 4 and screened[0] == exact[0]  # halved twice or more, to the same step
+    assert sum(measured_all) == exact_count - 1  # the first step not measured node by node
+    np.testing.assert_array_equal(screened[1].levels[0].coefficients, exact[1].levels[0].coefficients)
+    np.testing.assert_array_equal(screened[2], exact[2])
+    assert screened[3] == exact[3] and np.sqrt(np.mean(screened[2] ** 2)) <= budget

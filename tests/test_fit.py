@@ -359,3 +359,36 @@ def test_model_check_points_come_in_rings_uniform_in_area():
     np.testing.assert_array_equal(again[1], lon)
     z = np.sin(np.radians(random_positions(GLOBAL, 20_000, seed=0)[0][::10]))
     assert np.histogram(z, bins=4, range=(-1, 1))[0].min() > 400  # 2,000 rings, 500 a bin expected
+
+
+@pytest.mark.parametrize("with_gaps", [False, True])
+def test_data_nodes_are_the_samples_points_row_by_row_one_at_a_pole(with_gaps):
+    """A sample's data nodes: every finite point of its lattice row by row, its row
+    counted on the whole lattice (``first_row``), one node on a pole row; the values a
+    copy, not the sample's array (a fit subtracts its levels from them)."""
+    from geoidspline.fitting.sites import DataNodes
+
+    latitude = np.array([-90.0, -89.5, -89.0, 88.0])
+    longitude = np.array([-180.0, -90.0, 0.0, 90.0, 179.0])
+    undulation = np.arange(20.0).reshape(4, 5)
+    if with_gaps:
+        undulation[1, 2] = np.nan
+    region = Region(-89.6, -180.0, 90.0, 180.0)
+    nodes = DataNodes.from_sample(NodeSample(latitude, longitude, undulation, first_row=7), region)
+    rows = [0] + [1] * 5 + [2] * 5 + [3] * 5
+    cols = [0] + list(range(5)) * 3
+    if with_gaps:
+        del rows[3], cols[3]
+    np.testing.assert_array_equal(nodes.row, np.array(rows) + 7)
+    np.testing.assert_array_equal(nodes.col, cols)
+    np.testing.assert_array_equal(nodes.latitude, latitude[rows])
+    np.testing.assert_array_equal(nodes.longitude, longitude[cols])
+    np.testing.assert_array_equal(nodes.values, undulation[rows, cols])
+    np.testing.assert_array_equal(nodes.in_region, latitude[rows] >= -89.6)
+    assert nodes.directions.shape == (len(rows), 3) and nodes.directions[0, 2] == -1.0
+    assert not np.shares_memory(nodes.values, undulation)
+    # no pole and no gap: every point, the values still a copy
+    whole = DataNodes.from_sample(NodeSample(latitude[1:], longitude, np.ones((3, 5))), region)
+    assert whole.values.size == 15 and whole.row.tolist() == [0] * 5 + [1] * 5 + [2] * 5
+    whole.values[0] = 5.0
+    assert whole.latitude[0] == -89.5 and whole.col.tolist() == list(range(5)) * 3

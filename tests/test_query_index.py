@@ -157,6 +157,24 @@ def test_other_orders_fold_exactly(order):
         assert_matches_reference(spline, levels, points, f"order {order}, {name}")
 
 
+def test_points_given_in_query_order_evaluate_to_the_bits_of_the_sorted_evaluation():
+    """Many points (above the ordering threshold) already in ``query_order``'s order and
+    evaluated as they come (``ordered``) give, put back, the bits of the evaluation that
+    sorts them itself, values and derivatives."""
+    levels = random_overlays(3)
+    spline = AmbientSpline(levels)
+    rng = np.random.default_rng(11)
+    points = rng.normal(size=(40_000, 3))
+    points /= np.linalg.norm(points, axis=1)[:, None]
+    visit = _kernels.query_order(points)
+    for nderiv in (0, 1):
+        expected = spline.evaluate_points(points, nderiv, any_batch=True)
+        back = np.zeros_like(expected)
+        back[visit] += spline.evaluate_points(points[visit], nderiv, any_batch=True, ordered=True)
+        np.testing.assert_array_equal(back, expected)
+        assert np.abs(expected).max() > 0.0
+
+
 def test_points_in_the_band_read_only_the_folded_tables():
     """On and near the sphere a point is evaluated on one level: with every own table
     emptied (the coarsest level's folded table is its own), the results do not change;

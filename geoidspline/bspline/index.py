@@ -542,17 +542,19 @@ class BrickIndex:
                   self.own_full)
         return sum(a.nbytes for a in {id(a): a for a in arrays if a is not None}.values())  # shared ones once
 
-    def add_to(self, points, out, nderiv=0):
+    def add_to(self, points, out, nderiv=0, ordered=False):
         """Add the spline (nderiv 0) or value and derivatives (1, 2) at points (M, 3) to out.
 
         From :data:`_ORDER_THRESHOLD` points on, the points are evaluated in a
         locality-preserving order (:func:`geoidspline._kernels.query.query_order`, a counting
         sort on a coarse Z-order grid) so that neighbours share bricks and cache lines;
-        each point's result does not depend on the order.
+        each point's result does not depend on the order. ``ordered``: the points are in
+        such an order already (a caller evaluating many splines at the same points sorts
+        them once) and are evaluated as they come.
         """
         if not self.inv_hs.size:
             return
-        if points.shape[0] >= _ORDER_THRESHOLD:
+        if points.shape[0] >= _ORDER_THRESHOLD and not ordered:
             visit = _qk.query_order(points)
             ordered_out = np.zeros_like(out)
             self._evaluate(np.take(points, visit, axis=0), ordered_out, nderiv)

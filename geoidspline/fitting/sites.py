@@ -35,28 +35,31 @@ class DataNodes:
 
     @classmethod
     def from_sample(cls, sample, region: Region):
-        lat2, lon2 = np.meshgrid(sample.latitude, sample.longitude, indexing="ij")
-        row2, col2 = np.meshgrid(
-            getattr(sample, "first_row", 0) + np.arange(sample.latitude.size), np.arange(sample.longitude.size),
-            indexing="ij",
-        )
+        rows, cols = sample.latitude.size, sample.longitude.size
         values = np.asarray(sample.undulation, dtype=float).ravel()
         keep = np.isfinite(values)
         # a pole row holds one point: keep a single node there
-        pole = (np.abs(lat2.ravel()) >= 90.0) & (col2.ravel() > 0)
-        keep &= ~pole
-        lat = lat2.ravel()[keep]
-        lon = lon2.ravel()[keep]
-        dlat = np.radians(np.diff(sample.latitude).min()) if sample.latitude.size > 1 else np.pi
-        dlon = np.radians(np.diff(sample.longitude).min()) if sample.longitude.size > 1 else 2 * np.pi
+        for pole_row in np.flatnonzero(np.abs(sample.latitude) >= 90.0):
+            keep[pole_row * cols + 1:(pole_row + 1) * cols] = False
+        # the lattice's rows and columns, flat, row by row: taken whole when every
+        # point is kept (a band of tens of millions of nodes: no masked copies)
+        every = bool(keep.all())
+
+        def kept(flat):
+            return flat if every else flat[keep]
+
+        lat = kept(np.repeat(sample.latitude, cols))
+        lon = kept(np.tile(sample.longitude, rows))
+        dlat = np.radians(np.diff(sample.latitude).min()) if rows > 1 else np.pi
+        dlon = np.radians(np.diff(sample.longitude).min()) if cols > 1 else 2 * np.pi
         return cls(
             latitude=lat,
             longitude=lon,
-            values=values[keep],
+            values=np.array(values, copy=True) if every else values[keep],  # not the sample's array
             directions=directions(lat, lon),
             in_region=region.contains(lat, lon),
-            row=row2.ravel()[keep],
-            col=col2.ravel()[keep],
+            row=kept(np.repeat(getattr(sample, "first_row", 0) + np.arange(rows), cols)),
+            col=kept(np.tile(np.arange(cols), rows)),
             dlat_rad=float(dlat),
             dlon_rad=float(dlon),
         )

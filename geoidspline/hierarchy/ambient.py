@@ -61,20 +61,22 @@ class AmbientSpline:
     def coefficient_count(self) -> int:
         return sum(len(lv) for lv in self.levels)
 
-    def evaluate_points(self, points, nderiv=0, any_batch=False):
+    def evaluate_points(self, points, nderiv=0, any_batch=False, ordered=False):
         """Values (M,) or value+derivatives (M, 4|10) at ambient points (M, 3).
 
         Small batches are summed level by level, large ones by the folded index: the two
         agree to rounding. ``any_batch``: the folded index whatever the batch's size, so
         that a point's value has the same bits in any batch (a fit made band by band
-        evaluates fewer sites at once than the whole globe's)."""
+        evaluates fewer sites at once than the whole globe's). ``ordered``: the points
+        are in :func:`~geoidspline._kernels.query.query_order`'s order already (with
+        ``any_batch``: the same values, bit for bit, without sorting them again)."""
         points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
         if points.shape[0] < FOLDED_FROM_POINTS and not any_batch:
             out = evaluate_levels(self.levels, points, nderiv)
         else:
             width = {0: 1, 1: 4, 2: 10}[nderiv]
             out = np.zeros((points.shape[0], width))
-            self.index.add_to(points, out, nderiv)  # orders many points itself
+            self.index.add_to(points, out, nderiv, ordered=ordered)  # orders many points itself
             bad = ~np.all(np.isfinite(points), axis=1)
             out[bad] = np.nan
         return out[:, 0] if nderiv == 0 else out
