@@ -274,24 +274,33 @@ def test_the_stores_node_figures_hold_for_the_store_read_back(model, tmp_path):
     assert np.sqrt(np.mean(errors ** 2)) == pytest.approx(manifest["accuracy"]["node_rms_error_m"], rel=6e-3)
 
 
+def _random_band_spline(rng, latitudes_deg, count, h, order):
+    """``count`` random node directions at latitudes ``latitudes_deg`` (low, high) and
+    longitudes -10..10 degrees, a one-level spline of random coefficients on the
+    B-splines touching them, and the band's owned mask (tile slab 0)."""
+    from geoidspline.bspline.keys import touching_keys
+    from geoidspline.bspline.level import LevelSpline, cube_of_support_centres
+    from geoidspline.hierarchy.ambient import AmbientSpline
+    from geoidspline.sphere.coordinates import directions
+
+    dirs = directions(rng.uniform(*latitudes_deg, count), rng.uniform(-10, 10, count))
+    keys = touching_keys(np.unique(np.floor(dirs / h).astype(np.int64), axis=0), order)
+    spline = AmbientSpline([LevelSpline(0, h, order, keys, rng.normal(0.0, 1.0, keys.size))])
+    owned = [cube_of_support_centres(spline.levels[0].indices, h, order, 1.0)[:, 2] == 0]
+    return dirs, spline, owned
+
+
 def test_a_bands_rounding_is_corrected_at_the_nodes_it_takes_over_the_tolerance():
     """Rounding to the start step takes one node over the tolerance: before halving the
     step, the band moves the B-spline nearest that node one step the other way; the
     stored values stay multiples of the step within a step of the fit's, and the node
     errors returned are those of the stored spline."""
-    from geoidspline.bspline.keys import touching_keys
-    from geoidspline.bspline.level import LevelSpline, cube_of_support_centres
     from geoidspline.fitting.bands import Rounding, band_step
-    from geoidspline.hierarchy.ambient import AmbientSpline
-    from geoidspline.sphere.coordinates import directions
     from geoidspline.store.codec import quantisation_change, stored_values
 
     rng = np.random.default_rng(5)
     h, order, start, tolerance = 0.05, 4, 0.2, 0.1
-    dirs = directions(rng.uniform(25, 35, 3000), rng.uniform(-10, 10, 3000))  # z 0.42-0.57: no edge
-    keys = touching_keys(np.unique(np.floor(dirs / h).astype(np.int64), axis=0), order)
-    spline = AmbientSpline([LevelSpline(0, h, order, keys, rng.normal(0.0, 1.0, keys.size))])
-    owned = [cube_of_support_centres(spline.levels[0].indices, h, order, 1.0)[:, 2] == 0]
+    dirs, spline, owned = _random_band_spline(rng, (25, 35), 3000, h, order)  # z 0.42-0.57: no edge
     assert owned[0].all()
     change = quantisation_change(spline, start, dirs)
     worst = int(np.argmax(np.abs(change)))
@@ -315,20 +324,15 @@ def test_a_node_its_neighbours_rounding_takes_over_does_not_halve_a_bands_step()
     """A node at a band's edge that the neighbour's rounding alone takes over the tolerance
     (its own values exact) is reported, not chased: halving the band's own step cannot
     bring it back, and the step stays the one its other nodes need."""
-    from geoidspline.bspline.keys import touching_keys
-    from geoidspline.bspline.level import LevelSpline, cube_of_support_centres
+    from geoidspline.bspline.level import LevelSpline
     from geoidspline.fitting.bands import Rounding, band_step
     from geoidspline.hierarchy.ambient import AmbientSpline
-    from geoidspline.sphere.coordinates import directions
     from geoidspline.store.codec import stored_values
 
     rng = np.random.default_rng(6)
     h, order, start, tolerance = 0.05, 4, 0.2, 0.1
-    dirs = directions(rng.uniform(70, 84, 2000), rng.uniform(-10, 10, 2000))  # z 0.94-0.99, by the edge at 1
-    keys = touching_keys(np.unique(np.floor(dirs / h).astype(np.int64), axis=0), order)
-    spline = AmbientSpline([LevelSpline(0, h, order, keys, rng.normal(0.0, 1.0, keys.size))])
-    owned = [cube_of_support_centres(spline.levels[0].indices, h, order, 1.0)[:, 2] == 0]
-    assert 0 < owned[0].sum() < keys.size
+    dirs, spline, owned = _random_band_spline(rng, (70, 84), 2000, h, order)  # z 0.94-0.99, by the edge at 1
+    assert 0 < owned[0].sum() < len(spline.levels[0])
     lv = spline.levels[0]
     theirs = AmbientSpline([LevelSpline(0, h, order, lv.keys[~owned[0]],
                                         stored_values(lv.coefficients[~owned[0]], start) - lv.coefficients[~owned[0]])])
@@ -346,19 +350,12 @@ def test_a_bands_step_is_halved_while_its_rounding_lifts_the_rms_above_its_budge
     """Every node within the tolerance at the first step, but the rounding's noise lifts
     the nodes' RMS above ``Rounding.rms_m``: the step is halved until it does not (and
     without a budget the first step is kept)."""
-    from geoidspline.bspline.keys import touching_keys
-    from geoidspline.bspline.level import LevelSpline, cube_of_support_centres
     from geoidspline.fitting.bands import Rounding, band_step
-    from geoidspline.hierarchy.ambient import AmbientSpline
-    from geoidspline.sphere.coordinates import directions
     from geoidspline.store.codec import quantisation_change, stored_values
 
     rng = np.random.default_rng(7)
     h, order, start, tolerance = 0.05, 4, 0.2, 0.15
-    dirs = directions(rng.uniform(25, 35, 3000), rng.uniform(-10, 10, 3000))  # no edge
-    keys = touching_keys(np.unique(np.floor(dirs / h).astype(np.int64), axis=0), order)
-    spline = AmbientSpline([LevelSpline(0, h, order, keys, rng.normal(0.0, 1.0, keys.size))])
-    owned = [cube_of_support_centres(spline.levels[0].indices, h, order, 1.0)[:, 2] == 0]
+    dirs, spline, owned = _random_band_spline(rng, (25, 35), 3000, h, order)  # no edge
     fit_errors = np.zeros(dirs.shape[0])
     noise = float(np.sqrt(np.mean(quantisation_change(spline, start, dirs) ** 2)))
     assert 0.0 < noise and np.abs(quantisation_change(spline, start, dirs)).max() <= tolerance
@@ -447,20 +444,15 @@ def test_a_bands_node_errors_are_the_stored_splines_bit_for_bit_with_many_nodes(
     """Above the evaluation's ordering threshold (20,000 points) the band sorts its nodes
     once for every rounding it measures: the node errors it returns are, bit for bit,
     the fit's minus its stored change evaluated at the nodes as they come."""
-    from geoidspline.bspline.keys import touching_keys
-    from geoidspline.bspline.level import LevelSpline, cube_of_support_centres
+    from geoidspline.bspline.level import LevelSpline
     from geoidspline.fitting.bands import Rounding, band_step
     from geoidspline.hierarchy.ambient import AmbientSpline
-    from geoidspline.sphere.coordinates import directions
     from geoidspline.store.codec import stored_values
 
     rng = np.random.default_rng(9)
     h, order, start, tolerance = 0.05, 4, 0.02, 0.1
     count = 30_000
-    dirs = directions(rng.uniform(25, 35, count), rng.uniform(-10, 10, count))  # no edge
-    keys = touching_keys(np.unique(np.floor(dirs / h).astype(np.int64), axis=0), order)
-    spline = AmbientSpline([LevelSpline(0, h, order, keys, rng.normal(0.0, 1.0, keys.size))])
-    owned = [cube_of_support_centres(spline.levels[0].indices, h, order, 1.0)[:, 2] == 0]
+    dirs, spline, owned = _random_band_spline(rng, (25, 35), count, h, order)  # no edge
     fit_errors = rng.uniform(-0.03, 0.03, count)
     _, stored, errors, largest = band_step(spline, owned, dirs, fit_errors,
                                            Rounding(start, tolerance, stored_values), Band(0, 0), 1.0)
@@ -476,18 +468,12 @@ def test_a_step_plainly_too_noisy_is_halved_on_its_estimate_with_the_same_result
     budget is halved without measuring every node, and the band ends with the step,
     stored values and node errors of measuring them all."""
     from geoidspline.fitting import bands
-    from geoidspline.bspline.keys import touching_keys
-    from geoidspline.bspline.level import LevelSpline, cube_of_support_centres
     from geoidspline.hierarchy.ambient import AmbientSpline
-    from geoidspline.sphere.coordinates import directions
     from geoidspline.store.codec import quantisation_change, stored_values
 
     rng = np.random.default_rng(10)
     h, order, start, tolerance = 0.05, 4, 0.2, 0.15
-    dirs = directions(rng.uniform(25, 35, 4000), rng.uniform(-10, 10, 4000))  # no edge
-    keys = touching_keys(np.unique(np.floor(dirs / h).astype(np.int64), axis=0), order)
-    spline = AmbientSpline([LevelSpline(0, h, order, keys, rng.normal(0.0, 1.0, keys.size))])
-    owned = [cube_of_support_centres(spline.levels[0].indices, h, order, 1.0)[:, 2] == 0]
+    dirs, spline, owned = _random_band_spline(rng, (25, 35), 4000, h, order)  # no edge
     fit_errors = rng.uniform(-0.002, 0.002, dirs.shape[0])
     budget = 0.3 * float(np.sqrt(np.mean(quantisation_change(spline, start, dirs) ** 2)))
     rounding = bands.Rounding(start, tolerance, stored_values, budget)
