@@ -1036,12 +1036,16 @@ GS_INLINE void latlon_range(const latlon_job *J, const int order, const int chai
                 prefetch_slot(S, L->x, L->y, L->z);
         }
         int64_t q = p - to_locate; /* located now */
-        if (q >= lo && q < hi)
-            latlon_locate(S, order, chain, &ring[(uint64_t)q % LL_RING], q > lo ? &ring[(uint64_t)(q - 1) % LL_RING] : &none,
-                          last_key, last_brick);
-        int64_t r = p - to_values; /* values asked for now */
-        if (r >= lo && r < hi && ring[(uint64_t)r % LL_RING].brick >= 0)
-            prefetch_values(S, order, chain, &ring[(uint64_t)r % LL_RING], r > lo ? &ring[(uint64_t)(r - 1) % LL_RING] : &none);
+        if (q >= lo && q < hi) {
+            located *L = &ring[(uint64_t)q % LL_RING];
+            latlon_locate(S, order, chain, L, chain && q > lo ? &ring[(uint64_t)(q - 1) % LL_RING] : &none, last_key,
+                          last_brick);
+            if (!chain && L->brick >= 0)
+                prefetch_values(S, order, 0, L, &none);
+        }
+        int64_t r = p - to_values; /* values asked for now (chain) */
+        if (chain && r >= lo && r < hi && ring[(uint64_t)r % LL_RING].brick >= 0)
+            prefetch_values(S, order, 1, &ring[(uint64_t)r % LL_RING], r > lo ? &ring[(uint64_t)(r - 1) % LL_RING] : &none);
         int64_t e = p - to_sum; /* summed now */
         if (e < lo)
             continue;
