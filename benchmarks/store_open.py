@@ -110,12 +110,17 @@ def main(argv=None):
                         help="checkout whose geoidspline to run (default: this one); repeatable")
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--skip", action="append", default=[], choices=["one-point", *CASES])
+    parser.add_argument("--threads", type=int, default=None,
+                        help="GEOIDSPLINE_THREADS of the runs (decoding and query threads; default: all)")
     parser.add_argument("--json", default=None)
     args = parser.parse_args(argv)
+    if args.threads is not None:
+        os.environ["GEOIDSPLINE_THREADS"] = str(args.threads)  # inherited by every run
     codes = [Path(c).resolve() for c in (args.code or [str(REPO)])]
     cases = [c for c in ("one-point", *CASES) if c not in args.skip]
     report = {"date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"), "machine": machine_info(),
-              "codes": {str(c): git_commit(c) for c in codes}, "load_before": os.getloadavg(), "runs": []}
+              "codes": {str(c): git_commit(c) for c in codes},
+              "threads": os.environ.get("GEOIDSPLINE_THREADS"), "load_before": os.getloadavg(), "runs": []}
     for store in args.store:
         for path in sorted(Path(store).rglob("*")):  # the page cache holds the store for every run alike
             if path.is_file():
