@@ -345,7 +345,7 @@ def test_large_batches_outside_the_coverage_read_no_tile_there(small_store):
     same bits inside; the tiles read are those the covered points need."""
     eager = TileStore.open(small_store.path, lazy=False)
     rng = np.random.default_rng(12)
-    lat, lon = rng.uniform(-60, 60, FOLDED_FROM_POINTS), rng.uniform(-60, 100, FOLDED_FROM_POINTS)
+    lat, lon = rng.uniform(-60, 60, 4 * FOLDED_FROM_POINTS), rng.uniform(-60, 100, 4 * FOLDED_FROM_POINTS)
     store = geoidspline.open_store(small_store.path)
     got = store.undulation(lat, lon)
     covered = store.covers(lat, lon)
@@ -353,6 +353,7 @@ def test_large_batches_outside_the_coverage_read_no_tile_there(small_store):
     assert np.isnan(got[~covered]).all() and np.isfinite(got[covered]).all()
     np.testing.assert_array_equal(got, eager.undulation(lat, lon))
     outside = geoidspline.open_store(small_store.path)
+    assert (~covered).sum() >= FOLDED_FROM_POINTS
     assert np.isnan(outside.undulation(lat[~covered], lon[~covered])).all()
     assert outside.spline.tiles_read == 0
 

@@ -333,9 +333,15 @@ class StoreSpline:
         with self._directory(tiles[0]) as directory, ThreadPoolExecutor(max(1, threads())) as pool:
             submitted = {}
 
+            def take(tile):  # a kept tile, no longer counted in the cache
+                levels = kept.pop(tile)
+                if kept is self._tiles:
+                    self._tile_bytes -= _level_bytes(levels)
+                return levels
+
             def submit(i):
                 if i < len(slabs):
-                    submitted[i] = [(t, kept.pop(t) if t in kept else pool.submit(self._read, t, directory))
+                    submitted[i] = [(t, take(t) if t in kept else pool.submit(self._read, t, directory))
                                     for t in slabs[i]]
 
             def parts_of_slab(slab):
@@ -452,6 +458,8 @@ class StoreSpline:
         """The tiles an index needs at latitude/longitude (degrees, checked, 1-D): those
         of the points' bounding rectangle when held already or at most
         _LATLON_BOX_SLACK times those of the points, else the points' own."""
+        if latitude.size == 0:
+            return set()
         box = _latlon_box(latitude, longitude)
         if box is None and not np.isfinite(latitude + longitude).any():
             return set()
