@@ -194,7 +194,7 @@ import numpy as np
 import geoidspline
 from geoidspline import _memory
 store = geoidspline.open_store({str(small_store.path)!r})
-store.undulation(np.linspace(20, 21, 5000), np.linspace(30, 31, 5000))  # every tile, the index
+store.undulation(np.linspace(20, 21, 5000), np.linspace(30, 31, 5000))  # a large batch: tiles, an index
 library = _memory._pinned
 from geoidspline.cli.info import main
 main([{str(small_store.path)!r}], standalone_mode=False)
