@@ -383,3 +383,54 @@ def test_concurrent_large_batches_see_the_whole_stores_values(patch_stores):
     assert not errors
     for (lat, lon), got in zip(batches, results):
         np.testing.assert_array_equal(got, eager.undulation(lat, lon))
+
+
+def test_the_bricks_not_the_reach_decide_the_bits_of_a_folded_index():
+    """Why a large batch reads the tiles of its points' coarsest bricks, not only of
+    their reach: at a point whose level-1 brick holds level-1 B-splines, none of them
+    non-zero at the point, the whole store's index evaluates the level's folded table
+    there (the coarser levels subdivided), an index of the coefficients within reach
+    has no such brick and evaluates level 0's: the same number but not the same bits.
+    The coefficients whose support centres lie in the point's level-0 brick widened by
+    the reach (the finest grain a set of tiles can have) give the whole index's bits."""
+    from geoidspline._kernels.query import BRICK_BITS
+    from geoidspline.bspline.index import BrickIndex
+    from geoidspline.bspline.level import LevelSpline
+
+    rng = np.random.default_rng(14)
+    order, h0 = 4, 0.01
+    r = np.arange(order)
+    offsets = np.stack(np.meshgrid(r, r, r, indexing="ij"), axis=-1).reshape(-1, 3) - order + 1
+    levels = []
+    for level, region in enumerate([Region(30.0, -20.0, 60.0, 40.0), Region(44.0, 5.0, 46.0, 7.0)]):
+        h = h0 / 2.0**level
+        cells = np.floor(directions(*_points(rng, 40_000, region)) / h).astype(np.int64)
+        keys = np.unique(_keys.pack_keys((cells[:, None, :] + offsets[None]).reshape(-1, 3)))
+        levels.append(LevelSpline(level, h, order, keys, rng.normal(0.0, 10.0, keys.size)))
+    whole = BrickIndex(levels, order)
+    reach = order * h0 / 2.0 + 1e-9
+    side = (1 << BRICK_BITS) * h0
+
+    def within(lo, hi):  # the coefficients whose support centre lies in lo..hi
+        parts = []
+        for lv in levels:
+            centre = (_keys.unpack_keys(lv.keys) + order / 2.0) * lv.h
+            keep = np.all((centre >= lo) & (centre <= hi), axis=1)
+            parts.append(LevelSpline(lv.level, lv.h, order, lv.keys[keep], lv.coefficients[keep]))
+        return parts
+
+    # points 1.3-3.5 degrees east of level 1's patch: in its bricks (4.6 degrees), beyond its reach
+    u = directions(*_points(rng, 40, Region(44.0, 8.3, 46.0, 10.5)))
+    differ = 0
+    for x in u[:, None, :]:
+        want = np.zeros((1, 1))
+        whole.add_to(x, want)
+        brick = np.floor(x / side)
+        got = np.zeros((1, 1))
+        BrickIndex(within(brick * side - reach, (brick + 1) * side + reach), order).add_to(x, got)
+        assert got[0, 0] == want[0, 0]
+        near = np.zeros((1, 1))
+        BrickIndex(within(x - reach, x + reach), order).add_to(x, near)
+        assert near[0, 0] == pytest.approx(want[0, 0], abs=1e-9)
+        differ += near[0, 0] != want[0, 0]
+    assert differ > 0
