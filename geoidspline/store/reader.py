@@ -39,9 +39,10 @@ partial spline may grow (see :class:`StoreSpline`)."""
 
 
 PARTIAL_BYTES_PER_COEFFICIENT = 40
-"""Bytes a coefficient of a partial spline holds with its query index: 16 for its key and
-value, 13-24 for the index (int16 tables of a store of 50 M coefficients or more, float64
-below: benchmarks/README.md, "Query index")."""
+"""Bytes a coefficient of a partial spline is taken to hold with its query index: 16 for
+its key and value, the rest a bound on the index's share for one level (int16 tables of a
+store of 50 M coefficients or more, float64 below; measured: benchmarks/README.md, the
+EGM2008 1 mm and EGM96 2 mm stores' index bytes)."""
 
 
 _LATLON_BOX_SLACK = 2
@@ -137,9 +138,10 @@ class StoreSpline:
     (about :data:`PARTIAL_BYTES_PER_COEFFICIENT` bytes a coefficient); between batches,
     at most ``cache_bytes`` of decoded tiles plus the last partial spline (at most
     ``cache_bytes`` unless one batch needed more: then the tiles that batch needed);
-    once complete, the complete spline alone (16 bytes a coefficient, and its index: 13
-    bytes a coefficient for the 228.8 M-coefficient EGM2008 1 mm store, 22 for the EGM96
-    2 mm one), as ``Geoid::CacheAll``. A tile read holds its file's bytes for a moment.
+    once complete, the complete spline alone (16 bytes a coefficient, and its index), as
+    ``Geoid::CacheAll``; reading it whole holds two slabs of decoded tiles at most (the
+    one joined, the next decoding). A tile read holds its file's bytes for a moment.
+    Figures: benchmarks/README.md, "a big store answers a point or a region".
 
     Each tile's size and sha256 are checked (when ``verify``) as it is read; a damaged
     tile raises :class:`~geoidspline.errors.StoreCorruptError` naming it, for the query
