@@ -876,11 +876,12 @@ GS_INLINE void weights_xyz(const int order, const double t[3], gs_v4 *w)
 }
 
 /* The latitude/longitude loop's pipeline (latlon_range), in points: tables in the caches
- * (float64 ones: below QUANTISE_FROM_COEFFICIENTS) have a point located LL_AHEAD points
- * before it is summed, its values asked for then; tables beyond them (quantised) have
- * the chain of a new brick's loads spread over the points: the hash slot asked for
- * LL_SLOT points before the point is located, the column offsets then, read to ask for
- * the values LL_OFFS points later, summed LL_VALUES points after that. */
+ * (float64 ones: below QUANTISE_FROM_COEFFICIENTS) and dense points have a point located
+ * LL_AHEAD points before it is summed, its values asked for then; tables beyond them
+ * (quantised) at sparse points (latlon_evaluate) have the chain of a new brick's loads
+ * spread over the points: the hash slot asked for LL_SLOT points before the point is
+ * located, the column offsets then, read to ask for the values LL_OFFS points later,
+ * summed LL_VALUES points after that. */
 #ifndef LL_AHEAD
 #define LL_AHEAD 7
 #endif
@@ -1109,8 +1110,8 @@ GS_HOT static void latlon_evaluate(void *ctx, int64_t task)
  * 2. exclusive prefix sums over (bucket, block): a stable order by bucket;
  * 3. per block: each point's (code, position) scattered in that order; then each bucket
  *    sorted by the low bits of the code (latlon_refine);
- * 4. per chunk of the sorted points, in that order: directions (4 at a time), each point
- *    the chain of loads of a new brick pipelined over the points (latlon_range);
+ * 4. per chunk of the sorted points, in that order: directions (4 at a time), each
+ *    point's loads asked for points before its sum (latlon_range);
  * 5. per block: each value written to its point's place (writing it from step 4 is
  *    slower: scattered stores in the hot loop).
  * A point's value does not depend on the order, blocks or threads, and equals
