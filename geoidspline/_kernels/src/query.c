@@ -643,15 +643,29 @@ GS_INLINE gs_v4 v4_select(gs_i4 mask, gs_v4 a, gs_v4 b)
     return (gs_v4)((mask & (gs_i4)a) | (~mask & (gs_i4)b));
 }
 
-/* floor per lane, exactly floor() for every double (the sign of a zero included): round
- * to an integer by adding and removing 2**52 (towards zero from the side of x, where the
- * spacing of doubles is 1), one less where that rounded up. */
+/* Whether any lane of a comparison's mask is set. */
+GS_INLINE int v4_any(gs_i4 mask)
+{
+    return (mask[0] | mask[1] | mask[2] | mask[3]) != 0;
+}
+
+/* floor per lane, exactly floor() for every double (the sign of a zero included). Where
+ * every lane is below 2**31 in magnitude (always but for absurd inputs): a 32-bit
+ * truncation, one less where that rounded up, the sign of x; otherwise round to an integer
+ * by adding and removing 2**52 (towards zero from the side of x, where the spacing of
+ * doubles is 1), one less where that rounded up. */
 GS_INLINE gs_v4 v4_floor(gs_v4 x)
 {
-    const gs_v4 big = v4_splat(4503599627370496.0);
     const gs_i4 sign = {INT64_MIN, INT64_MIN, INT64_MIN, INT64_MIN};
-    gs_v4 rounded = v4_select(x >= 0.0, (x + big) - big, (x - big) + big);
-    gs_v4 whole = v4_select((x < -big) | (x > big), x, rounded); /* beyond 2**52 all are whole */
+    gs_v4 whole;
+    if (!v4_any(~((gs_v4)((gs_i4)x & ~sign) < 2147483648.0))) { /* |x| < 2**31 in every lane (NaN is not) */
+        typedef int32_t gs_w4 __attribute__((vector_size(16)));
+        whole = __builtin_convertvector(__builtin_convertvector(x, gs_w4), gs_v4);
+    } else {
+        const gs_v4 big = v4_splat(4503599627370496.0);
+        gs_v4 rounded = v4_select(x >= 0.0, (x + big) - big, (x - big) + big);
+        whole = v4_select((x < -big) | (x > big), x, rounded); /* beyond 2**52 all are whole */
+    }
     gs_v4 t = v4_select(whole > x, whole - v4_splat(1.0), whole);
     return (gs_v4)(((gs_i4)t & ~sign) | ((gs_i4)x & sign)); /* floor(x) has the sign of x */
 }
@@ -688,8 +702,9 @@ GS_INLINE void gs_sincos(gs_v4 x, gs_v4 *sin_x, gs_v4 *cos_x)
 GS_INLINE void directions4(const gs_v4 *latitude_, const gs_v4 *longitude_, gs_v4 *x, gs_v4 *y, gs_v4 *z)
 {
     gs_v4 latitude = *latitude_, longitude = *longitude_;
-    gs_v4 wrapped = longitude - 360.0 * v4_floor((longitude + 180.0) / 360.0);
-    longitude = v4_select((longitude < -180.0) | (longitude >= 180.0), wrapped, longitude);
+    gs_i4 outside = (longitude < -180.0) | (longitude >= 180.0);
+    if (v4_any(outside)) /* rare: the wrap's division and floor only then */
+        longitude = v4_select(outside, longitude - 360.0 * v4_floor((longitude + 180.0) / 360.0), longitude);
     const double d2r = 3.141592653589793 / 180.0;
     gs_v4 sin_phi, cos_phi, sin_lam, cos_lam;
     gs_sincos(latitude * d2r, &sin_phi, &cos_phi);
@@ -720,7 +735,9 @@ GS_INLINE gs_u4 latlon_code4(gs_v4 la, gs_v4 lo)
     const double lat_cells = 1 << LL_LAT_BITS, lon_cells = 1 << LL_LON_BITS;
     gs_v4 fi = (la + 90.0) * (lat_cells / 180.0);
     gs_v4 w = lo + 180.0;
-    w = v4_select((w < 0.0) | (w >= 360.0), w - 360.0 * v4_floor(w / 360.0), w);
+    gs_i4 outside = (w < 0.0) | (w >= 360.0);
+    if (v4_any(outside)) /* rare: the wrap's division and floor only then */
+        w = v4_select(outside, w - 360.0 * v4_floor(w / 360.0), w);
     gs_v4 fj = w * (lon_cells / 360.0);
     /* clamped to the grid (NaN to 0 here, its own bucket below), then truncated */
     fi = v4_select(fi >= lat_cells, v4_splat(lat_cells - 1.0), v4_select(fi >= 0.0, fi, v4_splat(0.0)));
