@@ -794,6 +794,7 @@ typedef struct {
     const gs_spline *S;
     const double *latitude, *longitude;
     double *out;
+    double max_abs_longitude; /* degrees: a longitude beyond it is invalid */
     int64_t m, nblocks, size;
     uint32_t *code;
     int64_t *counts, *invalid; /* (nblocks, LL_BUCKETS + 1), (nblocks) */
@@ -816,7 +817,7 @@ GS_HOT static void latlon_count(void *ctx, int64_t blk)
         }
         const gs_i4 sign = {INT64_MIN, INT64_MIN, INT64_MIN, INT64_MIN};
         gs_v4 abs_la = (gs_v4)((gs_i4)la & ~sign), abs_lo = (gs_v4)((gs_i4)lo_ & ~sign);
-        gs_i4 wrong = (abs_la > 90.0) | (abs_lo == INFINITY);
+        gs_i4 wrong = (abs_la > 90.0) | (abs_lo == INFINITY) | (abs_lo > J->max_abs_longitude);
         gs_u4 code = latlon_code4(la, lo_);
         for (int i = 0; i < 4 && s + i < hi; ++i) {
             bad -= wrong[i]; /* -1 where wrong */
@@ -1023,8 +1024,10 @@ GS_HOT static void latlon_evaluate(void *ctx, int64_t task)
 }
 
 /* Spline values at the directions of latitude/longitude (degrees) into out. Returns the
- * number of invalid coordinates (a latitude beyond +-90 or infinite, an infinite
- * longitude; out is then left unset), or -1 when memory ran out. NaN gives NaN.
+ * number of invalid coordinates (a latitude beyond +-90 or infinite, a longitude infinite
+ * or beyond +-max_abs_longitude; out is then left unset), or -1 when memory ran out. NaN
+ * gives NaN. (The bound is checked here, in the pass that reads the coordinates anyway,
+ * rather than by the caller in two more serial passes over the longitudes.)
  *
  * The points are sorted by the Morton code of their 0.18 degree cell in two passes:
  * 1. per block of points (nblocks in parallel): the codes and a histogram of their
@@ -1039,9 +1042,9 @@ GS_HOT static void latlon_evaluate(void *ctx, int64_t task)
  * A point's value does not depend on the order, blocks or threads, and equals
  * gs_evaluate_bricks at the direction gs_unit_vectors gives. */
 GS_EXPORT int64_t gs_undulation_latlon(const gs_spline *S, const double *latitude, const double *longitude, int64_t m,
-                                       int64_t nblocks, double *out, int64_t nthreads)
+                                       int64_t nblocks, double *out, int64_t nthreads, double max_abs_longitude)
 {
-    latlon_job J = {S, latitude, longitude, out, m, nblocks, (m + nblocks - 1) / nblocks};
+    latlon_job J = {S, latitude, longitude, out, max_abs_longitude, m, nblocks, (m + nblocks - 1) / nblocks};
     int64_t result = -1;
     J.code = malloc(sizeof(uint32_t) * (size_t)(m ? m : 1));
     J.bucket_start = malloc(sizeof(int64_t) * (LL_BUCKETS + 2));
