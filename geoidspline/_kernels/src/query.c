@@ -649,32 +649,37 @@ GS_INLINE int v4_any(gs_i4 mask)
     return (mask[0] | mask[1] | mask[2] | mask[3]) != 0;
 }
 
-/* floor per lane, exactly floor() for every double (the sign of a zero included). Where
- * every lane is below 2**31 in magnitude (always but for absurd inputs): a 32-bit
- * truncation, one less where that rounded up, the sign of x; otherwise round to an integer
- * by adding and removing 2**52 (towards zero from the side of x, where the spacing of
- * doubles is 1), one less where that rounded up. */
+/* floor per lane, exactly floor() for every double (the sign of a zero included): round
+ * to an integer by adding and removing 2**52 (towards zero from the side of x, where the
+ * spacing of doubles is 1), one less where that rounded up. */
 GS_INLINE gs_v4 v4_floor(gs_v4 x)
 {
+    const gs_v4 big = v4_splat(4503599627370496.0);
     const gs_i4 sign = {INT64_MIN, INT64_MIN, INT64_MIN, INT64_MIN};
-    gs_v4 whole;
-    if (!v4_any(~((gs_v4)((gs_i4)x & ~sign) < 2147483648.0))) { /* |x| < 2**31 in every lane (NaN is not) */
-        typedef int32_t gs_w4 __attribute__((vector_size(16)));
-        whole = __builtin_convertvector(__builtin_convertvector(x, gs_w4), gs_v4);
-    } else {
-        const gs_v4 big = v4_splat(4503599627370496.0);
-        gs_v4 rounded = v4_select(x >= 0.0, (x + big) - big, (x - big) + big);
-        whole = v4_select((x < -big) | (x > big), x, rounded); /* beyond 2**52 all are whole */
-    }
+    gs_v4 rounded = v4_select(x >= 0.0, (x + big) - big, (x - big) + big);
+    gs_v4 whole = v4_select((x < -big) | (x > big), x, rounded); /* beyond 2**52 all are whole */
     gs_v4 t = v4_select(whole > x, whole - v4_splat(1.0), whole);
     return (gs_v4)(((gs_i4)t & ~sign) | ((gs_i4)x & sign)); /* floor(x) has the sign of x */
+}
+
+/* v4_floor for lanes known to be below 2**31 in magnitude (not NaN): a 32-bit truncation,
+ * one less where that rounded up, the sign of x (the same bits in a third of the
+ * instructions). */
+GS_INLINE gs_v4 v4_floor_small(gs_v4 x)
+{
+    typedef int32_t gs_w4 __attribute__((vector_size(16)));
+    const gs_i4 sign = {INT64_MIN, INT64_MIN, INT64_MIN, INT64_MIN};
+    gs_v4 whole = __builtin_convertvector(__builtin_convertvector(x, gs_w4), gs_v4);
+    gs_v4 t = v4_select(whole > x, whole - v4_splat(1.0), whole);
+    return (gs_v4)(((gs_i4)t & ~sign) | ((gs_i4)x & sign));
 }
 
 /* sin and cos of one angle per lane (fdlibm's k_sin.c/k_cos.c polynomials on [-pi/4, pi/4]
  * after a Cody-Waite reduction by pi/2), in less time than two libm calls. Absolute error
  * at most 1.2e-16 on [-pi, pi] (below 1e-14 m in N: a unit vector only needs absolute
- * accuracy); |x| <= 2 pi. NaN gives NaN. */
-GS_INLINE void gs_sincos(gs_v4 x, gs_v4 *sin_x, gs_v4 *cos_x)
+ * accuracy); |x| <= 2 pi. NaN gives NaN. small (a constant): the caller knows every lane
+ * is finite and |x| < 2**30 (then the floors are v4_floor_small's, the same bits). */
+GS_INLINE void gs_sincos(gs_v4 x, const int small, gs_v4 *sin_x, gs_v4 *cos_x)
 {
     const double pio2_hi = 1.57079632673412561417e+00; /* first 33 bits of pi/2: n * pio2_hi is exact */
     const double pio2_lo = 6.07710050650619224932e-11, two_over_pi = 6.36619772367581382433e-01;
@@ -682,7 +687,7 @@ GS_INLINE void gs_sincos(gs_v4 x, gs_v4 *sin_x, gs_v4 *cos_x)
                  S4 = 2.75573137070700676789e-06, S5 = -2.50507602534068634195e-08, S6 = 1.58969099521155010221e-10;
     const double C1 = 4.16666666666666019037e-02, C2 = -1.38888888888741095749e-03, C3 = 2.48015872894767294178e-05,
                  C4 = -2.75573143513906633035e-07, C5 = 2.08757232129817482790e-09, C6 = -1.13596475577881948265e-11;
-    gs_v4 n = v4_floor(x * two_over_pi + 0.5);
+    gs_v4 n = small ? v4_floor_small(x * two_over_pi + 0.5) : v4_floor(x * two_over_pi + 0.5);
     gs_v4 r = (x - n * pio2_hi) - n * pio2_lo;
     gs_v4 z = r * r;
     gs_v4 sin_r = r + (z * r) * (S1 + z * (S2 + z * (S3 + z * (S4 + z * (S5 + z * S6)))));
@@ -690,7 +695,7 @@ GS_INLINE void gs_sincos(gs_v4 x, gs_v4 *sin_x, gs_v4 *cos_x)
     gs_v4 w = 1.0 - hz;
     gs_v4 cos_r = w + (((1.0 - w) - hz) + z * (z * (C1 + z * (C2 + z * (C3 + z * (C4 + z * (C5 + z * C6)))))));
     /* the quadrant n mod 4 (exact: n is small and whole); NaN takes the last case, NaN too */
-    gs_v4 quadrant = n - 4.0 * v4_floor(n * 0.25);
+    gs_v4 quadrant = n - 4.0 * (small ? v4_floor_small(n * 0.25) : v4_floor(n * 0.25));
     gs_i4 q0 = quadrant == 0.0, q1 = quadrant == 1.0, q2 = quadrant == 2.0;
     *sin_x = v4_select(q0, sin_r, v4_select(q1, cos_r, v4_select(q2, -sin_r, -cos_r)));
     *cos_x = v4_select(q0, cos_r, v4_select(q1, -sin_r, v4_select(q2, -cos_r, sin_r)));
@@ -707,8 +712,18 @@ GS_INLINE void directions4(const gs_v4 *latitude_, const gs_v4 *longitude_, gs_v
         longitude = v4_select(outside, longitude - 360.0 * v4_floor((longitude + 180.0) / 360.0), longitude);
     const double d2r = 3.141592653589793 / 180.0;
     gs_v4 sin_phi, cos_phi, sin_lam, cos_lam;
-    gs_sincos(latitude * d2r, &sin_phi, &cos_phi);
-    gs_sincos(longitude * d2r, &sin_lam, &cos_lam);
+    /* every latitude within +-90 and wrapped longitude within +-180 (not NaN: every valid
+     * batch): the sin/cos floors of small arguments; otherwise (unit_vectors checks no
+     * range; a huge longitude wraps inexactly) the general floors */
+    const gs_i4 sign = {INT64_MIN, INT64_MIN, INT64_MIN, INT64_MIN};
+    gs_i4 small = ((gs_v4)((gs_i4)latitude & ~sign) <= 90.0) & ((gs_v4)((gs_i4)longitude & ~sign) <= 180.0);
+    if (v4_any(~small)) {
+        gs_sincos(latitude * d2r, 0, &sin_phi, &cos_phi);
+        gs_sincos(longitude * d2r, 0, &sin_lam, &cos_lam);
+    } else {
+        gs_sincos(latitude * d2r, 1, &sin_phi, &cos_phi);
+        gs_sincos(longitude * d2r, 1, &sin_lam, &cos_lam);
+    }
     *x = cos_phi * cos_lam;
     *y = cos_phi * sin_lam;
     *z = sin_phi;
