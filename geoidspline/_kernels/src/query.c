@@ -707,17 +707,17 @@ GS_INLINE void gs_sincos(gs_v4 x, const int small, gs_v4 *sin_x, gs_v4 *cos_x)
 GS_INLINE void directions4(const gs_v4 *latitude_, const gs_v4 *longitude_, gs_v4 *x, gs_v4 *y, gs_v4 *z)
 {
     gs_v4 latitude = *latitude_, longitude = *longitude_;
-    gs_i4 outside = (longitude < -180.0) | (longitude >= 180.0);
-    if (v4_any(outside)) /* rare: the wrap's division and floor only then */
-        longitude = v4_select(outside, longitude - 360.0 * v4_floor((longitude + 180.0) / 360.0), longitude);
     const double d2r = 3.141592653589793 / 180.0;
-    gs_v4 sin_phi, cos_phi, sin_lam, cos_lam;
-    /* every latitude within +-90 and wrapped longitude within +-180 (not NaN: every valid
-     * batch): the sin/cos floors of small arguments; otherwise (unit_vectors checks no
-     * range; a huge longitude wraps inexactly) the general floors */
     const gs_i4 sign = {INT64_MIN, INT64_MIN, INT64_MIN, INT64_MIN};
-    gs_i4 small = ((gs_v4)((gs_i4)latitude & ~sign) <= 90.0) & ((gs_v4)((gs_i4)longitude & ~sign) <= 180.0);
-    if (v4_any(~small)) {
+    gs_v4 sin_phi, cos_phi, sin_lam, cos_lam;
+    /* Every latitude within +-90 and longitude in [-180, 180) (no NaN: every valid batch):
+     * no wrap, and the sin/cos floors of small arguments. Otherwise (one test for the 4)
+     * the wrap where needed and the general floors (unit_vectors checks no range; a huge
+     * longitude wraps inexactly). */
+    gs_i4 inside = ((gs_v4)((gs_i4)latitude & ~sign) <= 90.0) & (longitude >= -180.0) & (longitude < 180.0);
+    if (v4_any(~inside)) {
+        gs_i4 outside = (longitude < -180.0) | (longitude >= 180.0);
+        longitude = v4_select(outside, longitude - 360.0 * v4_floor((longitude + 180.0) / 360.0), longitude);
         gs_sincos(latitude * d2r, 0, &sin_phi, &cos_phi);
         gs_sincos(longitude * d2r, 0, &sin_lam, &cos_lam);
     } else {
