@@ -677,8 +677,8 @@ GS_INLINE gs_v4 v4_floor_small(gs_v4 x)
 /* sin and cos of one angle per lane (fdlibm's k_sin.c/k_cos.c polynomials on [-pi/4, pi/4]
  * after a Cody-Waite reduction by pi/2), in less time than two libm calls. Absolute error
  * at most 1.2e-16 on [-pi, pi] (below 1e-14 m in N: a unit vector only needs absolute
- * accuracy); |x| <= 2 pi. NaN gives NaN. small (a constant): the caller knows every lane
- * is finite and |x| < 2**30 (then the floors are v4_floor_small's, the same bits). */
+ * accuracy); |x| <= 2 pi. NaN gives NaN. small: the caller knows every lane is finite and
+ * |x| < 2**30 (then the floors are v4_floor_small's, the same bits). */
 GS_INLINE void gs_sincos(gs_v4 x, const int small, gs_v4 *sin_x, gs_v4 *cos_x)
 {
     const double pio2_hi = 1.57079632673412561417e+00; /* first 33 bits of pi/2: n * pio2_hi is exact */
@@ -709,21 +709,19 @@ GS_INLINE void directions4(const gs_v4 *latitude_, const gs_v4 *longitude_, gs_v
     gs_v4 latitude = *latitude_, longitude = *longitude_;
     const double d2r = 3.141592653589793 / 180.0;
     const gs_i4 sign = {INT64_MIN, INT64_MIN, INT64_MIN, INT64_MIN};
-    gs_v4 sin_phi, cos_phi, sin_lam, cos_lam;
     /* Every latitude within +-90 and longitude in [-180, 180) (no NaN: every valid batch):
      * no wrap, and the sin/cos floors of small arguments. Otherwise (one test for the 4)
      * the wrap where needed and the general floors (unit_vectors checks no range; a huge
      * longitude wraps inexactly). */
     gs_i4 inside = ((gs_v4)((gs_i4)latitude & ~sign) <= 90.0) & (longitude >= -180.0) & (longitude < 180.0);
-    if (v4_any(~inside)) {
+    const int small = !v4_any(~inside);
+    if (!small) {
         gs_i4 outside = (longitude < -180.0) | (longitude >= 180.0);
         longitude = v4_select(outside, longitude - 360.0 * v4_floor((longitude + 180.0) / 360.0), longitude);
-        gs_sincos(latitude * d2r, 0, &sin_phi, &cos_phi);
-        gs_sincos(longitude * d2r, 0, &sin_lam, &cos_lam);
-    } else {
-        gs_sincos(latitude * d2r, 1, &sin_phi, &cos_phi);
-        gs_sincos(longitude * d2r, 1, &sin_lam, &cos_lam);
     }
+    gs_v4 sin_phi, cos_phi, sin_lam, cos_lam;
+    gs_sincos(latitude * d2r, small, &sin_phi, &cos_phi);
+    gs_sincos(longitude * d2r, small, &sin_lam, &cos_lam);
     *x = cos_phi * cos_lam;
     *y = cos_phi * sin_lam;
     *z = sin_phi;
