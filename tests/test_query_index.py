@@ -563,7 +563,8 @@ def test_quantised_tables_give_the_bits_of_float_tables(order, spread_steps, dty
     """Tables holding a store's integers (int16 with a base per brick, or int32 where a
     brick spans more than 65,535 steps) give every value, gradient and Hessian bitwise as
     the float64 tables do, through the full-column and the decoding paths, on and off
-    the sphere and in latitude/longitude batches, in less memory."""
+    the sphere and in latitude/longitude batches (sparse and dense points: both of the
+    batch kernel's pipelines), in less memory."""
     from geoidspline.bspline.index import BrickIndex
 
     step = 0.01
@@ -576,8 +577,9 @@ def test_quantised_tables_give_the_bits_of_float_tables(order, spread_steps, dty
                                 + quantised.qbase.nbytes)
     rng = np.random.default_rng(92)
     points = np.concatenate(list(point_sets(rng, [level], count=1500).values()))
-    lat = np.degrees(np.arcsin(rng.uniform(-1, 1, 50_000)))
-    lon = rng.uniform(-180, 180, 50_000)
+    # global points (sparse: the kernel's chain pipeline) and a 1 degree box (dense)
+    lat = np.concatenate([np.degrees(np.arcsin(rng.uniform(-1, 1, 50_000))), rng.uniform(40, 41, 20_000)])
+    lon = np.concatenate([rng.uniform(-180, 180, 50_000), rng.uniform(10, 11, 20_000)])
 
     def results(index):
         out = []

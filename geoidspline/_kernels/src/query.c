@@ -30,9 +30,6 @@
 #define PRESENCE_SIDE 20
 #define HASH_MULT 0x9E3779B97F4A7C15ULL
 #define CHUNK 4096 /* points per task of the evaluation loops */
-#ifndef LL_AHEAD
-#define LL_AHEAD 8 /* the latitude/longitude loop locates a point this many points before summing it */
-#endif
 
 #if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && !defined(GS_NO_CLONES)
 #define GS_HOT __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
@@ -909,7 +906,41 @@ GS_INLINE void weights_xyz(const int order, const double t[3], gs_v4 *w)
     }
 }
 
-/* A point of the latitude/longitude loop between locating it and summing it: its
+/* The latitude/longitude loop's pipeline (latlon_range), in points: tables in the caches
+ * (float64 ones: below QUANTISE_FROM_COEFFICIENTS) and dense points have a point located
+ * LL_AHEAD points before it is summed, its values asked for then; tables beyond them
+ * (quantised) at sparse points (latlon_evaluate) have the chain of a new brick's loads
+ * spread over the points: the hash slot asked for LL_SLOT points before the point is
+ * located, the column offsets then, read to ask for the values LL_OFFS points later,
+ * summed LL_VALUES points after that. */
+#ifndef LL_AHEAD
+#define LL_AHEAD 7
+#endif
+#ifndef LL_SLOT
+#define LL_SLOT 4
+#endif
+#ifndef LL_OFFS
+#define LL_OFFS 4
+#endif
+#ifndef LL_VALUES
+#define LL_VALUES 6
+#endif
+#ifndef LL_LOC_SLOT /* the locality of the chain's prefetches: 1 into L2, 3 into L1 */
+#define LL_LOC_SLOT 3
+#endif
+#ifndef LL_LOC_OFFS
+#define LL_LOC_OFFS 1
+#endif
+#ifndef LL_LOC_VALUES
+#define LL_LOC_VALUES 1
+#endif
+#ifndef LL_SPARSE
+#define LL_SPARSE 0.25
+#endif
+#define LL_RING 32 /* a power of two > every point in flight */
+_Static_assert(LL_SLOT + LL_OFFS + LL_VALUES < LL_RING && LL_AHEAD < LL_RING, "the ring holds every point in flight");
+
+/* A point of the latitude/longitude loop between reading it and summing it: its
  * direction and, when the first level with a brick at it holds it in its band (points on
  * the sphere: always but at the edges of coverage), that brick (else brick -1: point_sum
  * then does the whole descent). */
@@ -918,15 +949,26 @@ typedef struct {
     int64_t lev, brick, lx, ly, lz;
 } located;
 
-/* Locate a point on the sphere as point_sum does (brick_at: the same products, so the same weights)
- * and ask the memory for the rows of the folded table it will read (full columns). */
-GS_INLINE void latlon_locate(const gs_spline *S, const int order, double x_, double y_, double z_, located *L,
+/* Ask the memory for the hash slot where the finest level's lookup of a point on the
+ * sphere starts (the first link of a new brick's chain: slot, then its tables' column
+ * offsets, then their values). */
+GS_INLINE void prefetch_slot(const gs_spline *S, double x, double y, double z)
+{
+    const int64_t lev = S->nlev - 1;
+    double inv_h = S->inv_hs[lev];
+    int64_t key = gs_pack((int64_t)floor(x * inv_h) >> BRICK_BITS, (int64_t)floor(y * inv_h) >> BRICK_BITS,
+                          (int64_t)floor(z * inv_h) >> BRICK_BITS);
+    __builtin_prefetch(S->slots + 2 * (S->slot_start[lev] + hash_slot(key, S->slot_mask[lev])), 0, LL_LOC_SLOT);
+}
+
+/* Locate a point on the sphere as point_sum does (brick_at: the same products, so the
+ * same weights). chain (a constant): ask the memory for what the next link needs, the
+ * column offsets of the rows of the folded table it will read (full columns), its full
+ * map and qbase, unless the point before (prev) was in the same cell column. */
+GS_INLINE void latlon_locate(const gs_spline *S, const int order, const int chain, located *L, const located *prev,
                              int64_t *last_key, int64_t *last_brick)
 {
     const int64_t side = (1 << BRICK_BITS) + order - 1;
-    L->x = x_;
-    L->y = y_;
-    L->z = z_;
     L->brick = -1;
     L->lev = -1;
     if (!(L->x == L->x && L->z == L->z))
@@ -944,39 +986,65 @@ GS_INLINE void latlon_locate(const gs_spline *S, const int order, double x_, dou
         L->lx = cell[0] & BRICK_MASK;
         L->ly = cell[1] & BRICK_MASK;
         L->lz = cell[2] & BRICK_MASK;
+        if (!chain || (brick == prev->brick && L->lx == prev->lx && L->ly == prev->ly))
+            return;
+        /* the order rows of order offsets, side apart: every line from the first to the last */
         const int32_t *row = S->fold_offs + (brick * side + L->lx) * side + L->ly;
-        if (S->qwidth) {
-            const char *v = (const char *)S->qvalues + S->qwidth * (S->fold_base[brick] + L->lz);
-            __builtin_prefetch(S->qbase + brick);
-            for (int p = 0; p < order; ++p) { /* a row's first and last coefficients */
-                __builtin_prefetch(v + S->qwidth * row[p * side]);
-                __builtin_prefetch(v + S->qwidth * (row[p * side + order - 1] + order - 1));
-            }
-        } else {
-            const double *v = S->values + S->fold_base[brick] + L->lz;
-            for (int p = 0; p < order; ++p) { /* a row's first and last coefficients */
-                __builtin_prefetch(v + row[p * side]);
-                __builtin_prefetch(v + row[p * side + order - 1] + order - 1);
-            }
-        }
+        uintptr_t last = (uintptr_t)(row + (order - 1) * side + order - 1);
+        for (uintptr_t at = (uintptr_t)row & ~(uintptr_t)63; at <= last; at += 64)
+            __builtin_prefetch((const void *)at, 0, LL_LOC_OFFS);
+        __builtin_prefetch(S->fold_full + (brick << (2 * BRICK_BITS)) + (L->lx << BRICK_BITS) + L->ly, 0, LL_LOC_OFFS);
+        if (S->qwidth)
+            __builtin_prefetch(S->qbase + brick, 0, LL_LOC_OFFS);
         return;
     }
 }
 
+/* Ask the memory for the values a located point will sum (its folded table's full
+ * columns: row p's columns lie between its first's start and its last's end). chain (a
+ * constant): every line of each row, unless the point before (prev) read the same
+ * columns; else a row's first and last coefficients. */
+GS_INLINE void prefetch_values(const gs_spline *S, const int order, const int chain, const located *L,
+                               const located *prev)
+{
+    const int64_t side = (1 << BRICK_BITS) + order - 1;
+    if (chain && L->brick == prev->brick && L->lx == prev->lx && L->ly == prev->ly && L->lz == prev->lz)
+        return;
+    const int32_t *row = S->fold_offs + (L->brick * side + L->lx) * side + L->ly;
+    const int64_t width = S->qwidth ? S->qwidth : (int64_t)sizeof(double);
+    const char *v = (const char *)(S->qwidth ? S->qvalues : (const void *)S->values) +
+                    width * (S->fold_base[L->brick] + L->lz);
+    for (int p = 0; p < order; ++p) {
+        const char *first = v + width * row[p * side], *last = v + width * (row[p * side + order - 1] + order - 1);
+        if (chain) {
+            for (uintptr_t at = (uintptr_t)first & ~(uintptr_t)63; at <= (uintptr_t)last; at += 64)
+                __builtin_prefetch((const void *)at, 0, LL_LOC_VALUES);
+        } else {
+            __builtin_prefetch(first);
+            __builtin_prefetch(last);
+        }
+    }
+}
+
 /* Values at the points sorted[lo..hi) into ordered[lo..hi): nearby points follow each
- * other, so they read the same coefficients. A point is located LL_AHEAD - 1 points
- * before it is summed, and its coefficients asked for then: the tables do not fit in the
- * caches, and a point's loads depend on its own location, so summing right away waits for
- * one point's rows after another's. */
-GS_INLINE void latlon_range(const latlon_job *J, const int order, int64_t lo, int64_t hi)
+ * other, so they read the same coefficients. A point's loads depend on its own location
+ * (and, for a new brick, on each other: hash slot, column offsets, values), so they are
+ * asked for points ahead of its sum (see LL_AHEAD): chain (a constant) for tables beyond
+ * the caches. */
+GS_INLINE void latlon_range(const latlon_job *J, const int order, const int chain, int64_t lo, int64_t hi)
 {
     const gs_spline *S = J->S;
     int64_t last_key[S->nlev], last_brick[S->nlev], sum_key[S->nlev], sum_brick[S->nlev];
-    located ring[LL_AHEAD];
+    located ring[LL_RING];
     gs_v4 dx, dy, dz; /* directions of the points from p - (p - lo) % 4 on */
     reset_cache(S->nlev, last_key, last_brick);
     reset_cache(S->nlev, sum_key, sum_brick);
-    for (int64_t p = lo; p < hi + LL_AHEAD - 1; ++p) {
+    /* point p read at step p, located at p + to_locate, values asked for at p + to_values,
+     * summed at p + to_sum */
+    const int64_t to_locate = chain ? LL_SLOT : 0, to_values = chain ? LL_SLOT + LL_OFFS : 0;
+    const int64_t to_sum = chain ? LL_SLOT + LL_OFFS + LL_VALUES : LL_AHEAD;
+    const located none = {.brick = -1};
+    for (int64_t p = lo; p < hi + to_sum; ++p) {
         if (p + 16 < hi) { /* the coordinates are read out of order: ask for them early */
             __builtin_prefetch(&J->latitude[KEY_AT(J->sorted[p + 16])]);
             __builtin_prefetch(&J->longitude[KEY_AT(J->sorted[p + 16])]);
@@ -992,12 +1060,28 @@ GS_INLINE void latlon_range(const latlon_job *J, const int order, int64_t lo, in
                 }
                 directions4(&la, &lo_, &dx, &dy, &dz);
             }
-            latlon_locate(S, order, dx[i], dy[i], dz[i], &ring[(uint64_t)p % LL_AHEAD], last_key, last_brick);
+            located *L = &ring[(uint64_t)p % LL_RING];
+            L->x = dx[i];
+            L->y = dy[i];
+            L->z = dz[i];
+            if (chain && L->x == L->x && L->z == L->z)
+                prefetch_slot(S, L->x, L->y, L->z);
         }
-        int64_t e = p - (LL_AHEAD - 1); /* summed now */
+        int64_t q = p - to_locate; /* located now */
+        if (q >= lo && q < hi) {
+            located *L = &ring[(uint64_t)q % LL_RING];
+            latlon_locate(S, order, chain, L, chain && q > lo ? &ring[(uint64_t)(q - 1) % LL_RING] : &none, last_key,
+                          last_brick);
+            if (!chain && L->brick >= 0)
+                prefetch_values(S, order, 0, L, &none);
+        }
+        int64_t r = p - to_values; /* values asked for now (chain) */
+        if (chain && r >= lo && r < hi && ring[(uint64_t)r % LL_RING].brick >= 0)
+            prefetch_values(S, order, 1, &ring[(uint64_t)r % LL_RING], r > lo ? &ring[(uint64_t)(r - 1) % LL_RING] : &none);
+        int64_t e = p - to_sum; /* summed now */
         if (e < lo)
             continue;
-        const located *L = &ring[(uint64_t)e % LL_AHEAD];
+        const located *L = &ring[(uint64_t)e % LL_RING];
         double result[1] = {0.0};
         if (L->brick >= 0) {
             gs_v4 w[GS_MAX_ORDER]; /* {wx, wy, wz, -} per B-spline */
@@ -1028,12 +1112,23 @@ GS_HOT static void latlon_evaluate(void *ctx, int64_t task)
     const latlon_job *J = ctx;
     int64_t lo = task * CHUNK, hi = lo + CHUNK < J->m ? lo + CHUNK : J->m;
     const int order = (int)J->S->order;
-    if (order == 4)
-        latlon_range(J, 4, lo, hi);
+    /* the chain pipeline for tables too big for the caches (quantised ones:
+     * QUANTISE_FROM_COEFFICIENTS) and points so sparse that most reach a new brick or
+     * cell column: the chunk's sort codes span more than LL_SPARSE sort cells a point
+     * (1,000,000 global points about 2, a regional batch of as many 0.04); dense points
+     * find their tables in the caches and would pay the chain's prefetches for nothing. */
+    uint64_t span = KEY_CODE(J->sorted[hi - 1]) - KEY_CODE(J->sorted[lo]);
+    if (J->S->qwidth && span > (uint64_t)(LL_SPARSE * (hi - lo))) {
+        if (order == 6)
+            latlon_range(J, 6, 1, lo, hi);
+        else
+            latlon_range(J, order, 1, lo, hi);
+    } else if (order == 4)
+        latlon_range(J, 4, 0, lo, hi);
     else if (order == 6)
-        latlon_range(J, 6, lo, hi);
+        latlon_range(J, 6, 0, lo, hi);
     else
-        latlon_range(J, order, lo, hi);
+        latlon_range(J, order, 0, lo, hi);
 }
 
 /* Spline values at the directions of latitude/longitude (degrees) into out. Returns the
@@ -1048,8 +1143,8 @@ GS_HOT static void latlon_evaluate(void *ctx, int64_t task)
  * 2. exclusive prefix sums over (bucket, block): a stable order by bucket;
  * 3. per block: each point's (code, position) scattered in that order; then each bucket
  *    sorted by the low bits of the code (latlon_refine);
- * 4. per chunk of the sorted points, in that order: directions (4 at a time), each point
- *    located LL_AHEAD - 1 points before it is summed (its rows prefetched; latlon_range);
+ * 4. per chunk of the sorted points, in that order: directions (4 at a time), each
+ *    point's loads asked for points before its sum (latlon_range);
  * 5. per block: each value written to its point's place (writing it from step 4 is
  *    slower: scattered stores in the hot loop).
  * A point's value does not depend on the order, blocks or threads, and equals
