@@ -121,22 +121,20 @@ def test_scattered_small_batch_reads_the_whole_store_at_once(small_store):
     np.testing.assert_array_equal(values, small_store.stored.undulation(lat, lon))
 
 
-def test_concurrent_queries_see_the_same_values(small_store):
-    eager = TileStore.open(small_store.path, lazy=False)
-    lazy = geoidspline.open_store(small_store.path)
-    rng = np.random.default_rng(5)
-    batches = [_points(rng, int(rng.integers(1, 40)), small_store.region) for _ in range(64)]
+def _assert_threads_see_the_eager_values(lazy, eager, batches, nthreads):
+    """``nthreads`` threads query the lazy store with ``batches`` (thread k takes every
+    nthreads-th from k); each answer must be bitwise the eagerly read store's."""
     results = [None] * len(batches)
     errors = []
 
     def work(k):
         try:
-            for i in range(k, len(batches), 4):
+            for i in range(k, len(batches), nthreads):
                 results[i] = lazy.undulation(*batches[i])
         except Exception as exc:  # pragma: no cover - reported below
             errors.append(exc)
 
-    threads = [threading.Thread(target=work, args=(k,)) for k in range(4)]
+    threads = [threading.Thread(target=work, args=(k,)) for k in range(nthreads)]
     for t in threads:
         t.start()
     for t in threads:
@@ -144,6 +142,14 @@ def test_concurrent_queries_see_the_same_values(small_store):
     assert not errors
     for (lat, lon), got in zip(batches, results):
         np.testing.assert_array_equal(got, eager.undulation(lat, lon))
+
+
+def test_concurrent_queries_see_the_same_values(small_store):
+    eager = TileStore.open(small_store.path, lazy=False)
+    lazy = geoidspline.open_store(small_store.path)
+    rng = np.random.default_rng(5)
+    batches = [_points(rng, int(rng.integers(1, 40)), small_store.region) for _ in range(64)]
+    _assert_threads_see_the_eager_values(lazy, eager, batches, 4)
 
 
 def test_a_reader_after_two_rewrites_is_told_to_reopen(small_store, store_copy):
@@ -365,24 +371,7 @@ def test_concurrent_large_batches_see_the_whole_stores_values(patch_stores):
     rng = np.random.default_rng(13)
     batches = [(rng.uniform(s, n, FOLDED_FROM_POINTS), rng.uniform(w, e, FOLDED_FROM_POINTS))
                for s, w, n, e in BATCHES * 3]
-    results = [None] * len(batches)
-    errors = []
-
-    def work(k):
-        try:
-            for i in range(k, len(batches), 3):
-                results[i] = lazy.undulation(*batches[i])
-        except Exception as exc:  # pragma: no cover - reported below
-            errors.append(exc)
-
-    threads = [threading.Thread(target=work, args=(k,)) for k in range(3)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    assert not errors
-    for (lat, lon), got in zip(batches, results):
-        np.testing.assert_array_equal(got, eager.undulation(lat, lon))
+    _assert_threads_see_the_eager_values(lazy, eager, batches, 3)
 
 
 def test_the_bricks_not_the_reach_decide_the_bits_of_a_folded_index():
