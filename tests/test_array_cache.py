@@ -65,3 +65,27 @@ def test_values_survive_a_resize_and_arrays_outlive_the_scope():
     assert small.sum() == 45.0
     del values, small  # freed by the allocator after its scope closed
     assert array_cache.counts()["in_use"] == 0
+
+
+def _capacity(nbytes):
+    """The allocator's size class of a large request (2 MiB pages, a 64-byte header)."""
+    page = 1 << 21
+    return -(-(nbytes + 64) // page) * page - 64
+
+
+def test_a_request_of_a_new_size_grows_a_kept_block_by_the_difference_only():
+    with reused_array_memory():
+        small = np.ones(8_000_000)  # 64 MB: mapped, remapped when its size class is not asked again
+        del small
+        before = array_cache.counts()
+        large = np.zeros(12_000_000)  # 96 MB: the kept 64 MB block, grown
+        after = array_cache.counts()
+        assert after["kept"] == 0
+        assert after["fresh_bytes"] - before["fresh_bytes"] == _capacity(96_000_000) - _capacity(64_000_000)
+        assert not large.any()  # its old pages zeroed, its new ones zero
+        large[:] = 2.0
+        del large
+        shrunk = np.zeros(4_500_000)  # 36 MB: the kept 96 MB block, shrunk, nothing new
+        assert array_cache.counts()["fresh_bytes"] == after["fresh_bytes"]
+        assert not shrunk.any()
+        del shrunk

@@ -1,6 +1,8 @@
 """Reuse of large arrays' memory within a scope (``src/array_cache.c``): numpy's data
 allocator (NEP 49's PyDataMem handler) swapped, for the current thread's context, for one
-that keeps freed large blocks and hands them to the next request of their size class.
+that keeps freed large blocks and hands them to the next request of their size class, or
+remaps the kept block nearest in size to a request of a new size (only the pages it grows
+by are new).
 
 A band's fit makes tens of GB of large temporaries; each fresh one is paged in and zeroed
 by the kernel, which was a third of the global fit's CPU (benchmarks/README.md). The kept
@@ -67,8 +69,8 @@ def reused_array_memory():
 
 
 def counts() -> dict:
-    """The allocator's counters since the cache last opened: large blocks ``reused`` and
-    ``fresh``, bytes ``in_use``, ``kept`` and the ``high`` mark of bytes in use, ``fresh_bytes`` allocated fresh."""
+    """The allocator's counters since the cache last opened: large blocks ``reused`` (a kept
+    block whole) and ``fresh`` (new, or a kept one remapped), bytes ``in_use``, ``kept`` and the ``high`` mark of bytes in use, ``fresh_bytes`` new (a remapped block's growth)."""
     out = np.zeros(6, dtype=np.int64)
     _counts(out.ctypes.data_as(ctypes.POINTER(I64)))
     return dict(zip(("reused", "fresh", "in_use", "kept", "high", "fresh_bytes"), (int(v) for v in out)))

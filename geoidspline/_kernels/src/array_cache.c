@@ -6,6 +6,11 @@
  * (a third of the global fit's CPU). Here a freed large block is kept and handed to the
  * next request of its size class, so its pages are reused as they are.
  *
+ * A request that finds no kept block of its class takes the kept block nearest its size
+ * and remaps it to the size asked (blocks from 32 MiB on are mapped here, mremap moves
+ * pages without copying them): only the pages it grows by are new. A band's arrays grow
+ * and shrink with its lattice, so few are of a size seen before.
+ *
  * Bounded: the blocks kept never raise the allocator's resident bytes (in use + kept)
  * above the highest bytes in use seen since the cache was opened; a request that finds
  * no kept block of its class first releases kept blocks, oldest first, until it fits
@@ -15,6 +20,7 @@
  * (version 1, numpy/ndarraytypes.h), which numpy keeps stable. Every block carries a
  * header with its capacity, so blocks allocated while the cache is open may be freed
  * after it closes (numpy frees an array through the handler that allocated it). */
+#define _GNU_SOURCE /* mremap */
 #include <pthread.h>
 #include <stdint.h>
 #include <stdlib.h>
@@ -45,6 +51,8 @@ typedef struct {
 #define CLASS_BYTES ((size_t)1 << 21)
 /* As numpy's own allocator: transparent huge pages for blocks from 4 MiB on. */
 #define HUGEPAGE_BYTES ((size_t)1 << 22)
+/* Blocks from this size on are mapped here (mmap, mremap): glibc maps them anyway. */
+#define MAP_BYTES ((size_t)1 << 25)
 #define MAX_KEPT 512
 /* A request may take a kept block up to 1/SLACK_OVER larger than its class. */
 #define SLACK_OVER 4
@@ -73,13 +81,46 @@ static size_t capacity_for(size_t size)
     return (total + CLASS_BYTES - 1) / CLASS_BYTES * CLASS_BYTES - HEADER_BYTES;
 }
 
+/* A new block of `total` bytes (zeroed when mapped; `zeroed` asks it of the heap too). */
+static void *block_new(size_t total, int zeroed)
+{
+    if (total < MAP_BYTES)
+        return zeroed ? calloc(1, total) : malloc(total);
+    void *base = mmap(NULL, total, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
+    if (base == MAP_FAILED)
+        return NULL;
+    if (total >= HUGEPAGE_BYTES)
+        madvise(base, total, MADV_HUGEPAGE);
+    return base;
+}
+
+static void block_free(void *base, size_t total)
+{
+    if (total < MAP_BYTES)
+        free(base);
+    else
+        munmap(base, total);
+}
+
+/* A mapped block of `old_total` bytes remapped to `new_total` (both mapped sizes): its
+ * pages kept up to the smaller size, the rest new (zero). NULL if it cannot be. */
+static void *block_resize(void *base, size_t old_total, size_t new_total)
+{
+    void *moved = mremap(base, old_total, new_total, MREMAP_MAYMOVE);
+    if (moved == MAP_FAILED)
+        return NULL;
+    if (new_total > old_total && new_total >= HUGEPAGE_BYTES)
+        madvise(moved, new_total, MADV_HUGEPAGE);
+    return moved;
+}
+
 static void *data_of(void *base) { return (char *)base + HEADER_BYTES; }
 static void *base_of(void *data) { return (char *)data - HEADER_BYTES; }
 
 static void release_kept(int64_t i)
 {
     kept_bytes -= kept[i].capacity;
-    free(kept[i].base);
+    block_free(kept[i].base, HEADER_BYTES + kept[i].capacity);
     kept[i] = kept[--nkept];
 }
 
@@ -92,6 +133,30 @@ static void *take_kept(size_t capacity, size_t *taken)
         if (kept[i].capacity >= capacity && kept[i].capacity - capacity <= capacity / SLACK_OVER &&
             (best < 0 || kept[i].capacity < kept[best].capacity))
             best = i;
+    if (best < 0)
+        return NULL;
+    void *base = kept[best].base;
+    *taken = kept[best].capacity;
+    kept_bytes -= *taken;
+    kept[best] = kept[--nkept];
+    return base;
+}
+
+/* The kept mapped block of capacity nearest `capacity` (a mapped size; the lock is
+ * held; its capacity in *taken), or NULL. */
+static void *take_nearest_mapped(size_t capacity, size_t *taken)
+{
+    int64_t best = -1;
+    size_t best_gap = 0;
+    for (int64_t i = 0; i < nkept; ++i) {
+        if (HEADER_BYTES + kept[i].capacity < MAP_BYTES)
+            continue;
+        size_t gap = kept[i].capacity > capacity ? kept[i].capacity - capacity : capacity - kept[i].capacity;
+        if (best < 0 || gap < best_gap) {
+            best = i;
+            best_gap = gap;
+        }
+    }
     if (best < 0)
         return NULL;
     void *base = kept[best].base;
@@ -117,47 +182,51 @@ static void make_room(size_t capacity)
 static void *allocate(size_t size, int zeroed)
 {
     size_t capacity = capacity_for(size);
-    void *base = NULL;
-    if (capacity >= LARGE_BYTES) {
-        pthread_mutex_lock(&lock);
-        if (users > 0) {
-            base = take_kept(capacity, &capacity);
-            if (base == NULL)
-                make_room(capacity);
-        }
-        in_use_bytes += capacity;
-        if (in_use_bytes > high_bytes)
-            high_bytes = in_use_bytes;
-        if (base != NULL)
-            ++reused_count;
-        else {
-            ++fresh_count;
-            fresh_bytes += (int64_t)capacity;
-        }
-        pthread_mutex_unlock(&lock);
-        if (base != NULL) {
-            if (zeroed)
-                memset(data_of(base), 0, capacity);
-        } else {
-            base = zeroed ? calloc(1, HEADER_BYTES + capacity) : malloc(HEADER_BYTES + capacity);
-            if (base == NULL) {
-                pthread_mutex_lock(&lock);
-                in_use_bytes -= capacity;
-                pthread_mutex_unlock(&lock);
-                return NULL;
-            }
-            if (capacity >= HUGEPAGE_BYTES) {
-                /* madvise needs a page-aligned start; the first partial page is left as is */
-                uintptr_t start = ((uintptr_t)base + 4095) & ~(uintptr_t)4095;
-                uintptr_t end = (uintptr_t)base + HEADER_BYTES + capacity;
-                if (end > start)
-                    madvise((void *)start, end - start, MADV_HUGEPAGE);
-            }
-        }
-    } else {
-        base = zeroed ? calloc(1, HEADER_BYTES + capacity) : malloc(HEADER_BYTES + capacity);
+    if (capacity < LARGE_BYTES) {
+        void *base = block_new(HEADER_BYTES + capacity, zeroed);
         if (base == NULL)
             return NULL;
+        *(size_t *)base = capacity;
+        return data_of(base);
+    }
+    void *base = NULL, *remap = NULL;
+    size_t remap_capacity = 0;
+    pthread_mutex_lock(&lock);
+    if (users > 0) {
+        base = take_kept(capacity, &capacity);
+        if (base == NULL && HEADER_BYTES + capacity >= MAP_BYTES)
+            remap = take_nearest_mapped(capacity, &remap_capacity);
+        if (base == NULL)
+            make_room(capacity);
+    }
+    in_use_bytes += capacity;
+    if (in_use_bytes > high_bytes)
+        high_bytes = in_use_bytes;
+    if (base != NULL)
+        ++reused_count;
+    else {
+        ++fresh_count;
+        fresh_bytes += (int64_t)(remap != NULL && remap_capacity < capacity ? capacity - remap_capacity
+                                 : remap != NULL ? 0 : capacity);
+    }
+    pthread_mutex_unlock(&lock);
+    if (base != NULL) {
+        if (zeroed)
+            memset(data_of(base), 0, capacity);
+    } else if (remap != NULL) {
+        base = block_resize(remap, HEADER_BYTES + remap_capacity, HEADER_BYTES + capacity);
+        if (base == NULL)
+            block_free(remap, HEADER_BYTES + remap_capacity);
+        else if (zeroed) /* the pages it grew by are new, hence zero */
+            memset(data_of(base), 0, remap_capacity < capacity ? remap_capacity : capacity);
+    }
+    if (base == NULL)
+        base = block_new(HEADER_BYTES + capacity, zeroed);
+    if (base == NULL) {
+        pthread_mutex_lock(&lock);
+        in_use_bytes -= capacity;
+        pthread_mutex_unlock(&lock);
+        return NULL;
     }
     *(size_t *)base = capacity;
     return data_of(base);
@@ -169,22 +238,21 @@ static void release(void *data)
         return;
     void *base = base_of(data);
     size_t capacity = *(size_t *)base;
-    if (capacity < LARGE_BYTES) {
-        free(base);
-        return;
+    if (capacity >= LARGE_BYTES) {
+        pthread_mutex_lock(&lock);
+        in_use_bytes -= capacity;
+        if (users > 0 && nkept < MAX_KEPT) {
+            kept[nkept].capacity = capacity;
+            kept[nkept].serial = next_serial++;
+            kept[nkept].base = base;
+            ++nkept;
+            kept_bytes += capacity;
+            base = NULL;
+        }
+        pthread_mutex_unlock(&lock);
     }
-    pthread_mutex_lock(&lock);
-    in_use_bytes -= capacity;
-    if (users > 0 && nkept < MAX_KEPT) {
-        kept[nkept].capacity = capacity;
-        kept[nkept].serial = next_serial++;
-        kept[nkept].base = base;
-        ++nkept;
-        kept_bytes += capacity;
-        base = NULL;
-    }
-    pthread_mutex_unlock(&lock);
-    free(base);
+    if (base != NULL)
+        block_free(base, HEADER_BYTES + capacity);
 }
 
 static void *handler_malloc(void *ctx, size_t size)
@@ -250,7 +318,7 @@ GS_EXPORT void gs_array_cache_close(void)
     pthread_mutex_unlock(&lock);
 }
 
-/* Counters since the cache opened: {reused, fresh, in use bytes, kept bytes, high bytes, fresh bytes}. */
+/* Counters since the cache opened: {reused (a kept block whole), fresh (new or remapped), in use bytes, kept bytes, high bytes, fresh bytes}. */
 GS_EXPORT void gs_array_cache_counts(int64_t *out)
 {
     pthread_mutex_lock(&lock);
