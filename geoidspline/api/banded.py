@@ -43,7 +43,10 @@ def _band_task(shared, band):
 
 def _band_in_process(shared, band, executor=None, progress=None):
     """A band fitted here, its overlay blocks solved by ``executor``'s workers; its large
-    temporaries reuse each other's memory (:func:`~geoidspline._kernels.array_cache.reused_array_memory`)."""
+    temporaries reuse each other's memory (:func:`~geoidspline._kernels.array_cache.reused_array_memory`),
+    released when it ends: blocks kept from one band to the next would sit beside the
+    next band's synthesis and the previous band's commit, which allocate outside the
+    cache, and raise the fit's peak (benchmarks/README.md)."""
     from .._kernels.array_cache import reused_array_memory
     from ..fitting.bands import fit_band
 
@@ -115,7 +118,6 @@ def build_banded_store(source, path, region, params, progress=None, overwrite=Fa
     module's docstring); returns ``(FitResult, store info)`` as
     :func:`~geoidspline.api.build_store` does (the result's ``spline`` is None: the
     store holds it, read it with :func:`~geoidspline.api.open_store`)."""
-    from .._kernels.array_cache import reused_array_memory
     from ..bspline.level import LevelSpline
     from ..fitting.bands import ROUNDING_RMS_OVER_TOLERANCE, Rounding, band_margin_deg
     from ..fitting.check_points import RING_POINTS, random_positions
@@ -180,8 +182,7 @@ def build_banded_store(source, path, region, params, progress=None, overwrite=Fa
             log.info("band %d..%d: %d coefficients, node max %.4f m, %.1f s", band.first, band.last,
                      sum(summary["levels"].values()), summary["node_max_error_m"], summary["seconds"])
 
-        # one scope over the bands: a band reuses the memory its predecessor's arrays freed
-        with progress.stage("bands", len(bands), "band") as advance, reused_array_memory():
+        with progress.stage("bands", len(bands), "band") as advance:
             advance(len(done))
             _commit_behind(_fitted_bands(todo, shared, executor, progress), commit, lambda: advance(1))
         manifest, result = _banded_manifest(write, source, region, params, step, extra, started, check_count)
