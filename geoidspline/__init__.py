@@ -28,17 +28,19 @@ __all__ = ["open_store", "fit", "update", "Region", "GLOBAL", "__version__", "Ge
            "InputFileError", "CoordinateError", "StoreError", "StoreCorruptError", "FitError", "ParameterError"]
 
 
-def open_store(path, *, lazy: bool = True, verify: bool = True, key=None):
+def open_store(path, *, lazy: bool = True, verify: bool = True, key=None, cache_bytes: int | None = None):
     """Open a tile store read-only (:func:`geoidspline.api.open_store`).
 
     ``lazy`` (default) reads a tile when a query first needs it; ``lazy=False`` reads and
     checks every tile now. ``verify`` checks each tile's sha256 as it is read (sizes are
     always checked). ``key``: the Ed25519 public key (PEM file) that must have signed
-    the store (docs/signing.md). Imports neither the compiled kernels nor scipy: a one-point query stays fast.
+    the store (docs/signing.md). ``cache_bytes``: the bound of what the store keeps
+    between queries short of reading it whole. Imports neither the compiled kernels nor
+    scipy: a one-point query stays fast.
     """
-    from .store.reader import TileStore
+    from .api import open_store as _open_store
 
-    return TileStore.open(path, verify=verify, lazy=lazy, key=key)
+    return _open_store(path, verify=verify, lazy=lazy, key=key, cache_bytes=cache_bytes)
 
 
 def fit(source, store, **options):

@@ -74,7 +74,7 @@ def __getattr__(name):
     return value
 
 
-def open_store(path, *, lazy: bool = True, verify: bool = True, key=None) -> TileStore:
+def open_store(path, *, lazy: bool = True, verify: bool = True, key=None, cache_bytes: int | None = None) -> TileStore:
     """Open a tile store read-only.
 
     ``lazy`` (default) reads a tile when a query first needs it; ``lazy=False`` reads and
@@ -82,11 +82,15 @@ def open_store(path, *, lazy: bool = True, verify: bool = True, key=None) -> Til
     always checked). ``key``: the Ed25519 public key (PEM file or key object) that must
     have signed the store; an unsigned or forged store is refused
     (:class:`~geoidspline.store.signing.SignatureError`) and every tile is checked as it
-    is read. See :class:`geoidspline.store.TileStore` and docs/signing.md.
+    is read. ``cache_bytes``: how much the store keeps between queries short of reading
+    it whole (default :data:`geoidspline.store.reader.CACHE_BYTES`, 512 MiB: decoded
+    tiles, and how far the spline of the tiles queries needed may grow). See
+    :class:`geoidspline.store.TileStore` (memory, caching, thread safety) and docs/signing.md.
     """
-    from ..store.reader import TileStore
+    from ..store.reader import CACHE_BYTES, TileStore
 
-    return TileStore.open(path, verify=verify, lazy=lazy, key=key)
+    return TileStore.open(path, verify=verify, lazy=lazy, key=key,
+                          cache_bytes=CACHE_BYTES if cache_bytes is None else cache_bytes)
 
 
 def build_store(source, path, region: Region | None = None, params: FitParameters | None = None,

@@ -36,7 +36,7 @@ class AmbientSpline:
     and build identical ones.
     """
 
-    def __init__(self, levels, value_step=None):
+    def __init__(self, levels, value_step=None, quantise=False):
         levels = list(levels)
         orders = {lv.order for lv in levels}
         if len(orders) > 1:
@@ -46,6 +46,9 @@ class AmbientSpline:
         #: metres: the coefficients are multiples of it (a store's, as read), so the index
         #: may hold them as integers (:class:`BrickIndex`); None if not known
         self.value_step = value_step
+        #: the index holds the integers of ``value_step`` whatever its size (a part of a
+        #: store whose whole index would: the same bits, the whole's bytes a coefficient)
+        self.quantise = quantise
         self._folded = None
 
     @property
@@ -54,7 +57,8 @@ class AmbientSpline:
         if self._folded is None:
             from ..bspline.index import BrickIndex  # loads the compiled kernels: large batches only
 
-            self._folded = BrickIndex(self.levels, self.order, value_step=self.value_step)
+            self._folded = BrickIndex(self.levels, self.order, value_step=self.value_step,
+                                      quantise=self.quantise)
         return self._folded
 
     @property

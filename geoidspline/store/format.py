@@ -38,6 +38,7 @@ import math
 import os
 import re
 import stat
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -410,8 +411,21 @@ def _check_contents(refuse, entry, manifest, indices, levels, values):
                      f"(first in tile {centre_tile[wrong][0].tolist()}): the file is in the wrong place")
 
 
+#: netCDF4/HDF5 as built by the netCDF4 wheels is not thread-safe (a store's tiles are
+#: decoded on several threads): one format-1 tile is read at a time.
+_NETCDF_LOCK = threading.Lock()
+
+
 def _read_tile_v1(path, entry, data, manifest):
     """A format-1 (netCDF4) tile file's (indices, levels, values), checked."""
+    with _NETCDF_LOCK:
+        indices, levels, values = _read_netcdf_tile(path, entry, data, manifest)
+    _check_contents(_refusal(path, entry), entry, manifest, indices, levels, values)
+    return indices, levels, values
+
+
+def _read_netcdf_tile(path, entry, data, manifest):
+    """A format-1 tile file's arrays, its record checked."""
     import netCDF4
 
     refuse = _refusal(path, entry)
@@ -443,7 +457,6 @@ def _read_tile_v1(path, entry, data, manifest):
         raise
     except (OSError, KeyError, IndexError, RuntimeError, ValueError, TypeError, AttributeError) as exc:
         raise refuse(f"cannot be read as a tile file ({exc})") from None
-    _check_contents(refuse, entry, manifest, indices, levels, values)
     return indices, levels, values
 
 

@@ -87,10 +87,10 @@ def _upgrade(root, store, attempt):
     version = manifest["store_version"] + 1
     entries = []
     before = after = 0
-    store.spline._read_tiles([tuple(e["tile"]) for e in manifest["tiles"]])  # checked as any read
+    decoded = store.spline._decode([tuple(e["tile"]) for e in manifest["tiles"]])  # checked as any read
     crash_point("before-tiles")
     for entry in manifest["tiles"]:
-        parts = store.spline._tiles.pop(tuple(entry["tile"]))  # {level: (keys, values)}
+        parts = decoded.pop(tuple(entry["tile"]))  # {level: (keys, values)}
         lvl = np.concatenate([np.full(k.size, level) for level, (k, _) in parts.items()])
         idx = np.concatenate([unpack_keys(k) for k, _ in parts.values()])
         val = np.concatenate([v for _, v in parts.values()])
