@@ -4,8 +4,8 @@ that keeps freed large blocks and hands them to the next request of their size c
 remaps the kept block nearest in size to a request of a new size (only the pages it grows
 by are new).
 
-A band's fit makes tens of GB of large temporaries; each fresh one is paged in and zeroed
-by the kernel, which was a third of the global fit's CPU (benchmarks/README.md). The kept
+A band's fit makes many large temporaries; each fresh one is paged in and zeroed
+by the kernel, much of the fit's system time (benchmarks/README.md). The kept
 blocks never raise the allocator's resident bytes above the highest bytes its arrays held
 at once since the scope opened, and closing the last scope releases them.
 

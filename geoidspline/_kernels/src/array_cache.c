@@ -1,15 +1,15 @@
 /* A caching allocator for numpy's array data (numpy's PyDataMem handler, NEP 49), used
  * while a band is fitted (geoidspline/_kernels/array_cache.py installs it).
  *
- * Why: a band's fit makes tens of GB of large temporary arrays. glibc maps each large one
+ * Why: a band's fit makes many large temporary arrays. glibc maps each large one
  * fresh and unmaps it when freed, so the kernel zeroes every page again on first touch
- * (a third of the global fit's CPU). Here a freed large block is kept and handed to the
+ * (much of the fit's system time: benchmarks/README.md). Here a freed large block is kept and handed to the
  * next request of its size class, so its pages are reused as they are.
  *
  * A request that finds no kept block of its class takes the kept block nearest its size
  * and remaps it to the size asked (blocks from 32 MiB on are mapped here, mremap moves
  * pages without copying them): only the pages it grows by are new. A band's arrays grow
- * and shrink with its lattice, so few are of a size seen before.
+ * and shrink with its lattice, so most sizes are new to the cache.
  *
  * Bounded: the blocks kept never raise the allocator's resident bytes (in use + kept)
  * above the highest bytes in use seen since the cache was opened; a request that finds
