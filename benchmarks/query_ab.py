@@ -52,6 +52,7 @@ from query_benchmark import EUROPE, random_points  # noqa: E402
 from query_speed import SEED  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
+MAX_LONGITUDE = 1e6  # degrees: geoidspline.sphere.region.MAX_ABS_POINT_LONGITUDE_DEG
 SOURCE_DIR = "geoidspline/_kernels/src"
 
 
@@ -104,8 +105,10 @@ def kernel(library: Path):
     """(gs_undulation_latlon, whether the library reads quantised tables)"""
     lib = ctypes.CDLL(str(library))
     f = lib.gs_undulation_latlon
+    # the last argument, max_abs_longitude (degrees), is new in 2026-12 (branch q23c); an
+    # older library ignores it (an extra register argument)
     f.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64,
-                  ctypes.c_void_p, ctypes.c_int64]
+                  ctypes.c_void_p, ctypes.c_int64, ctypes.c_double]
     f.restype = ctypes.c_int64
     return f, hasattr(lib, "gs_quantise_table")
 
@@ -159,12 +162,14 @@ def main(argv=None):
                 outs = {side: np.empty(m) for side in libs}
                 samples = {side: [] for side in libs}
                 for side, f in libs.items():  # untimed first calls: page faults, caches
-                    f(splines[side], lat.ctypes.data, lon.ctypes.data, m, nblocks, outs[side].ctypes.data, args.threads)
+                    f(splines[side], lat.ctypes.data, lon.ctypes.data, m, nblocks, outs[side].ctypes.data,
+                      args.threads, MAX_LONGITUDE)
                 load = os.getloadavg()[0]
                 for _ in range(args.repeat):
                     for side, f in libs.items():
                         t0 = clock()
-                        f(splines[side], lat.ctypes.data, lon.ctypes.data, m, nblocks, outs[side].ctypes.data, args.threads)
+                        f(splines[side], lat.ctypes.data, lon.ctypes.data, m, nblocks, outs[side].ctypes.data,
+                          args.threads, MAX_LONGITUDE)
                         samples[side].append((clock() - t0) / m * 1e9)
                 load = (load, os.getloadavg()[0])
                 med = {side: statistics.median(s) for side, s in samples.items()}

@@ -373,8 +373,9 @@ def test_latlon_batches_refuse_bad_coordinates():
 def test_latlon_kernel_counts_each_bad_coordinate_once():
     """The compiled batch counts invalid coordinates 4 points at a time: a batch whose
     length is not a multiple of 4 counts each bad point once (the last vector's spare
-    lanes repeat the last point), NaN is not invalid, and the good points' values are
-    those of a batch without the bad ones."""
+    lanes repeat the last point), NaN is not invalid, a longitude beyond the bound given is
+    (and only then), and the good points' values are those of a batch without the bad
+    ones."""
     spline = AmbientSpline(random_overlays(2, nlevels=2))
     rng = np.random.default_rng(7)
     for count in (4099, 4098, 4097):  # 1, 2 and 3 points in the last vector
@@ -388,6 +389,9 @@ def test_latlon_kernel_counts_each_bad_coordinate_once():
             la[at], lo[at] = bad_lat, bad_lon
         la[7], lo[8] = np.nan, np.nan
         assert spline.index.undulation_latlon(la, lo)[1] == len(bad)
+        lo[2000], lo[count - 3] = 1e6 + 0.5, -1e6  # beyond the bound, on it
+        assert spline.index.undulation_latlon(la, lo)[1] == len(bad)
+        assert spline.index.undulation_latlon(la, lo, 1e6)[1] == len(bad) + 1
         la, lo = lat.copy(), lon.copy()
         la[7], lo[8] = np.nan, np.nan
         values, invalid = spline.index.undulation_latlon(la, lo)

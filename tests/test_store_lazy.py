@@ -434,3 +434,26 @@ def test_the_bricks_not_the_reach_decide_the_bits_of_a_folded_index():
         assert near[0, 0] == pytest.approx(want[0, 0], abs=1e-9)
         differ += near[0, 0] != want[0, 0]
     assert differ > 0
+
+
+def test_a_sphere_covered_everywhere_answers_every_point_but_the_nan_ones(small_store):
+    """A store covering the whole sphere without holes skips the coverage mask of a large
+    batch (two NaN reductions instead): the same bits at every real coordinate as the
+    mask path, NaN where a latitude or a longitude is NaN."""
+    from geoidspline.sphere.coverage import Coverage
+    from geoidspline.sphere.region import GLOBAL
+
+    masked = TileStore.open(small_store.path)
+    everywhere = TileStore.open(small_store.path)
+    everywhere.spline.coverage = Coverage.of_region(GLOBAL)
+    assert everywhere.spline.coverage.is_everywhere and not masked.spline.coverage.is_everywhere
+    lat, lon = _points(np.random.default_rng(21), 3 * FOLDED_FROM_POINTS, small_store.region)
+    want = masked.undulation(lat, lon)
+    assert np.isfinite(want).all()  # inside the store's region: covered on both paths
+    np.testing.assert_array_equal(everywhere.undulation(lat, lon), want)
+    lat[5], lon[7] = np.nan, np.nan
+    got = everywhere.undulation(lat, lon)
+    real = np.isfinite(lat) & np.isfinite(lon)
+    assert np.isnan(got[~real]).all() and (~real).sum() == 2
+    np.testing.assert_array_equal(got[real], want[real])
+    np.testing.assert_array_equal(got, masked.undulation(lat, lon))

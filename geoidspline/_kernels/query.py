@@ -9,6 +9,7 @@ The validated API is :mod:`geoidspline.bspline.index`.
 from __future__ import annotations
 
 import ctypes
+import math
 
 import numpy as np
 
@@ -79,7 +80,7 @@ class Spline(ctypes.Structure):
 
 _SPLINE = ctypes.POINTER(Spline)
 _evaluate_bricks = function("gs_evaluate_bricks", _SPLINE, PTR, I64, I64, PTR, I64)
-_undulation_latlon = function("gs_undulation_latlon", _SPLINE, PTR, PTR, I64, I64, PTR, I64, restype=I64)
+_undulation_latlon = function("gs_undulation_latlon", _SPLINE, PTR, PTR, I64, I64, PTR, I64, F64, restype=I64)
 _unit_vectors = function("gs_unit_vectors", PTR, PTR, I64, PTR, I64)
 _query_order = function("gs_query_order", PTR, I64, PTR, PTR)
 _build_hash = function("gs_build_hash", PTR, I64, PTR, I64)
@@ -287,11 +288,12 @@ def evaluate_bricks(spline, points, nderiv, out):
     _evaluate_bricks(ctypes.byref(spline), ptr(points), points.shape[0], int(nderiv), ptr(out), threads())
 
 
-def undulation_latlon(spline, latitude, longitude, nblocks, out):
+def undulation_latlon(spline, latitude, longitude, nblocks, out, max_abs_longitude=math.inf):
     """Spline values at the directions of latitude/longitude (degrees) into out.
 
-    Returns the number of invalid coordinates (a latitude beyond ±90° or infinite, an
-    infinite longitude); when there are any, ``out`` is left unset. NaN gives NaN.
+    Returns the number of invalid coordinates (a latitude beyond ±90° or infinite, a
+    longitude infinite or beyond ±``max_abs_longitude`` degrees); when there are any,
+    ``out`` is left unset. NaN gives NaN.
     The points are sorted by the Morton code of their 0.18° latitude/longitude cell (two
     counting-sort passes: 5.6° buckets in ``nblocks`` blocks, then within each bucket),
     evaluated in that order (neighbours share bricks and cache lines) and the values
@@ -303,7 +305,7 @@ def undulation_latlon(spline, latitude, longitude, nblocks, out):
     longitude = c_in(longitude, np.float64)
     c_out(out, np.float64)
     invalid = _undulation_latlon(ctypes.byref(spline), ptr(latitude), ptr(longitude), latitude.size,
-                                 max(1, int(nblocks)), ptr(out), threads())
+                                 max(1, int(nblocks)), ptr(out), threads(), float(max_abs_longitude))
     if invalid < 0:
         raise MemoryError(f"undulation_latlon: out of memory for {latitude.size} points")
     return invalid

@@ -562,23 +562,27 @@ class BrickIndex:
         else:
             self._evaluate(points, out, nderiv)
 
-    def undulation_latlon(self, latitude, longitude):
+    def undulation_latlon(self, latitude, longitude, max_abs_longitude=math.inf):
         """Values (M,) at the directions of 1-D latitude/longitude arrays (degrees), in
         one compiled call (:func:`geoidspline._kernels.query.undulation_latlon`).
 
-        Returns ``(values, invalid)``: ``invalid`` counts the coordinates
-        :func:`check_coordinates` refuses, and when it is not 0 the values are unset.
+        Returns ``(values, invalid)``: ``invalid`` counts the coordinates refused (a
+        latitude beyond ±90° or infinite, a longitude infinite or beyond
+        ±``max_abs_longitude`` degrees), and when it is not 0 the values are unset.
         """
         m = latitude.shape[0]
         out = np.empty(m)
         if not self.inv_hs.size:
+            with np.errstate(invalid="ignore"):
+                invalid = np.count_nonzero((np.abs(latitude) > 90.0) | np.isinf(longitude)
+                                           | (np.abs(longitude) > max_abs_longitude))
             out[:] = 0.0
             out[np.isnan(latitude) | np.isnan(longitude)] = np.nan
-            return out, 0
+            return out, invalid
         # blocks of at least 2**15 points, up to 4 per thread (a histogram of 32,769
         # counts each)
         nblocks = max(1, min(4 * threads(), m >> 15))
-        invalid = _qk.undulation_latlon(self.spline, latitude, longitude, nblocks, out)
+        invalid = _qk.undulation_latlon(self.spline, latitude, longitude, nblocks, out, max_abs_longitude)
         return out, int(invalid)
 
     def _evaluate(self, points, out, nderiv):

@@ -97,10 +97,12 @@ class AmbientSpline:
                                        np.asarray(longitude, dtype=np.float64))
         shape = lat.shape
         if lat.size >= FOLDED_FROM_POINTS:
+            # the kernel counts what check_coordinates refuses (in its pass over the
+            # coordinates: no serial numpy pass here)
             values, invalid = self.index.undulation_latlon(np.ascontiguousarray(lat).ravel(),
-                                                           np.ascontiguousarray(lon).ravel())
-            if invalid or not (np.fmin.reduce(lon, axis=None) >= -MAX_ABS_POINT_LONGITUDE_DEG
-                               and np.fmax.reduce(lon, axis=None) <= MAX_ABS_POINT_LONGITUDE_DEG):
+                                                           np.ascontiguousarray(lon).ravel(),
+                                                           MAX_ABS_POINT_LONGITUDE_DEG)
+            if invalid:
                 check_coordinates(lat, lon)  # raises, naming the first bad value
             return values.reshape(shape)
         lat, lon = check_coordinates(lat, lon)

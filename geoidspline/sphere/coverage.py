@@ -239,6 +239,12 @@ class Coverage:
             return cls.of_region(region, source)
         return cls((CoveragePart(region, lattice, source),))
 
+    @property
+    def is_everywhere(self) -> bool:
+        """Whether every point of the sphere is covered (a global store without holes):
+        then only a NaN coordinate is outside."""
+        return any(part.lattice is None and part.region.is_global for part in self.parts)
+
     def union(self, other: Coverage) -> Coverage:
         """Covered where either is (a regional update adds its source's data). A part
         inside the region of a part without holes adds nothing and is left out, so a

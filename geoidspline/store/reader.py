@@ -539,21 +539,29 @@ class StoreSpline:
         :meth:`geoidspline.hierarchy.ambient.AmbientSpline.undulation`."""
         latitude, longitude = check_coordinates(latitude, longitude)
         shape = latitude.shape
-        covered = np.asarray(self.coverage.covers(latitude, longitude))
         if latitude.size >= FOLDED_FROM_POINTS:
             # the index evaluates every point at once (cheaper than gathering); the tiles
             # are those of the covered points only
+            if self.coverage.is_everywhere and not (np.isnan(latitude.min()) or np.isnan(longitude.min())):
+                # no NaN (min propagates it) on a sphere covered everywhere: every point is
+                # covered, known from two reductions instead of a mask built on one core
+                covered, everywhere = True, True
+            else:
+                covered = np.asarray(self.coverage.covers(latitude, longitude))
+                everywhere = bool(covered.all())
             needed = frozenset()
             if self._full is None:
                 lat, lon = latitude.ravel(), longitude.ravel()
-                if not covered.all():
+                if not everywhere:
                     lat, lon = lat[covered.ravel()], lon[covered.ravel()]
                 needed = self._index_tiles_latlon(lat, lon)
             spline = self._covering(needed, index=True)
             values = np.asarray(spline.undulation(latitude, longitude), dtype=np.float64)
-            if not covered.all():
+            if not everywhere:
                 values = np.where(covered, values, np.nan)
-        elif covered.all():
+            return values
+        covered = np.asarray(self.coverage.covers(latitude, longitude))
+        if covered.all():
             values = np.asarray(self._small_undulation(latitude, longitude), dtype=np.float64)
         else:
             # only the covered points: their tiles, none for the points outside

@@ -643,6 +643,12 @@ GS_INLINE gs_v4 v4_select(gs_i4 mask, gs_v4 a, gs_v4 b)
     return (gs_v4)((mask & (gs_i4)a) | (~mask & (gs_i4)b));
 }
 
+/* Whether any lane of a comparison's mask is set. */
+GS_INLINE int v4_any(gs_i4 mask)
+{
+    return (mask[0] | mask[1] | mask[2] | mask[3]) != 0;
+}
+
 /* floor per lane, exactly floor() for every double (the sign of a zero included): round
  * to an integer by adding and removing 2**52 (towards zero from the side of x, where the
  * spacing of doubles is 1), one less where that rounded up. */
@@ -656,11 +662,24 @@ GS_INLINE gs_v4 v4_floor(gs_v4 x)
     return (gs_v4)(((gs_i4)t & ~sign) | ((gs_i4)x & sign)); /* floor(x) has the sign of x */
 }
 
+/* v4_floor for lanes known to be below 2**31 in magnitude (not NaN): a 32-bit truncation,
+ * one less where that rounded up, the sign of x (the same bits in a third of the
+ * instructions). */
+GS_INLINE gs_v4 v4_floor_small(gs_v4 x)
+{
+    typedef int32_t gs_w4 __attribute__((vector_size(16)));
+    const gs_i4 sign = {INT64_MIN, INT64_MIN, INT64_MIN, INT64_MIN};
+    gs_v4 whole = __builtin_convertvector(__builtin_convertvector(x, gs_w4), gs_v4);
+    gs_v4 t = v4_select(whole > x, whole - v4_splat(1.0), whole);
+    return (gs_v4)(((gs_i4)t & ~sign) | ((gs_i4)x & sign));
+}
+
 /* sin and cos of one angle per lane (fdlibm's k_sin.c/k_cos.c polynomials on [-pi/4, pi/4]
  * after a Cody-Waite reduction by pi/2), in less time than two libm calls. Absolute error
  * at most 1.2e-16 on [-pi, pi] (below 1e-14 m in N: a unit vector only needs absolute
- * accuracy); |x| <= 2 pi. NaN gives NaN. */
-GS_INLINE void gs_sincos(gs_v4 x, gs_v4 *sin_x, gs_v4 *cos_x)
+ * accuracy); |x| <= 2 pi. NaN gives NaN. small: the caller knows every lane is finite and
+ * |x| < 2**30 (then the floors are v4_floor_small's, the same bits). */
+GS_INLINE void gs_sincos(gs_v4 x, const int small, gs_v4 *sin_x, gs_v4 *cos_x)
 {
     const double pio2_hi = 1.57079632673412561417e+00; /* first 33 bits of pi/2: n * pio2_hi is exact */
     const double pio2_lo = 6.07710050650619224932e-11, two_over_pi = 6.36619772367581382433e-01;
@@ -668,7 +687,7 @@ GS_INLINE void gs_sincos(gs_v4 x, gs_v4 *sin_x, gs_v4 *cos_x)
                  S4 = 2.75573137070700676789e-06, S5 = -2.50507602534068634195e-08, S6 = 1.58969099521155010221e-10;
     const double C1 = 4.16666666666666019037e-02, C2 = -1.38888888888741095749e-03, C3 = 2.48015872894767294178e-05,
                  C4 = -2.75573143513906633035e-07, C5 = 2.08757232129817482790e-09, C6 = -1.13596475577881948265e-11;
-    gs_v4 n = v4_floor(x * two_over_pi + 0.5);
+    gs_v4 n = small ? v4_floor_small(x * two_over_pi + 0.5) : v4_floor(x * two_over_pi + 0.5);
     gs_v4 r = (x - n * pio2_hi) - n * pio2_lo;
     gs_v4 z = r * r;
     gs_v4 sin_r = r + (z * r) * (S1 + z * (S2 + z * (S3 + z * (S4 + z * (S5 + z * S6)))));
@@ -676,7 +695,7 @@ GS_INLINE void gs_sincos(gs_v4 x, gs_v4 *sin_x, gs_v4 *cos_x)
     gs_v4 w = 1.0 - hz;
     gs_v4 cos_r = w + (((1.0 - w) - hz) + z * (z * (C1 + z * (C2 + z * (C3 + z * (C4 + z * (C5 + z * C6)))))));
     /* the quadrant n mod 4 (exact: n is small and whole); NaN takes the last case, NaN too */
-    gs_v4 quadrant = n - 4.0 * v4_floor(n * 0.25);
+    gs_v4 quadrant = n - 4.0 * (small ? v4_floor_small(n * 0.25) : v4_floor(n * 0.25));
     gs_i4 q0 = quadrant == 0.0, q1 = quadrant == 1.0, q2 = quadrant == 2.0;
     *sin_x = v4_select(q0, sin_r, v4_select(q1, cos_r, v4_select(q2, -sin_r, -cos_r)));
     *cos_x = v4_select(q0, cos_r, v4_select(q1, -sin_r, v4_select(q2, -cos_r, sin_r)));
@@ -688,12 +707,21 @@ GS_INLINE void gs_sincos(gs_v4 x, gs_v4 *sin_x, gs_v4 *cos_x)
 GS_INLINE void directions4(const gs_v4 *latitude_, const gs_v4 *longitude_, gs_v4 *x, gs_v4 *y, gs_v4 *z)
 {
     gs_v4 latitude = *latitude_, longitude = *longitude_;
-    gs_v4 wrapped = longitude - 360.0 * v4_floor((longitude + 180.0) / 360.0);
-    longitude = v4_select((longitude < -180.0) | (longitude >= 180.0), wrapped, longitude);
     const double d2r = 3.141592653589793 / 180.0;
+    const gs_i4 sign = {INT64_MIN, INT64_MIN, INT64_MIN, INT64_MIN};
+    /* Every latitude within +-90 and longitude in [-180, 180) (no NaN: every valid batch):
+     * no wrap, and the sin/cos floors of small arguments. Otherwise (one test for the 4)
+     * the wrap where needed and the general floors (unit_vectors checks no range; a huge
+     * longitude wraps inexactly). */
+    gs_i4 inside = ((gs_v4)((gs_i4)latitude & ~sign) <= 90.0) & (longitude >= -180.0) & (longitude < 180.0);
+    const int small = !v4_any(~inside);
+    if (!small) {
+        gs_i4 outside = (longitude < -180.0) | (longitude >= 180.0);
+        longitude = v4_select(outside, longitude - 360.0 * v4_floor((longitude + 180.0) / 360.0), longitude);
+    }
     gs_v4 sin_phi, cos_phi, sin_lam, cos_lam;
-    gs_sincos(latitude * d2r, &sin_phi, &cos_phi);
-    gs_sincos(longitude * d2r, &sin_lam, &cos_lam);
+    gs_sincos(latitude * d2r, small, &sin_phi, &cos_phi);
+    gs_sincos(longitude * d2r, small, &sin_lam, &cos_lam);
     *x = cos_phi * cos_lam;
     *y = cos_phi * sin_lam;
     *z = sin_phi;
@@ -720,7 +748,9 @@ GS_INLINE gs_u4 latlon_code4(gs_v4 la, gs_v4 lo)
     const double lat_cells = 1 << LL_LAT_BITS, lon_cells = 1 << LL_LON_BITS;
     gs_v4 fi = (la + 90.0) * (lat_cells / 180.0);
     gs_v4 w = lo + 180.0;
-    w = v4_select((w < 0.0) | (w >= 360.0), w - 360.0 * v4_floor(w / 360.0), w);
+    gs_i4 outside = (w < 0.0) | (w >= 360.0);
+    if (v4_any(outside)) /* rare: the wrap's division and floor only then */
+        w = v4_select(outside, w - 360.0 * v4_floor(w / 360.0), w);
     gs_v4 fj = w * (lon_cells / 360.0);
     /* clamped to the grid (NaN to 0 here, its own bucket below), then truncated */
     fi = v4_select(fi >= lat_cells, v4_splat(lat_cells - 1.0), v4_select(fi >= 0.0, fi, v4_splat(0.0)));
@@ -777,6 +807,7 @@ typedef struct {
     const gs_spline *S;
     const double *latitude, *longitude;
     double *out;
+    double max_abs_longitude; /* degrees: a longitude beyond it is invalid */
     int64_t m, nblocks, size;
     uint32_t *code;
     int64_t *counts, *invalid; /* (nblocks, LL_BUCKETS + 1), (nblocks) */
@@ -799,7 +830,7 @@ GS_HOT static void latlon_count(void *ctx, int64_t blk)
         }
         const gs_i4 sign = {INT64_MIN, INT64_MIN, INT64_MIN, INT64_MIN};
         gs_v4 abs_la = (gs_v4)((gs_i4)la & ~sign), abs_lo = (gs_v4)((gs_i4)lo_ & ~sign);
-        gs_i4 wrong = (abs_la > 90.0) | (abs_lo == INFINITY);
+        gs_i4 wrong = (abs_la > 90.0) | (abs_lo == INFINITY) | (abs_lo > J->max_abs_longitude);
         gs_u4 code = latlon_code4(la, lo_);
         for (int i = 0; i < 4 && s + i < hi; ++i) {
             bad -= wrong[i]; /* -1 where wrong */
@@ -1006,8 +1037,10 @@ GS_HOT static void latlon_evaluate(void *ctx, int64_t task)
 }
 
 /* Spline values at the directions of latitude/longitude (degrees) into out. Returns the
- * number of invalid coordinates (a latitude beyond +-90 or infinite, an infinite
- * longitude; out is then left unset), or -1 when memory ran out. NaN gives NaN.
+ * number of invalid coordinates (a latitude beyond +-90 or infinite, a longitude infinite
+ * or beyond +-max_abs_longitude; out is then left unset), or -1 when memory ran out. NaN
+ * gives NaN. (The bound is checked here, in the pass that reads the coordinates anyway,
+ * rather than by the caller in two more serial passes over the longitudes.)
  *
  * The points are sorted by the Morton code of their 0.18 degree cell in two passes:
  * 1. per block of points (nblocks in parallel): the codes and a histogram of their
@@ -1022,9 +1055,9 @@ GS_HOT static void latlon_evaluate(void *ctx, int64_t task)
  * A point's value does not depend on the order, blocks or threads, and equals
  * gs_evaluate_bricks at the direction gs_unit_vectors gives. */
 GS_EXPORT int64_t gs_undulation_latlon(const gs_spline *S, const double *latitude, const double *longitude, int64_t m,
-                                       int64_t nblocks, double *out, int64_t nthreads)
+                                       int64_t nblocks, double *out, int64_t nthreads, double max_abs_longitude)
 {
-    latlon_job J = {S, latitude, longitude, out, m, nblocks, (m + nblocks - 1) / nblocks};
+    latlon_job J = {S, latitude, longitude, out, max_abs_longitude, m, nblocks, (m + nblocks - 1) / nblocks};
     int64_t result = -1;
     J.code = malloc(sizeof(uint32_t) * (size_t)(m ? m : 1));
     J.bucket_start = malloc(sizeof(int64_t) * (LL_BUCKETS + 2));
