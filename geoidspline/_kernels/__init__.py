@@ -7,7 +7,8 @@ by :mod:`._clib`); nothing is compiled at run time.
 - :mod:`.fitting`: the domain test and the normal equations of least squares;
 - :mod:`.interpolation`: the quasi-interpolant's lattice lookups and prefilter;
 - :mod:`.query`: the brick index and the evaluation of batches;
-- :mod:`.legendre`: associated Legendre functions and sums for harmonic synthesis.
+- :mod:`.legendre`: associated Legendre functions and sums for harmonic synthesis;
+- :mod:`.array_cache`: numpy's array memory reused within a scope (a band's fit).
 
 Conventions shared by every kernel:
 

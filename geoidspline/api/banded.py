@@ -42,12 +42,18 @@ def _band_task(shared, band):
 
 
 def _band_in_process(shared, band, executor=None, progress=None):
-    """A band fitted here, its overlay blocks solved by ``executor``'s workers."""
+    """A band fitted here, its overlay blocks solved by ``executor``'s workers; its large
+    temporaries reuse each other's memory (:func:`~geoidspline._kernels.array_cache.reused_array_memory`),
+    released when it ends: blocks kept from one band to the next would sit beside the
+    next band's synthesis and the previous band's commit, which allocate outside the
+    cache, and raise the fit's peak (benchmarks/README.md)."""
+    from .._kernels.array_cache import reused_array_memory
     from ..fitting.bands import fit_band
 
     source, params, rounding, check_lat, check_lon, margin = shared
-    return fit_band(source, params, band, check_lat, check_lon, rounding, margin, executor=executor,
-                    progress=progress)
+    with reused_array_memory():
+        return fit_band(source, params, band, check_lat, check_lon, rounding, margin, executor=executor,
+                        progress=progress)
 
 
 def _plain(value):
