@@ -124,6 +124,16 @@ static void release_kept(int64_t i)
     kept[i] = kept[--nkept];
 }
 
+/* Take kept block i out of the kept set (the lock is held; its capacity in *taken). */
+static void *take_at(int64_t i, size_t *taken)
+{
+    void *base = kept[i].base;
+    *taken = kept[i].capacity;
+    kept_bytes -= *taken;
+    kept[i] = kept[--nkept];
+    return base;
+}
+
 /* The smallest kept block of `capacity` to SLACK_OVER (1 + 1/SLACK_OVER) times it (the
  * lock is held; its capacity in *taken), or NULL. */
 static void *take_kept(size_t capacity, size_t *taken)
@@ -133,13 +143,7 @@ static void *take_kept(size_t capacity, size_t *taken)
         if (kept[i].capacity >= capacity && kept[i].capacity - capacity <= capacity / SLACK_OVER &&
             (best < 0 || kept[i].capacity < kept[best].capacity))
             best = i;
-    if (best < 0)
-        return NULL;
-    void *base = kept[best].base;
-    *taken = kept[best].capacity;
-    kept_bytes -= *taken;
-    kept[best] = kept[--nkept];
-    return base;
+    return best < 0 ? NULL : take_at(best, taken);
 }
 
 /* The kept mapped block of capacity nearest `capacity` (a mapped size; the lock is
@@ -157,13 +161,7 @@ static void *take_nearest_mapped(size_t capacity, size_t *taken)
             best_gap = gap;
         }
     }
-    if (best < 0)
-        return NULL;
-    void *base = kept[best].base;
-    *taken = kept[best].capacity;
-    kept_bytes -= *taken;
-    kept[best] = kept[--nkept];
-    return base;
+    return best < 0 ? NULL : take_at(best, taken);
 }
 
 /* Release kept blocks, oldest first, until `capacity` more fits under the mark. */
