@@ -277,38 +277,32 @@ def test_query_negative_coordinates(small_store, api):
     assert "outside the store's coverage" in south_west.stderr
 
 
-def test_query_input_with_header(small_store, api, tmp_path):
+# Each CSV case: the file's text, the extra CLI arguments, and the rows expected back as
+# (the row as written, latitude, longitude) with "" for the header row.
+CSV_ROUND_TRIPS = {
+    "with header": ("lat,lon\n20,30\n21.5,31.25\n", (),
+                    [("lat,lon,undulation_m", None, None), ("20,30", 20.0, 30.0), ("21.5,31.25", 21.5, 31.25)]),
+    "no header, no final newline": ("20,30\n25.125,35.5", (),
+                                    [("20,30", 20.0, 30.0), ("25.125,35.5", 25.125, 35.5)]),
+    "extra columns kept": ("lat,lon,name,height_m\n20,30,Station A,12.5\n22,24,B,-3\n", ("--precision", "3"),
+                           [("lat,lon,name,height_m,undulation_m", None, None),
+                            ("20,30,Station A,12.5", 20.0, 30.0), ("22,24,B,-3", 22.0, 24.0)]),
+    "empty lines skipped": ("lat,lon\n20,30\n\n   \n21,31\n\n", (),
+                            [("lat,lon,undulation_m", None, None), ("20,30", 20.0, 30.0), ("21,31", 21.0, 31.0)]),
+}
+
+
+@pytest.mark.parametrize("case", list(CSV_ROUND_TRIPS))
+def test_query_input_round_trip(small_store, api, tmp_path, case):
+    """Each row comes back as written with its undulation appended, in input order."""
+    text, extra, expected = CSV_ROUND_TRIPS[case]
+    precision = int(extra[1]) if extra else 4
     csv = tmp_path / "in.csv"
-    csv.write_text("lat,lon\n20,30\n21.5,31.25\n")
-    result = query(small_store, "--input", csv)
+    csv.write_text(text)
+    result = query(small_store, "--input", csv, *extra)
     assert result.exit_code == 0, result.output
     assert result.stdout.splitlines() == [
-        "lat,lon,undulation_m",
-        f"20,30,{fmt(api.undulation(20.0, 30.0))}",
-        f"21.5,31.25,{fmt(api.undulation(21.5, 31.25))}",
-    ]
-
-
-def test_query_input_without_header_and_without_final_newline(small_store, api, tmp_path):
-    csv = tmp_path / "in.csv"
-    csv.write_text("20,30\n25.125,35.5")
-    result = query(small_store, "--input", csv)
-    assert result.exit_code == 0, result.output
-    assert result.stdout.splitlines() == [
-        f"20,30,{fmt(api.undulation(20.0, 30.0))}",
-        f"25.125,35.5,{fmt(api.undulation(25.125, 35.5))}",
-    ]
-
-
-def test_query_keeps_extra_columns(small_store, api, tmp_path):
-    csv = tmp_path / "in.csv"
-    csv.write_text("lat,lon,name,height_m\n20,30,Station A,12.5\n22,24,B,-3\n")
-    result = query(small_store, "--input", csv, "--precision", "3")
-    assert result.exit_code == 0, result.output
-    assert result.stdout.splitlines() == [
-        "lat,lon,name,height_m,undulation_m",
-        f"20,30,Station A,12.5,{fmt(api.undulation(20.0, 30.0), 3)}",
-        f"22,24,B,-3,{fmt(api.undulation(22.0, 24.0), 3)}",
+        row if lat is None else f"{row},{fmt(api.undulation(lat, lon), precision)}" for row, lat, lon in expected
     ]
 
 
@@ -331,18 +325,6 @@ def test_query_bad_rows_are_reported_in_place(small_store, api, tmp_path):
     assert "'inf'" in lines[6]
     assert "Traceback" not in result.output
     assert "5 row(s)" in result.stderr
-
-
-def test_query_skips_empty_lines(small_store, api, tmp_path):
-    csv = tmp_path / "in.csv"
-    csv.write_text("lat,lon\n20,30\n\n   \n21,31\n\n")
-    result = query(small_store, "--input", csv)
-    assert result.exit_code == 0, result.output
-    assert result.stdout.splitlines() == [
-        "lat,lon,undulation_m",
-        f"20,30,{fmt(api.undulation(20.0, 30.0))}",
-        f"21,31,{fmt(api.undulation(21.0, 31.0))}",
-    ]
 
 
 def test_query_line_numbers_count_empty_lines(small_store, api, tmp_path):
