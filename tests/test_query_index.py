@@ -400,6 +400,56 @@ def test_latlon_kernel_counts_each_bad_coordinate_once():
         assert np.abs(good).max() > 0.1
 
 
+@pytest.mark.parametrize("order,h0,nlevels", [(4, 0.1, 2), (4, 0.05, 3), (6, 0.1, 2), (3, 0.1, 2)])
+def test_latlon_batches_in_input_order_give_the_bits_of_sorted_ones(order, h0, nlevels, monkeypatch):
+    """A batch evaluated in the order given (small tables, BrickIndex.IN_ORDER_MAX_BYTES)
+    and the same batch sorted by cell give the same bits, and count the same invalid
+    coordinates, on one thread and two: global and dense points, NaN, points where no
+    brick lies (0), wrapped longitudes, the poles, and batches that are not a multiple of
+    4 or of a task's 4,096 points; which path a batch takes follows the index's bytes."""
+    from geoidspline._kernels import _clib
+    from geoidspline.bspline import index as index_module
+
+    # no level 0: the finer levels' patches leave most of the sphere without a brick
+    spline = AmbientSpline(random_overlays(61, order=order, h0=h0, nlevels=nlevels + 1)[1:])
+    idx = spline.index
+    rng = np.random.default_rng(62)
+    count = 3 * 4096 + 3
+    lat = np.concatenate([np.degrees(np.arcsin(rng.uniform(-1, 1, count - 2000))), rng.uniform(40, 41, 2000)])
+    lon = np.concatenate([rng.uniform(-540, 540, count - 2000), rng.uniform(10, 11, 2000)])
+    lat[::89], lon[::97] = np.nan, np.nan
+    lat[5], lat[6], lon[7] = 90.0, -90.0, -180.0
+    want = spline.evaluate_points(directions(lat, lon))
+    assert (want == 0.0).sum() > 1000 and np.nanmax(np.abs(want)) > 1.0  # holes (no brick) and values
+    bad_lat, bad_lon = lat.copy(), lon.copy()
+    bad_lat[[0, 4100, count - 1]] = [90.5, -np.inf, 1e300]
+    bad_lon[[1, 8200, count - 2]] = [np.inf, 2e6, -1e6 - 1]
+    threads = _clib.threads()
+    try:
+        for n in sorted({1, 2, threads}):
+            _clib.set_threads(n)
+            for in_order in (False, True):
+                out = np.empty(count)
+                assert _kernels.undulation_latlon(idx.spline, lat, lon, 3, out, 1e6, in_order=in_order) == 0
+                np.testing.assert_array_equal(out, want)
+                assert _kernels.undulation_latlon(idx.spline, bad_lat, bad_lon, 3, out, 1e6, in_order=in_order) == 6
+                assert _kernels.undulation_latlon(idx.spline, bad_lat, bad_lon, 3, out, 3e6, in_order=in_order) == 4
+    finally:
+        _clib.set_threads(threads)
+    calls = []
+    real = _kernels.undulation_latlon
+
+    def spy(*args, **kwargs):
+        calls.append(kwargs["in_order"])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(_kernels, "undulation_latlon", spy)
+    for limit in (idx.hot_bytes - 1, idx.hot_bytes):
+        monkeypatch.setattr(index_module, "IN_ORDER_MAX_BYTES", limit)
+        np.testing.assert_array_equal(idx.undulation_latlon(lat, lon)[0], want)
+    assert calls == [False, True]
+
+
 def test_compiled_directions_agree_with_numpy_trigonometry():
     """Large batches compute directions with their own sin/cos (fdlibm polynomials):
     within 2.3e-16 of numpy's per component (2 ulp of 1), unit length to 4.5e-16,

@@ -80,7 +80,8 @@ class Spline(ctypes.Structure):
 
 _SPLINE = ctypes.POINTER(Spline)
 _evaluate_bricks = function("gs_evaluate_bricks", _SPLINE, PTR, I64, I64, PTR, I64)
-_undulation_latlon = function("gs_undulation_latlon", _SPLINE, PTR, PTR, I64, I64, PTR, I64, F64, restype=I64)
+_undulation_latlon = function("gs_undulation_latlon", _SPLINE, PTR, PTR, I64, I64, PTR, I64, F64, I64,
+                             restype=I64)
 _unit_vectors = function("gs_unit_vectors", PTR, PTR, I64, PTR, I64)
 _query_order = function("gs_query_order", PTR, I64, PTR, PTR)
 _build_hash = function("gs_build_hash", PTR, I64, PTR, I64)
@@ -288,24 +289,29 @@ def evaluate_bricks(spline, points, nderiv, out):
     _evaluate_bricks(ctypes.byref(spline), ptr(points), points.shape[0], int(nderiv), ptr(out), threads())
 
 
-def undulation_latlon(spline, latitude, longitude, nblocks, out, max_abs_longitude=math.inf):
+def undulation_latlon(spline, latitude, longitude, nblocks, out, max_abs_longitude=math.inf, in_order=False):
     """Spline values at the directions of latitude/longitude (degrees) into out.
 
     Returns the number of invalid coordinates (a latitude beyond ±90° or infinite, a
     longitude infinite or beyond ±``max_abs_longitude`` degrees); when there are any,
     ``out`` is left unset. NaN gives NaN.
-    The points are sorted by the Morton code of their 0.18° latitude/longitude cell (two
-    counting-sort passes: 5.6° buckets in ``nblocks`` blocks, then within each bucket),
+    The points are sorted by the Morton code of their cell (two counting-sort passes:
+    buckets of the code's high bits in ``nblocks`` blocks, then within each bucket; the
+    cell is that of the finest level's lattice for float64 tables, so that each brick's
+    points follow each other, a 0.18° latitude/longitude cell for quantised ones),
     evaluated in that order (neighbours share bricks and cache lines) and the values
     written back to their places; each value does not depend on the order, the blocks or
     the thread count, and equals :func:`evaluate_bricks` at the directions
     :func:`unit_vectors` gives. Transient memory: 20 bytes per point.
+    ``in_order``: no sort, the points evaluated as they come (tables in the caches: the
+    sort's locality buys nothing there), the same values, no transient memory.
     """
     latitude = c_in(latitude, np.float64)
     longitude = c_in(longitude, np.float64)
     c_out(out, np.float64)
     invalid = _undulation_latlon(ctypes.byref(spline), ptr(latitude), ptr(longitude), latitude.size,
-                                 max(1, int(nblocks)), ptr(out), threads(), float(max_abs_longitude))
+                                 max(1, int(nblocks)), ptr(out), threads(), float(max_abs_longitude),
+                                 1 if in_order else 0)
     if invalid < 0:
         raise MemoryError(f"undulation_latlon: out of memory for {latitude.size} points")
     return invalid

@@ -24,6 +24,14 @@ brick holds every B-spline touching a cell of the brick that meets the shell
 _ORDER_THRESHOLD = 20_000  # from this many points, BrickIndex.add_to orders them itself
 
 
+IN_ORDER_MAX_BYTES = 1 << 18
+"""Latitude/longitude batches of an index whose tables that a point on the sphere reads
+(:meth:`BrickIndex.hot_bytes`) fit in this many bytes (a core's L2 cache on the machines
+measured) are evaluated in the order given: the sort by cell that keeps big tables' reads
+in the caches buys nothing there and costs a third of the batch (benchmarks/README.md,
+branch q23q). Bigger ones are sorted. Either gives the same bits."""
+
+
 _FOLD_CHUNK_BRICKS = 512  # bricks folded at once (a dense (side³) block each, transient)
 
 
@@ -542,6 +550,14 @@ class BrickIndex:
                   self.own_full)
         return sum(a.nbytes for a in {id(a): a for a in arrays if a is not None}.values())  # shared ones once
 
+    @property
+    def hot_bytes(self) -> int:
+        """Bytes of the tables a point on the sphere reads: the hash slots, presence maps,
+        folded column offsets and full maps, and the values (own tables' columns and the
+        folded column entries only serve points off the sphere or in gaps)."""
+        values = self.qvalues if self.qvalues is not None else self.values
+        return int(sum(a.nbytes for a in (self.slots, self.presence, self.fold_offs, self.fold_full, values)))
+
     def add_to(self, points, out, nderiv=0, ordered=False):
         """Add the spline (nderiv 0) or value and derivatives (1, 2) at points (M, 3) to out.
 
@@ -582,7 +598,8 @@ class BrickIndex:
         # blocks of at least 2**15 points, up to 4 per thread (a histogram of 32,769
         # counts each)
         nblocks = max(1, min(4 * threads(), m >> 15))
-        invalid = _qk.undulation_latlon(self.spline, latitude, longitude, nblocks, out, max_abs_longitude)
+        invalid = _qk.undulation_latlon(self.spline, latitude, longitude, nblocks, out, max_abs_longitude,
+                                        in_order=self.hot_bytes <= IN_ORDER_MAX_BYTES)
         return out, int(invalid)
 
     def _evaluate(self, points, out, nderiv):

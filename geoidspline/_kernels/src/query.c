@@ -812,11 +812,69 @@ typedef struct {
     uint64_t *by_bucket;       /* the points in the order of their buckets (code, position) */
     uint64_t *sorted;          /* and in the order of their codes */
     double *ordered;           /* their values in that order (by_bucket's memory, free by then) */
+    int cells;                 /* sort by cell_code4 (else latlon_code4) */
+    int cell_shift;            /* cell_code4's lattice: cells of the finest level, 2**cell_shift a side */
+    double cell_scale, cell_offset;
 } latlon_job;
 
-GS_HOT static void latlon_count(void *ctx, int64_t blk)
+/* The lanes of 4 coordinates that gs_undulation_latlon refuses (all ones): a latitude beyond
+ * +-90 or infinite, a longitude infinite or beyond +-max_abs_longitude (NaN is not). */
+GS_INLINE gs_i4 invalid_lanes(gs_v4 la, gs_v4 lo, double max_abs_longitude)
 {
-    latlon_job *J = ctx;
+    const gs_i4 sign = {INT64_MIN, INT64_MIN, INT64_MIN, INT64_MIN};
+    gs_v4 abs_la = (gs_v4)((gs_i4)la & ~sign), abs_lo = (gs_v4)((gs_i4)lo & ~sign);
+    return (abs_la > 90.0) | (abs_lo == INFINITY) | (abs_lo > max_abs_longitude);
+}
+
+/* sin and cos of 4 angles within +-pi/2 (Taylor polynomials: errors below 3.6e-6 and
+ * 4.7e-7; any value outside): only for cell_code4, which orders the points (a value never
+ * depends on the order). */
+GS_INLINE void rough_sincos(gs_v4 x, gs_v4 *sin_x, gs_v4 *cos_x)
+{
+    gs_v4 z = x * x;
+    *sin_x = x + (x * z) * (-1.0 / 6.0 + z * (1.0 / 120.0 + z * (-1.0 / 5040.0 + z * (1.0 / 362880.0))));
+    *cos_x = 1.0 + z * (-0.5 + z * (1.0 / 24.0 + z * (-1.0 / 720.0 + z * (1.0 / 40320.0 + z * (-1.0 / 3628800.0)))));
+}
+
+typedef int32_t gs_w4 __attribute__((vector_size(16)));
+
+GS_INLINE gs_u4 spread3_4(gs_u4 v)
+{
+    v = (v | (v << 8)) & 0x0000F00F;
+    v = (v | (v << 4)) & 0x000C30C3;
+    v = (v | (v << 2)) & 0x00249249;
+    return v;
+}
+
+/* The sort codes of 4 points by their cell on the finest level's lattice (a brick-major
+ * order: the bricks of every level are runs of codes): the 3-D Morton code of the cell,
+ * coarsened to 2**cell_shift cells a side so that 7 bits an axis hold the unit sphere
+ * (21 bits, as latlon_code4's); from a rough direction (rough_sincos), as the codes only
+ * order the points. NaN: bucket LL_BUCKETS. */
+GS_INLINE gs_u4 cell_code4(const latlon_job *J, gs_v4 la, gs_v4 lo)
+{
+    const double d2r = 3.141592653589793 / 180.0;
+    gs_v4 sin_phi, cos_phi, sin_half, cos_half;
+    gs_i4 outside = (lo < -180.0) | (lo > 180.0);
+    if (v4_any(outside)) /* rare: wrapped to [-180, 180) */
+        lo = v4_select(outside, lo - 360.0 * v4_floor((lo + 180.0) / 360.0), lo);
+    rough_sincos(la * d2r, &sin_phi, &cos_phi);
+    rough_sincos(lo * (0.5 * d2r), &sin_half, &cos_half); /* half the longitude: within +-pi/2 */
+    gs_v4 sin_lam = 2.0 * sin_half * cos_half, cos_lam = 1.0 - 2.0 * sin_half * sin_half;
+    const double scale = J->cell_scale, offset = J->cell_offset;
+    gs_v4 fx = cos_phi * cos_lam * scale + offset, fy = cos_phi * sin_lam * scale + offset, fz = sin_phi * scale + offset;
+    const int shift = J->cell_shift;
+    gs_u4 i = ((gs_u4)__builtin_convertvector(fx, gs_w4) >> shift) & 127;
+    gs_u4 j = ((gs_u4)__builtin_convertvector(fy, gs_w4) >> shift) & 127;
+    gs_u4 k = ((gs_u4)__builtin_convertvector(fz, gs_w4) >> shift) & 127;
+    gs_u4 code = (spread3_4(i) << 2) | (spread3_4(j) << 1) | spread3_4(k);
+    gs_i4 nan = (la != la) | (lo != lo);
+    gs_u4 nan32 = __builtin_convertvector(nan, gs_u4);
+    return (code & ~nan32) | (nan32 & ((uint32_t)LL_BUCKETS << LL_LOW_BITS));
+}
+
+GS_INLINE void latlon_count_range(latlon_job *J, const int cells, int64_t blk)
+{
     int64_t *counts = J->counts + blk * (LL_BUCKETS + 1), bad = 0;
     int64_t lo = blk * J->size, hi = lo + J->size < J->m ? lo + J->size : J->m;
     for (int64_t s = lo; s < hi; s += 4) {
@@ -825,10 +883,8 @@ GS_HOT static void latlon_count(void *ctx, int64_t blk)
             la[i] = J->latitude[s + i < hi ? s + i : hi - 1];
             lo_[i] = J->longitude[s + i < hi ? s + i : hi - 1];
         }
-        const gs_i4 sign = {INT64_MIN, INT64_MIN, INT64_MIN, INT64_MIN};
-        gs_v4 abs_la = (gs_v4)((gs_i4)la & ~sign), abs_lo = (gs_v4)((gs_i4)lo_ & ~sign);
-        gs_i4 wrong = (abs_la > 90.0) | (abs_lo == INFINITY) | (abs_lo > J->max_abs_longitude);
-        gs_u4 code = latlon_code4(la, lo_);
+        gs_i4 wrong = invalid_lanes(la, lo_, J->max_abs_longitude);
+        gs_u4 code = cells ? cell_code4(J, la, lo_) : latlon_code4(la, lo_);
         for (int i = 0; i < 4 && s + i < hi; ++i) {
             bad -= wrong[i]; /* -1 where wrong */
             J->code[s + i] = code[i];
@@ -836,6 +892,15 @@ GS_HOT static void latlon_count(void *ctx, int64_t blk)
         }
     }
     J->invalid[blk] = bad;
+}
+
+GS_HOT static void latlon_count(void *ctx, int64_t blk)
+{
+    latlon_job *J = ctx;
+    if (J->cells)
+        latlon_count_range(J, 1, blk);
+    else
+        latlon_count_range(J, 0, blk);
 }
 
 static void latlon_scatter(void *ctx, int64_t blk)
@@ -1031,7 +1096,8 @@ GS_INLINE void prefetch_values(const gs_spline *S, const int order, const int ch
  * (and, for a new brick, on each other: hash slot, column offsets, values), so they are
  * asked for points ahead of its sum (see LL_AHEAD): chain (a constant) for tables beyond
  * the caches. */
-GS_INLINE void latlon_range(const latlon_job *J, const int order, const int chain, int64_t lo, int64_t hi)
+GS_INLINE void latlon_range(const latlon_job *J, const int order, const int chain, const int direct, int64_t lo,
+                             int64_t hi, int64_t *invalid)
 {
     const gs_spline *S = J->S;
     int64_t last_key[S->nlev], last_brick[S->nlev], sum_key[S->nlev], sum_brick[S->nlev];
@@ -1045,7 +1111,7 @@ GS_INLINE void latlon_range(const latlon_job *J, const int order, const int chai
     const int64_t to_sum = chain ? LL_SLOT + LL_OFFS + LL_VALUES : LL_AHEAD;
     const located none = {.brick = -1};
     for (int64_t p = lo; p < hi + to_sum; ++p) {
-        if (p + 16 < hi) { /* the coordinates are read out of order: ask for them early */
+        if (!direct && p + 16 < hi) { /* the coordinates are read out of order: ask for them early */
             __builtin_prefetch(&J->latitude[KEY_AT(J->sorted[p + 16])]);
             __builtin_prefetch(&J->longitude[KEY_AT(J->sorted[p + 16])]);
         }
@@ -1054,9 +1120,15 @@ GS_INLINE void latlon_range(const latlon_job *J, const int order, const int chai
             if (i == 0) { /* the next 4 points' directions at once */
                 gs_v4 la, lo_;
                 for (int k = 0; k < 4; ++k) {
-                    int64_t at = KEY_AT(J->sorted[p + k < hi ? p + k : hi - 1]);
+                    int64_t at = direct ? (p + k < hi ? p + k : hi - 1) : KEY_AT(J->sorted[p + k < hi ? p + k : hi - 1]);
                     la[k] = J->latitude[at];
                     lo_[k] = J->longitude[at];
+                }
+                if (direct) { /* the check of latlon_count; an invalid point is summed as NaN */
+                    gs_i4 wrong = invalid_lanes(la, lo_, J->max_abs_longitude);
+                    for (int k = 0; k < 4; ++k)
+                        *invalid -= p + k < hi ? wrong[k] : 0; /* -1 where wrong */
+                    la = v4_select(wrong, v4_splat(NAN), la);
                 }
                 directions4(&la, &lo_, &dx, &dy, &dz);
             }
@@ -1089,12 +1161,12 @@ GS_INLINE void latlon_range(const latlon_job *J, const int order, const int chai
             const double *wx = (const double *)w;
             brick_sum(S, order, 0, wx, wx + 1, wx + 2, 4, S->fold_base[L->brick], S->fold_cols, S->fold_offs, S->fold_full,
                       L->brick, L->lx, L->ly, L->lz, S->inv_hs[L->lev], result);
-            J->ordered[e] = result[0];
+            *(direct ? &J->out[e] : &J->ordered[e]) = result[0];
         } else if (L->lev >= 0) {
             point_sum(S, order, 0, L->x, L->y, L->z, sum_key, sum_brick, result);
-            J->ordered[e] = result[0];
+            *(direct ? &J->out[e] : &J->ordered[e]) = result[0];
         } else {
-            J->ordered[e] = L->x == L->x && L->z == L->z ? 0.0 : NAN; /* no brick at the point: 0 */
+            *(direct ? &J->out[e] : &J->ordered[e]) = L->x == L->x && L->z == L->z ? 0.0 : NAN; /* no brick at the point: 0 */
         }
     }
 }
@@ -1120,15 +1192,31 @@ GS_HOT static void latlon_evaluate(void *ctx, int64_t task)
     uint64_t span = KEY_CODE(J->sorted[hi - 1]) - KEY_CODE(J->sorted[lo]);
     if (J->S->qwidth && span > (uint64_t)(LL_SPARSE * (hi - lo))) {
         if (order == 6)
-            latlon_range(J, 6, 1, lo, hi);
+            latlon_range(J, 6, 1, 0, lo, hi, NULL);
         else
-            latlon_range(J, order, 1, lo, hi);
+            latlon_range(J, order, 1, 0, lo, hi, NULL);
     } else if (order == 4)
-        latlon_range(J, 4, 0, lo, hi);
+        latlon_range(J, 4, 0, 0, lo, hi, NULL);
     else if (order == 6)
-        latlon_range(J, 6, 0, lo, hi);
+        latlon_range(J, 6, 0, 0, lo, hi, NULL);
     else
-        latlon_range(J, order, 0, lo, hi);
+        latlon_range(J, order, 0, 0, lo, hi, NULL);
+}
+
+/* The points lo..hi of task as they come (gs_undulation_latlon's in_order): each value
+ * written in its place, the invalid coordinates counted into J->invalid[task]. */
+GS_HOT static void latlon_direct(void *ctx, int64_t task)
+{
+    const latlon_job *J = ctx;
+    int64_t lo = task * CHUNK, hi = lo + CHUNK < J->m ? lo + CHUNK : J->m, bad = 0;
+    const int order = (int)J->S->order;
+    if (order == 4)
+        latlon_range(J, 4, 0, 1, lo, hi, &bad);
+    else if (order == 6)
+        latlon_range(J, 6, 0, 1, lo, hi, &bad);
+    else
+        latlon_range(J, order, 0, 1, lo, hi, &bad);
+    J->invalid[task] = bad;
 }
 
 /* Spline values at the directions of latitude/longitude (degrees) into out. Returns the
@@ -1137,9 +1225,14 @@ GS_HOT static void latlon_evaluate(void *ctx, int64_t task)
  * gives NaN. (The bound is checked here, in the pass that reads the coordinates anyway,
  * rather than by the caller in two more serial passes over the longitudes.)
  *
- * The points are sorted by the Morton code of their 0.18 degree cell in two passes:
+ * in_order: the points are evaluated as they come (latlon_direct; tables that fit the
+ * caches), chunks in parallel, each value written in its place. Otherwise they are
+ * sorted by a 21-bit code in two passes: for float64 tables the 3-D Morton code of their
+ * cell on the finest level's lattice (cell_code4: brick-major, so each brick's table is
+ * read in one stretch), for quantised ones (the chain pipeline's) the Morton code of
+ * their 0.18 degree latitude/longitude cell (latlon_code4):
  * 1. per block of points (nblocks in parallel): the codes and a histogram of their
- *    high bits (the 5.6 degree bucket) per block;
+ *    high 11 bits (the bucket) per block;
  * 2. exclusive prefix sums over (bucket, block): a stable order by bucket;
  * 3. per block: each point's (code, position) scattered in that order; then each bucket
  *    sorted by the low bits of the code (latlon_refine);
@@ -1150,10 +1243,23 @@ GS_HOT static void latlon_evaluate(void *ctx, int64_t task)
  * A point's value does not depend on the order, blocks or threads, and equals
  * gs_evaluate_bricks at the direction gs_unit_vectors gives. */
 GS_EXPORT int64_t gs_undulation_latlon(const gs_spline *S, const double *latitude, const double *longitude, int64_t m,
-                                       int64_t nblocks, double *out, int64_t nthreads, double max_abs_longitude)
+                                       int64_t nblocks, double *out, int64_t nthreads, double max_abs_longitude,
+                                       int64_t in_order)
 {
     latlon_job J = {S, latitude, longitude, out, max_abs_longitude, m, nblocks, (m + nblocks - 1) / nblocks};
     int64_t result = -1;
+    if (in_order) {
+        const int64_t ntasks = (m + CHUNK - 1) / CHUNK;
+        J.invalid = malloc(sizeof(int64_t) * (size_t)(ntasks ? ntasks : 1));
+        if (!J.invalid)
+            return -1;
+        gs_parallel_for((int)nthreads, ntasks, latlon_direct, &J);
+        result = 0;
+        for (int64_t task = 0; task < ntasks; ++task)
+            result += J.invalid[task];
+        free(J.invalid);
+        return result;
+    }
     J.code = malloc(sizeof(uint32_t) * (size_t)(m ? m : 1));
     J.bucket_start = malloc(sizeof(int64_t) * (LL_BUCKETS + 2));
     J.counts = calloc((size_t)nblocks * (LL_BUCKETS + 1), sizeof(int64_t));
@@ -1162,6 +1268,19 @@ GS_EXPORT int64_t gs_undulation_latlon(const gs_spline *S, const double *latitud
     J.sorted = malloc(sizeof(uint64_t) * (size_t)(m ? m : 1));
     if (!J.code || !J.bucket_start || !J.counts || !J.invalid || !J.by_bucket || !J.sorted)
         goto done;
+    /* float64 tables: a brick-major order (cell_code4); quantised ones (beyond the caches) keep
+     * the latitude/longitude order, which the chain pipeline's sparse test reads */
+    J.cells = S->qwidth == 0 && S->nlev > 0;
+    if (J.cells) {
+        double inv_h = S->inv_hs[S->nlev - 1];
+        double offset = 16.0 * ceil((inv_h + 2.0) / 16.0); /* whole bricks: the lattice's bricks stay runs */
+        int shift = 0;
+        while (2.0 * offset > ldexp(128.0, shift) && shift < 24)
+            shift += 1;
+        J.cell_scale = inv_h;
+        J.cell_offset = offset;
+        J.cell_shift = shift;
+    }
     gs_parallel_for((int)nthreads, nblocks, latlon_count, &J);
     result = 0;
     for (int64_t blk = 0; blk < nblocks; ++blk)
