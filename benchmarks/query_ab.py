@@ -105,10 +105,10 @@ def kernel(library: Path):
     """(gs_undulation_latlon, whether the library reads quantised tables)"""
     lib = ctypes.CDLL(str(library))
     f = lib.gs_undulation_latlon
-    # the last argument, max_abs_longitude (degrees), is new in 2026-12 (branch q23c); an
-    # older library ignores it (an extra register argument)
+    # the last arguments, max_abs_longitude (degrees, branch q23c) and in_order (branch
+    # q23q), are new in 2026-12; an older library ignores them (extra register arguments)
     f.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64,
-                  ctypes.c_void_p, ctypes.c_int64, ctypes.c_double]
+                  ctypes.c_void_p, ctypes.c_int64, ctypes.c_double, ctypes.c_int64]
     f.restype = ctypes.c_int64
     return f, hasattr(lib, "gs_quantise_table")
 
@@ -131,6 +131,11 @@ def main(argv=None):
 
     work = Path(tempfile.mkdtemp(prefix="query_ab_"))
     from geoidspline.bspline.index import BrickIndex
+
+    try:
+        from geoidspline.bspline.index import IN_ORDER_MAX_BYTES
+    except ImportError:  # an installed package from before branch q23q: always sorted
+        IN_ORDER_MAX_BYTES = -1
 
     libs, labels, quantised = {}, {}, {}
     try:
@@ -155,6 +160,7 @@ def main(argv=None):
             index = full.index
             float_index = BrickIndex(full.levels, full.order) if index.values.size == 0 else index
             splines = {side: ctypes.addressof((index if quantised[side] else float_index).spline) for side in libs}
+            in_order = int(IN_ORDER_MAX_BYTES >= 0 and index.hot_bytes <= IN_ORDER_MAX_BYTES)  # as BrickIndex does
             for name in args.batch or ["global"]:
                 lat, lon = (np.ascontiguousarray(a) for a in batches[name])
                 m = lat.size
@@ -163,13 +169,13 @@ def main(argv=None):
                 samples = {side: [] for side in libs}
                 for side, f in libs.items():  # untimed first calls: page faults, caches
                     f(splines[side], lat.ctypes.data, lon.ctypes.data, m, nblocks, outs[side].ctypes.data,
-                      args.threads, MAX_LONGITUDE)
+                      args.threads, MAX_LONGITUDE, in_order)
                 load = os.getloadavg()[0]
                 for _ in range(args.repeat):
                     for side, f in libs.items():
                         t0 = clock()
                         f(splines[side], lat.ctypes.data, lon.ctypes.data, m, nblocks, outs[side].ctypes.data,
-                          args.threads, MAX_LONGITUDE)
+                          args.threads, MAX_LONGITUDE, in_order)
                         samples[side].append((clock() - t0) / m * 1e9)
                 load = (load, os.getloadavg()[0])
                 med = {side: statistics.median(s) for side, s in samples.items()}
