@@ -1144,7 +1144,9 @@ GS_INLINE void latlon_range(const latlon_job *J, const int order, const int chai
             located *L = &ring[(uint64_t)q % LL_RING];
             latlon_locate(S, order, chain, L, chain && q > lo ? &ring[(uint64_t)(q - 1) % LL_RING] : &none, last_key,
                           last_brick);
-            if (!chain && L->brick >= 0)
+            /* brick-major batches (J->cells) read the lines of the points before: asking
+             * for a point's first and last values costs more than it saves there */
+            if (!chain && !J->cells && L->brick >= 0)
                 prefetch_values(S, order, 0, L, &none);
         }
         int64_t r = p - to_values; /* values asked for now (chain) */
