@@ -491,6 +491,10 @@ def test_full_column_maps_follow_their_definition(order):
         want_offs, want_full = full_columns_by_definition(cols, order)
         np.testing.assert_array_equal(offs, want_offs)
         np.testing.assert_array_equal(full, want_full)
+        offs16, full16 = _kernels.full_columns(cols, order, np.int16)  # the quantised tables' offsets
+        assert offs16.dtype == np.int16
+        np.testing.assert_array_equal(offs16, want_offs)
+        np.testing.assert_array_equal(full16, want_full)
         assert 0 < np.count_nonzero(full) < full.size  # both paths occur
 
 
@@ -549,22 +553,31 @@ def test_own_tables_from_keys_equal_those_from_brick_entries(order):
 
 def _quantised_level(seed, order, step, spread_steps):
     """One level over the sphere whose coefficients are multiples of step / 4, as a store
-    read back holds them (its tiles quantised with a fraction of the manifest's step)."""
+    read back holds them (its tiles quantised with a fraction of the manifest's step).
+    spread_steps "limits": every brick spans exactly 65,535 steps (its int16 values reach
+    -32768 and +32767) around -2**30 steps."""
     rng = np.random.default_rng(seed)
     h = 0.15
-    idx = patch_keys(rng, h, order, np.zeros(3), 1.0 + order * h, keep=0.95)
-    q = rng.integers(-spread_steps, spread_steps, len(idx)).astype(np.int32)
+    # "limits": the whole ball, no gaps in the runs (a gap holds 0, 2**30 steps away)
+    limits = spread_steps == "limits"
+    idx = patch_keys(rng, h, order, np.zeros(3), 1.0 + order * h, keep=1.0 if limits else 0.95, near_sphere=not limits)
+    if limits:
+        q = rng.choice(np.array([-32768, 32767, -1, 0, 1, 12345], np.int64), len(idx)) - 2**30
+    else:
+        q = rng.integers(-spread_steps, spread_steps, len(idx)).astype(np.int32)
     return LevelSpline.from_indices(0, h, order, idx, q * (step / 4))
 
 
 @pytest.mark.parametrize("order,spread_steps,dtype", [(4, 1000, np.int16), (6, 1000, np.int16),
-                                                      (4, 10**6, np.int32)])
+                                                      (6, "limits", np.int16), (4, 10**6, np.int32),
+                                                      (6, 10**6, np.int32)])
 def test_quantised_tables_give_the_bits_of_float_tables(order, spread_steps, dtype):
     """Tables holding a store's integers (int16 with a base per brick, or int32 where a
-    brick spans more than 65,535 steps) give every value, gradient and Hessian bitwise as
-    the float64 tables do, through the full-column and the decoding paths, on and off
-    the sphere and in latitude/longitude batches (sparse and dense points: both of the
-    batch kernel's pipelines), in less memory."""
+    brick spans more than 65,535 steps; bricks spanning the whole int16 range around a
+    base of -2**30 steps) give every value, gradient and Hessian bitwise as the float64
+    tables do, through the full-column and the decoding paths, on and off the sphere and
+    in latitude/longitude batches (sparse and dense points: both of the batch kernel's
+    pipelines), in less memory (int16 column offsets too)."""
     from geoidspline.bspline.index import BrickIndex
 
     step = 0.01
@@ -573,8 +586,14 @@ def test_quantised_tables_give_the_bits_of_float_tables(order, spread_steps, dty
     quantised = BrickIndex([level], order, value_step=step, quantise=True)
     assert plain.qvalues is None and quantised.qvalues.dtype == dtype
     assert quantised.value_step == step / 4 and quantised.values.size == 0
+    assert plain.own_offs.dtype == np.int32 and quantised.own_offs.dtype == np.int16
+    assert quantised.fold_offs is quantised.own_offs
+    np.testing.assert_array_equal(quantised.own_offs, plain.own_offs)
     assert quantised.nbytes == (plain.nbytes - plain.values.nbytes + np.dtype(dtype).itemsize * plain.values.size
-                                + quantised.qbase.nbytes)
+                                + quantised.qbase.nbytes - plain.own_offs.nbytes // 2)
+    if spread_steps == "limits":  # the int16 values' extremes, around a large base
+        assert quantised.qvalues.min() == -32768 and quantised.qvalues.max() == 32767
+        assert quantised.qbase.min() < -2**29
     rng = np.random.default_rng(92)
     points = np.concatenate(list(point_sets(rng, [level], count=1500).values()))
     # global points (sparse: the kernel's chain pipeline) and a 1 degree box (dense)

@@ -425,7 +425,9 @@ class BrickIndex:
         else:
             self.values = cat(values, np.float64, 0)
             self.qvalues = self.qbase = None
-        self.own_offs, self.own_full = _qk.full_columns(self.own_cols, order)
+        # quantised tables' column offsets as int16 (every brick's fit: full_columns)
+        offs_dtype = np.int16 if quantised is not None else np.int32
+        self.own_offs, self.own_full = _qk.full_columns(self.own_cols, order, offs_dtype)
         if any(folded):
             self.fold_base = cat(fold_bases, np.int64, 0)
             fold_cols = [self.own_cols[p[0]:p[1]] if isinstance(p, tuple) else p for p in fold_cols]
