@@ -117,7 +117,17 @@ def kernel(library: Path):
 
 def int32_offsets(index):
     """The quantised index's record with its column offsets as int32 (the libraries before
-    2026-12-06 read them so)."""
+    2026-12-06 read them so); an index with int32 bricks in int16 slots (which they do not
+    read) is built again as they had it (``MIXED_WIDTHS`` off) from its levels."""
+    from geoidspline._kernels.query import QBASE_WIDE
+    from geoidspline.bspline import index as index_module
+
+    if (index.qbase == QBASE_WIDE).any():
+        mixed, index_module.MIXED_WIDTHS = index_module.MIXED_WIDTHS, False
+        try:
+            index = index_module.BrickIndex(index.levels, index.order, value_step=index.value_step, quantise=True)
+        finally:
+            index_module.MIXED_WIDTHS = mixed
     record = type(index.spline).from_buffer_copy(index.spline)
     own = index.own_offs.astype(np.int32)
     fold = own if index.fold_offs is index.own_offs else index.fold_offs.astype(np.int32)

@@ -94,6 +94,7 @@ _own_table_keys = function("gs_own_table_keys", PTR, I64, PTR, I64, I64, I64, I6
                            restype=I64)
 _finest_step = function("gs_finest_step", PTR, I64, F64, I64, restype=I64)
 _quantise_table = function("gs_quantise_table", PTR, I64, PTR, I64, F64, I64, PTR, PTR, restype=I64)
+_quantise_mixed = function("gs_quantise_mixed", PTR, I64, PTR, I64, F64, PTR, PTR, PTR, restype=I64)
 _full_columns = function("gs_full_columns", PTR, I64, I64, PTR, I64, PTR)
 _subdivide_bricks = function("gs_subdivide_bricks", PTR, I64, PTR, PTR, PTR, I64, PTR, I64, I64)
 
@@ -205,6 +206,28 @@ def quantise_table(values, base, step, dtype):
                        ptr(qbase)) != 0:
         return None
     return q, qbase
+
+
+QBASE_WIDE = -(2**31)  # qbase of a brick of int32 values in an int16 table (quantise_mixed)
+
+
+def quantise_mixed(values, base, step):
+    """A table's values (bricks from ``base``) as int16 slots: ``(q int16, qbase int32 per
+    brick, starts int64 per brick)``. A brick whose q span at most 65,535 steps holds
+    ``q - qbase`` (as :func:`quantise_table`'s int16), one slot a value; a brick spanning
+    more holds its int32 q in two slots a value, ``qbase`` :data:`QBASE_WIDE`; ``starts``:
+    each brick's first slot. ``None`` when the values are not all multiples of ``step``
+    (as a store's decoder makes them)."""
+    values = c_in(values, np.float64)
+    base = c_in(base, np.int64)
+    q = np.empty(2 * values.size, np.int16)
+    qbase = np.empty(base.size, np.int32)
+    starts = np.empty(base.size, np.int64)
+    used = _quantise_mixed(ptr(values), values.size, ptr(base), base.size, float(step), ptr(q), ptr(qbase),
+                           ptr(starts))
+    if used < 0:
+        return None
+    return (q[:used].copy() if used < q.size else q), qbase, starts
 
 
 def full_columns(cols, order, offs_dtype=np.int32):

@@ -55,12 +55,16 @@ typedef struct {
     /* Quantised tables (qwidth 2 or 4; values then unused): the coefficient at value
      * position v of brick b is (double)(qbase[b] + qvalues[v]) * value_step, bitwise what
      * a store's decoder gives (codec.py: int32 q times the step); qvalues int16 (qwidth 2)
-     * or int32 (4, qbase 0): 2 or 4 bytes a value, not 8. */
+     * or int32 (4, qbase 0): 2 or 4 bytes a value, not 8. With qwidth 2 a brick whose
+     * values span more than 65,535 steps holds them as int32 (qbase QBASE_WIDE, as 0),
+     * two int16 slots each: the bases (fold_base, own_base) count qwidth-byte slots. */
     const void *qvalues;
     const int32_t *qbase; /* per brick */
     double value_step;
     int64_t qwidth; /* 0: float64 values */
 } gs_spline;
+
+#define QBASE_WIDE INT32_MIN /* qbase of a brick of int32 values in an int16 table */
 
 /* ---- the brick hash --------------------------------------------------------------- */
 
@@ -178,15 +182,14 @@ GS_INLINE double dequantised_at(const int quant, const void *qv, int64_t i, int3
  * decoder's product (gs_spline), converted in vector registers (a column dequantised
  * into memory and loaded back as vectors waits on store forwarding: 3 times slower).
  *
- * The integer to double conversion is the magic-number one, in 64-bit lanes: q
+ * The int16 conversion is the magic-number one, in 64-bit lanes: q
  * sign-extended to int64, plus qmagic = qb + the bits of 1.5 2**52 (one constant a
  * brick, dequant_magic), is the bit pattern of the double 1.5 2**52 + (qb + q) (its
  * mantissa field 2**51 + qb + q does not carry into the exponent: |qb + q| < 2**51, as
- * qb and q are int32 and int16 or 0 and int32); minus 1.5 2**52 that is exactly (double)
+ * qb and q are int32 and int16); minus 1.5 2**52 that is exactly (double)
  * (qb + q) (Sterbenz: both within a factor 2; a zero is +0.0 either way), then times step:
- * the same bits as the decoder's product. (GCC 12 split __builtin_convertvector of 4
- * int32 to 4 doubles into two halves and an insert, and widened 4 int16 to int32 through
- * general registers.) */
+ * the same bits as the decoder's product. (GCC 12 widened 4 int16 to int32 through
+ * general registers, one at a time.) */
 typedef int32_t gs_i32x4 __attribute__((vector_size(16)));
 typedef int32_t gs_i32x2 __attribute__((vector_size(8)));
 typedef int64_t gs_i64x4 __attribute__((vector_size(32)));
@@ -202,10 +205,10 @@ GS_INLINE int64_t dequant_magic(int32_t qb)
     return (int64_t)qb + DEQUANT_MAGIC_BITS;
 }
 
-GS_INLINE gs_v4 dequantised4(const int quant, const void *qv, int64_t at, int64_t qmagic, double step)
+GS_INLINE gs_v4 dequantised4(const int quant, const void *qv, int64_t at, int32_t qb, int64_t qmagic, double step)
 {
-    gs_i64x4 q;
     if (quant == 2) {
+        gs_i64x4 q;
         /* the 4 int16 in every lane, each lane's own moved to the top and shifted back
          * down with its sign (vpbroadcastq, vpsllvq, vpsraq; GCC 12 made
          * __builtin_convertvector of 4 int16 to int64 one lane at a time through general
@@ -214,34 +217,34 @@ GS_INLINE gs_v4 dequantised4(const int quant, const void *qv, int64_t at, int64_
         memcpy(&x, (const int16_t *)qv + at, sizeof x);
         const gs_u64x4 up = {48, 32, 16, 0};
         q = (gs_i64x4)((gs_u64x4){x, x, x, x} << up) >> 48;
-    } else {
-        gs_i32x4 w;
-        memcpy(&w, (const int32_t *)qv + at, sizeof w);
-        q = __builtin_convertvector(w, gs_i64x4);
+        return ((gs_v4)(q + qmagic) - DEQUANT_MAGIC) * step;
     }
-    return ((gs_v4)(q + qmagic) - DEQUANT_MAGIC) * step;
+    /* int32 (qb 0, qb + q an int32): their own conversion (vpaddd, vcvtdq2pd), fewer
+     * instructions than widening to 64-bit lanes for the magic number */
+    gs_i32x4 q;
+    memcpy(&q, (const int32_t *)qv + at, sizeof q);
+    return __builtin_convertvector(q + qb, gs_v4) * step;
 }
 
 GS_INLINE void lanes_dequantised(const int order, const int quant, const void *qv, int64_t at, int32_t qb,
                                  int64_t qmagic, double step, lanes *c)
 {
     for (int k = 0; k < LANE_V(order); ++k)
-        c->v[k] = dequantised4(quant, qv, at + 4 * k, qmagic, step);
+        c->v[k] = dequantised4(quant, qv, at + 4 * k, qb, qmagic, step);
     if (LANE_OVER(order))
-        c->over = dequantised4(quant, qv, at + order - 4, qmagic, step);
+        c->over = dequantised4(quant, qv, at + order - 4, qb, qmagic, step);
     if (LANE_PAIR(order)) {
-        gs_i64x2 q;
         if (quant == 2) {
             uint32_t x;
             memcpy(&x, (const int16_t *)qv + at + 4 * LANE_V(order), sizeof x);
             const gs_u64x2 up = {48, 32};
-            q = (gs_i64x2)((gs_u64x2){x, x} << up) >> 48;
+            gs_i64x2 q = (gs_i64x2)((gs_u64x2){x, x} << up) >> 48;
+            c->pair = ((gs_v2)(q + qmagic) - DEQUANT_MAGIC) * step;
         } else {
-            gs_i32x2 w;
-            memcpy(&w, (const int32_t *)qv + at + 4 * LANE_V(order), sizeof w);
-            q = __builtin_convertvector(w, gs_i64x2);
+            gs_i32x2 q;
+            memcpy(&q, (const int32_t *)qv + at + 4 * LANE_V(order), sizeof q);
+            c->pair = __builtin_convertvector(q + qb, gs_v2) * step;
         }
-        c->pair = ((gs_v2)(q + qmagic) - DEQUANT_MAGIC) * step;
     }
     if (LANE_ONE(order))
         c->one = dequantised_at(quant, qv, at + order - 1, qb, step);
@@ -346,17 +349,21 @@ GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, 
     const int64_t side = (1 << BRICK_BITS) + order - 1;
     const int64_t col_at = (brick * side + lx) * side + ly;
     /* quant (a constant): the table's values are quantised, width 2 (int16) or 4 (int32)
-     * bytes (see gs_spline); else float64 */
-    const int width = quant ? (int)S->qwidth : 0;
+     * bytes (see gs_spline: this brick's own, a wide brick of an int16 table int32); else
+     * float64 */
+    int width = quant ? (int)S->qwidth : 0;
+    int32_t qb = width ? S->qbase[brick] : 0;
+    const void *qv = width ? (const void *)((const char *)S->qvalues + S->qwidth * base) : NULL;
+    if (quant && qb == QBASE_WIDE) {
+        width = 4;
+        qb = 0;
+    }
     const double *values = width ? NULL : S->values + base;
     const double *values_lz = width ? NULL : values + lz;
     /* the column address as one register plus the column's offset (a load's base and
      * index): without this GCC adds base + lz to each offset, one more instruction a column */
     if (!width)
         __asm__("" : "+r"(values_lz));
-    const void *qv = width == 2 ? (const void *)((const int16_t *)S->qvalues + base)
-                                : (const void *)((const int32_t *)S->qvalues + base);
-    const int32_t qb = width ? S->qbase[brick] : 0;
     const int64_t qmagic = dequant_magic(qb);
     const double step = S->value_step;
     /* A per derivative (x, y): 00 value; 10 01 first; 20 02 11 second */
@@ -1062,9 +1069,11 @@ GS_INLINE void prefetch_values(const gs_spline *S, const int order, const int ch
         return;
     const int quant = S->qwidth != 0;
     const int64_t row = (L->brick * side + L->lx) * side + L->ly;
-    const int64_t width = S->qwidth ? S->qwidth : (int64_t)sizeof(double);
-    const char *v = (const char *)(S->qwidth ? S->qvalues : (const void *)S->values) +
-                    width * (S->fold_base[L->brick] + L->lz);
+    int64_t width = S->qwidth ? S->qwidth : (int64_t)sizeof(double); /* the brick's bytes a value */
+    const char *v = (const char *)(S->qwidth ? S->qvalues : (const void *)S->values) + width * S->fold_base[L->brick];
+    if (quant && S->qbase[L->brick] == QBASE_WIDE)
+        width = 4;
+    v += width * L->lz;
     for (int p = 0; p < order; ++p) {
         const char *first = v + width * column_offset(quant, S->fold_offs, row + p * side);
         const char *last = v + width * (column_offset(quant, S->fold_offs, row + p * side + order - 1) + order - 1);
@@ -1522,6 +1531,45 @@ GS_EXPORT int64_t gs_quantise_table(const double *values, int64_t total, const i
         }
     }
     return 0;
+}
+
+/* A table's values as gs_quantise_table's width 2, except that a brick whose q span
+ * more than 65,535 steps holds them as int32 (qbase QBASE_WIDE), two int16 slots each:
+ * starts (nb) receives each brick's first slot. q: room for 2 total slots. Returns the
+ * slots used, or -(the first brick whose values are not multiples of step + 1). */
+GS_EXPORT int64_t gs_quantise_mixed(const double *values, int64_t total, const int64_t *base, int64_t nb, double step,
+                                    int16_t *q, int32_t *qbase, int64_t *starts)
+{
+    int64_t at = 0;
+    for (int64_t b = 0; b < nb; ++b) {
+        int64_t lo = base[b], hi = b + 1 < nb ? base[b + 1] : total;
+        int64_t q_min = INT64_MAX, q_max = INT64_MIN;
+        for (int64_t v = lo; v < hi; ++v) {
+            double r = rint(values[v] / step);
+            if (!(fabs(r) < 2147483648.0))
+                return -(b + 1);
+            int64_t qv = (int64_t)r;
+            double back = (double)(int32_t)qv * step;
+            if (memcmp(&back, &values[v], sizeof back) != 0) /* bitwise: -0.0 is not 0.0 */
+                return -(b + 1);
+            if (qv < q_min) q_min = qv;
+            if (qv > q_max) q_max = qv;
+        }
+        starts[b] = at;
+        if (hi > lo && q_max - q_min > 65535) {
+            qbase[b] = QBASE_WIDE;
+            for (int64_t v = lo; v < hi; ++v, at += 2) {
+                int32_t qv = (int32_t)rint(values[v] / step);
+                memcpy(q + at, &qv, sizeof qv);
+            }
+        } else {
+            int64_t qb = hi > lo ? q_min + 32768 : 0;
+            qbase[b] = (int32_t)qb; /* > QBASE_WIDE: q_min >= -2**31 */
+            for (int64_t v = lo; v < hi; ++v)
+                q[at++] = (int16_t)((int64_t)rint(values[v] / step) - qb);
+        }
+    }
+    return at;
 }
 
 /* The full-column maps of a table (gs_spline's *_offs and *_full, see table_sum) from its
