@@ -102,7 +102,8 @@ def build_library(root: Path, extra_cflags: list[str]) -> Path:
 
 
 def kernel(library: Path):
-    """(gs_undulation_latlon, whether the library reads quantised tables)"""
+    """(gs_undulation_latlon, whether the library reads quantised tables, the bytes of the
+    column offsets it reads with them: 2, int16, from 2026-12-06 on; 4 before)"""
     lib = ctypes.CDLL(str(library))
     f = lib.gs_undulation_latlon
     # the last arguments, max_abs_longitude (degrees, branch q23c) and in_order (branch
@@ -110,7 +111,30 @@ def kernel(library: Path):
     f.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64,
                   ctypes.c_void_p, ctypes.c_int64, ctypes.c_double, ctypes.c_int64]
     f.restype = ctypes.c_int64
-    return f, hasattr(lib, "gs_quantise_table")
+    offs_width = lib.gs_quantised_offs_width() if hasattr(lib, "gs_quantised_offs_width") else 4
+    return f, hasattr(lib, "gs_quantise_table"), offs_width
+
+
+def int32_offsets(index):
+    """The quantised index's record with its column offsets as int32 (the libraries before
+    2026-12-06 read them so); an index with int32 bricks in int16 slots (which they do not
+    read) is built again as they had it (``MIXED_WIDTHS`` off) from its levels."""
+    from geoidspline._kernels.query import QBASE_WIDE
+    from geoidspline.bspline import index as index_module
+
+    if (index.qbase == QBASE_WIDE).any():
+        mixed, index_module.MIXED_WIDTHS = index_module.MIXED_WIDTHS, False
+        try:
+            index = index_module.BrickIndex(index.levels, index.order, value_step=index.value_step, quantise=True)
+        finally:
+            index_module.MIXED_WIDTHS = mixed
+    record = type(index.spline).from_buffer_copy(index.spline)
+    own = index.own_offs.astype(np.int32)
+    fold = own if index.fold_offs is index.own_offs else index.fold_offs.astype(np.int32)
+    record._offs = (own, fold)  # alive with the record
+    record.own_offs, record.fold_offs = own.ctypes.data, fold.ctypes.data
+    record._index = index
+    return record
 
 
 def main(argv=None):
@@ -137,13 +161,13 @@ def main(argv=None):
     except ImportError:  # an installed package from before branch q23q: always sorted
         IN_ORDER_MAX_BYTES = -1
 
-    libs, labels, quantised = {}, {}, {}
+    libs, labels, quantised, offs_width = {}, {}, {}, {}
     try:
         for side, spec, flags in (("A", args.a, args.a_cflags), ("B", args.b, args.b_cflags)):
             root = work / side
             labels[side] = fetch_sources(spec, root) + (f" {flags}" if flags else "")
             t0 = time.perf_counter()
-            libs[side], quantised[side] = kernel(build_library(root, flags.split()))
+            libs[side], quantised[side], offs_width[side] = kernel(build_library(root, flags.split()))
             print(f"{side}: {labels[side]}, built in {time.perf_counter() - t0:.1f} s")
         batches = {"global": random_points(args.points),
                    "regional": random_points(args.points, SEED + 1, EUROPE)}  # query_benchmark.py's batches
@@ -159,7 +183,11 @@ def main(argv=None):
             full = geoidspline.open_store(store).spline.full
             index = full.index
             float_index = BrickIndex(full.levels, full.order) if index.values.size == 0 else index
-            splines = {side: ctypes.addressof((index if quantised[side] else float_index).spline) for side in libs}
+            records = {side: (index if quantised[side] else float_index).spline for side in libs}
+            for side in libs:
+                if index.qvalues is not None and quantised[side] and offs_width[side] == 4:
+                    records[side] = int32_offsets(index)  # a library from before the int16 offsets
+            splines = {side: ctypes.addressof(record) for side, record in records.items()}
             in_order = int(IN_ORDER_MAX_BYTES >= 0 and index.hot_bytes <= IN_ORDER_MAX_BYTES)  # as BrickIndex does
             for name in args.batch or ["global"]:
                 lat, lon = (np.ascontiguousarray(a) for a in batches[name])

@@ -541,6 +541,10 @@ def test_full_column_maps_follow_their_definition(order):
         want_offs, want_full = full_columns_by_definition(cols, order)
         np.testing.assert_array_equal(offs, want_offs)
         np.testing.assert_array_equal(full, want_full)
+        offs16, full16 = _kernels.full_columns(cols, order, np.int16)  # the quantised tables' offsets
+        assert offs16.dtype == np.int16
+        np.testing.assert_array_equal(offs16, want_offs)
+        np.testing.assert_array_equal(full16, want_full)
         assert 0 < np.count_nonzero(full) < full.size  # both paths occur
 
 
@@ -599,32 +603,54 @@ def test_own_tables_from_keys_equal_those_from_brick_entries(order):
 
 def _quantised_level(seed, order, step, spread_steps):
     """One level over the sphere whose coefficients are multiples of step / 4, as a store
-    read back holds them (its tiles quantised with a fraction of the manifest's step)."""
+    read back holds them (its tiles quantised with a fraction of the manifest's step).
+    spread_steps "limits": every brick spans exactly 65,535 steps (its int16 values reach
+    -32768 and +32767) around -2**30 steps."""
     rng = np.random.default_rng(seed)
     h = 0.15
-    idx = patch_keys(rng, h, order, np.zeros(3), 1.0 + order * h, keep=0.95)
-    q = rng.integers(-spread_steps, spread_steps, len(idx)).astype(np.int32)
+    # "limits": the whole ball, no gaps in the runs (a gap holds 0, 2**30 steps away)
+    limits = spread_steps == "limits"
+    idx = patch_keys(rng, h, order, np.zeros(3), 1.0 + order * h, keep=1.0 if limits else 0.95, near_sphere=not limits)
+    if limits:
+        q = rng.choice(np.array([-32768, 32767, -1, 0, 1, 12345], np.int64), len(idx)) - 2**30
+    elif spread_steps == "mixed":  # bricks beyond int16 (where x > 0.5) beside bricks within it
+        q = rng.integers(-1000, 1000, len(idx)) + np.where(idx[:, 0] * h > 0.5, rng.integers(-10**6, 10**6, len(idx)), 0)
+    else:
+        q = rng.integers(-spread_steps, spread_steps, len(idx)).astype(np.int32)
     return LevelSpline.from_indices(0, h, order, idx, q * (step / 4))
 
 
-@pytest.mark.parametrize("order,spread_steps,dtype", [(4, 1000, np.int16), (6, 1000, np.int16),
-                                                      (4, 10**6, np.int32)])
-def test_quantised_tables_give_the_bits_of_float_tables(order, spread_steps, dtype):
-    """Tables holding a store's integers (int16 with a base per brick, or int32 where a
-    brick spans more than 65,535 steps) give every value, gradient and Hessian bitwise as
-    the float64 tables do, through the full-column and the decoding paths, on and off
-    the sphere and in latitude/longitude batches (sparse and dense points: both of the
-    batch kernel's pipelines), in less memory."""
+@pytest.mark.parametrize("order,spread_steps,wide", [(4, 1000, "none"), (6, 1000, "none"), (6, "limits", "none"),
+                                                     (4, 10**6, "all"), (6, 10**6, "all"), (6, "mixed", "some"),
+                                                     (4, "mixed", "some")])
+def test_quantised_tables_give_the_bits_of_float_tables(order, spread_steps, wide):
+    """Tables holding a store's integers (int16 with a base per brick, or int32 in two
+    int16 slots where a brick spans more than 65,535 steps; bricks spanning the whole
+    int16 range around a base of -2**30 steps) give every value, gradient and Hessian
+    bitwise as the float64 tables do, through the full-column and the decoding paths, on
+    and off the sphere and in latitude/longitude batches (sparse and dense points: both
+    of the batch kernel's pipelines), in less memory (int16 column offsets too)."""
     from geoidspline.bspline.index import BrickIndex
 
     step = 0.01
     level = _quantised_level(91, order, step, spread_steps)
     plain = BrickIndex([level], order)
     quantised = BrickIndex([level], order, value_step=step, quantise=True)
-    assert plain.qvalues is None and quantised.qvalues.dtype == dtype
+    assert plain.qvalues is None and quantised.qvalues.dtype == np.int16
     assert quantised.value_step == step / 4 and quantised.values.size == 0
-    assert quantised.nbytes == (plain.nbytes - plain.values.nbytes + np.dtype(dtype).itemsize * plain.values.size
-                                + quantised.qbase.nbytes)
+    is_wide = quantised.qbase == _kernels.QBASE_WIDE
+    assert {"none": not is_wide.any(), "all": is_wide.all(), "some": 0 < is_wide.mean() < 0.9}[wide]
+    assert plain.own_offs.dtype == np.int32 and quantised.own_offs.dtype == np.int16
+    assert quantised.fold_offs is quantised.own_offs
+    np.testing.assert_array_equal(quantised.own_offs, plain.own_offs)
+    # a value in one int16 slot, or two in a wide brick
+    values_per_brick = np.diff(np.r_[plain.own_base, plain.values.size])
+    assert quantised.qvalues.size == plain.values.size + values_per_brick[is_wide].sum()
+    assert quantised.nbytes == (plain.nbytes - plain.values.nbytes + quantised.qvalues.nbytes
+                                + quantised.qbase.nbytes - plain.own_offs.nbytes // 2)
+    if spread_steps == "limits":  # the int16 values' extremes, around a large base
+        assert quantised.qvalues.min() == -32768 and quantised.qvalues.max() == 32767
+        assert quantised.qbase.min() < -2**29
     rng = np.random.default_rng(92)
     points = np.concatenate(list(point_sets(rng, [level], count=1500).values()))
     # global points (sparse: the kernel's chain pipeline) and a 1 degree box (dense)
@@ -646,6 +672,25 @@ def test_quantised_tables_give_the_bits_of_float_tables(order, spread_steps, dty
     quantised.fold_full[:] = 0  # every point through the decoding path
     for got, expected in zip(results(quantised), want):
         np.testing.assert_array_equal(got, expected)
+
+
+def test_tables_of_one_width_for_older_kernels(monkeypatch):
+    """MIXED_WIDTHS off: int32 throughout once a brick spans more than int16 holds (the
+    tables kernel libraries before int16 slots read), the same values."""
+    from geoidspline.bspline import index as index_module
+
+    level = _quantised_level(96, 6, 0.01, "mixed")
+    mixed = index_module.BrickIndex([level], 6, value_step=0.01, quantise=True)
+    monkeypatch.setattr(index_module, "MIXED_WIDTHS", False)
+    uniform = index_module.BrickIndex([level], 6, value_step=0.01, quantise=True)
+    assert mixed.qvalues.dtype == np.int16 and (mixed.qbase == _kernels.QBASE_WIDE).any()
+    assert uniform.qvalues.dtype == np.int32 and (uniform.qbase == 0).all()
+    points = unit_vectors(np.random.default_rng(97), 20_000)
+    got = [np.zeros((points.shape[0], 4)) for _ in range(2)]
+    mixed.add_to(points, got[0], 1)
+    uniform.add_to(points, got[1], 1)
+    np.testing.assert_array_equal(got[0], got[1])
+    assert np.abs(got[0][:, 0]).max() > 1.0
 
 
 def test_tables_stay_float_unless_every_coefficient_is_a_multiple_of_the_step():

@@ -51,7 +51,8 @@ class Spline(ctypes.Structure):
            own_base, own_cols, values, fold_offs, fold_full, own_offs, own_full, qvalues=None, qbase=None,
            value_step=0.0) -> "Spline":
         """``presence`` (levels, PRESENCE_SIDE³) uint8; ``slots`` (capacity, 2) int64;
-        ``fold_cols``/``own_cols`` and ``fold_offs``/``own_offs`` (bricks, side, side) int32,
+        ``fold_cols``/``own_cols`` and ``fold_offs``/``own_offs`` (bricks, side, side) int32
+        (the offsets int16 with quantised values),
         ``fold_full``/``own_full`` (bricks, 2**BRICK_BITS, 2**BRICK_BITS) uint16 (see
         :func:`full_columns`); the rest per level or per brick (int64) and ``values``
         float64. Quantised tables (:func:`quantise_table`): ``qvalues`` int16 or int32 and
@@ -62,7 +63,9 @@ class Spline(ctypes.Structure):
                       slot_start=(slot_start, np.int64), slot_mask=(slot_mask, np.int64),
                       fold_base=(fold_base, np.int64), own_base=(own_base, np.int64),
                       fold_cols=(fold_cols, np.int32), own_cols=(own_cols, np.int32), values=(values, np.float64),
-                      fold_offs=(fold_offs, np.int32), own_offs=(own_offs, np.int32),
+                      # int16 offsets with quantised values (src/query.c's column_offset)
+                      fold_offs=(fold_offs, np.int32 if qvalues is None else np.int16),
+                      own_offs=(own_offs, np.int32 if qvalues is None else np.int16),
                       fold_full=(fold_full, np.uint16), own_full=(own_full, np.uint16))
         if qvalues is not None:
             arrays.update(qvalues=(qvalues, np.int32 if qvalues.dtype == np.int32 else np.int16),
@@ -92,7 +95,8 @@ _own_table_keys = function("gs_own_table_keys", PTR, I64, PTR, I64, I64, I64, I6
                            restype=I64)
 _finest_step = function("gs_finest_step", PTR, I64, F64, I64, restype=I64)
 _quantise_table = function("gs_quantise_table", PTR, I64, PTR, I64, F64, I64, PTR, PTR, restype=I64)
-_full_columns = function("gs_full_columns", PTR, I64, I64, PTR, PTR)
+_quantise_mixed = function("gs_quantise_mixed", PTR, I64, PTR, I64, F64, PTR, PTR, PTR, restype=I64)
+_full_columns = function("gs_full_columns", PTR, I64, I64, PTR, I64, PTR)
 _subdivide_bricks = function("gs_subdivide_bricks", PTR, I64, PTR, PTR, PTR, I64, PTR, I64, I64)
 
 
@@ -205,21 +209,50 @@ def quantise_table(values, base, step, dtype):
     return q, qbase
 
 
-def full_columns(cols, order):
+QBASE_WIDE = -(2**31)  # qbase of a brick of int32 values in an int16 table (quantise_mixed)
+
+
+def quantise_mixed(values, base, step):
+    """A table's values (bricks from ``base``) as int16 slots: ``(q int16, qbase int32 per
+    brick, starts int64 per brick)``. A brick whose q span at most 65,535 steps holds
+    ``q - qbase`` (as :func:`quantise_table`'s int16), one slot a value; a brick spanning
+    more holds its int32 q in two slots a value, ``qbase`` :data:`QBASE_WIDE`; ``starts``:
+    each brick's first slot. ``None`` when the values are not all multiples of ``step``
+    (as a store's decoder makes them)."""
+    values = c_in(values, np.float64)
+    base = c_in(base, np.int64)
+    q = np.empty(2 * values.size, np.int16)
+    qbase = np.empty(base.size, np.int32)
+    starts = np.empty(base.size, np.int64)
+    used = _quantise_mixed(ptr(values), values.size, ptr(base), base.size, float(step), ptr(q), ptr(qbase),
+                           ptr(starts))
+    if used < 0:
+        return None
+    return (q[:used].copy() if used < q.size else q), qbase, starts
+
+
+def full_columns(cols, order, offs_dtype=np.int32):
     """The full-column maps of a table from its column entries ``cols`` (B, side, side)
-    int32: ``(offs (B, side, side) int32, full (B, 2**BRICK_BITS, 2**BRICK_BITS) uint16)``.
+    int32: ``(offs (B, side, side) offs_dtype, full (B, 2**BRICK_BITS, 2**BRICK_BITS) uint16)``.
 
     ``offs``: per column, its run's offset from the brick's base minus its first local k
     (local k of a non-empty column is at ``values[base + offs + k]``); ``full``: per cell
     column (lx, ly) of a brick, bit lz set when all ``order²`` columns ``(lx + p, ly + q)``
     hold local k = lz .. lz + order - 1, so that a point in cell (lx, ly, lz) reads them
     without decoding (the evaluation's fast path; the same products in the same order).
+    ``offs_dtype``: int16 (the quantised tables' offsets: a brick's runs hold at most
+    ``side**3`` < 2**15 values, so every offset fits) or int32.
     """
     cols = c_in(cols, np.int32)
     cells = 1 << BRICK_BITS
-    offs = np.empty(cols.shape, np.int32)
+    offs_dtype = np.dtype(offs_dtype)
+    if offs_dtype not in (np.dtype(np.int16), np.dtype(np.int32)):
+        raise TypeError(f"offs_dtype must be int16 or int32, not {offs_dtype}")
+    if offs_dtype == np.int16 and cols.shape[1] ** 3 > np.iinfo(np.int16).max:
+        raise ValueError(f"int16 column offsets need side**3 < 2**15 (side {cols.shape[1]})")
+    offs = np.empty(cols.shape, offs_dtype)
     full = np.empty((cols.shape[0], cells, cells), np.uint16)
-    _full_columns(ptr(cols), cols.shape[0], int(order), ptr(offs), ptr(full))
+    _full_columns(ptr(cols), cols.shape[0], int(order), ptr(offs), offs_dtype.itemsize, ptr(full))
     return offs, full
 
 

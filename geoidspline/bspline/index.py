@@ -110,10 +110,18 @@ class _NotQuantisable(Exception):
     spans more steps than int16 holds): the index is built with float64 values."""
 
 
+MIXED_WIDTHS = True
+"""Quantised tables are int16 with a base per brick, a brick spanning more than 65,535
+steps holding int32 values in two int16 slots each (:func:`geoidspline._kernels.query.quantise_mixed`);
+False: int16 while every brick fits, else int32 throughout (the tables of before
+2026-12-06, which older kernel libraries read: benchmarks)."""
+
+
 class _Quantised:
-    """An index's values held as integers of its step (:func:`geoidspline._kernels.query.quantise_table`):
-    int16 with a base per brick (2 bytes a value) while every brick spans at most 65,535
-    steps, else int32 (the parts so far widened then)."""
+    """An index's values held as integers of its step: int16 slots, a base per brick (2
+    bytes a value), int32 in two slots for a brick spanning more than 65,535 steps
+    (:data:`MIXED_WIDTHS`; else :func:`geoidspline._kernels.query.quantise_table`, int16
+    while every brick fits, else int32 for all, the parts so far widened then)."""
 
     def __init__(self, step):
         self.step = step
@@ -121,7 +129,15 @@ class _Quantised:
         self.values, self.qbases, self._bases = [], [], []
 
     def add(self, values, base):
-        """Add one part of the table's values (bricks from ``base``, local to the part)."""
+        """Add one part of the table's values (bricks from ``base``, local to the part):
+        returns each brick's first slot in the part and the part's slots."""
+        if MIXED_WIDTHS:
+            got = _qk.quantise_mixed(values, base, self.step)
+            if got is None:
+                raise _NotQuantisable
+            self.values.append(got[0])
+            self.qbases.append(got[1])
+            return got[2], got[0].size
         while True:
             got = _qk.quantise_table(values, base, self.step, self.dtype)
             if got is not None:
@@ -136,6 +152,7 @@ class _Quantised:
         self.values.append(got[0])
         self.qbases.append(got[1])
         self._bases.append(base)
+        return base, values.size
 
 
 class _Slab:
@@ -248,9 +265,11 @@ def _own_tables(lv, order, quantised):
             need = total if quantised is not None else v_at + total
             if need > values.shape[0]:
                 values = _grown(values, 0 if quantised is not None else v_at, max(2 * values.shape[0], need))
-        if quantised is not None:
-            quantised.add(values[:total].copy(), base[b_at:b_at + nb].copy())
+        if quantised is not None:  # bases and sizes in the quantised table's slots
+            starts, slots = quantised.add(values[:total].copy(), base[b_at:b_at + nb].copy())
             values[:total] = 0.0
+            base[b_at:b_at + nb] = starts
+            total = slots
         base[b_at:b_at + nb] += v_at
         b_at += nb
         v_at += total
@@ -343,8 +362,8 @@ class BrickIndex:
     coefficient; given ``value_step`` (metres: a store's, whose coefficients are
     multiples of it or of a power-of-two fraction of it, bitwise), the tables of a spline
     of :data:`QUANTISE_FROM_COEFFICIENTS` coefficients or more (or any, ``quantise=True``)
-    hold those integers instead of float64: int16 with a base per brick, or int32 where a
-    brick spans more than 65,535 steps; the kernels multiply them back exactly as the
+    hold those integers instead of float64: int16 with a base per brick, or int32 (in two
+    int16 slots) for a brick spanning more than 65,535 steps (:data:`MIXED_WIDTHS`); the kernels multiply them back exactly as the
     store's decoder does, so every result has the same bits. Such an index holds one copy
     of its column tables (own and folded are the same).
     Memory: :attr:`nbytes`. Immutable once built; evaluation is
@@ -433,7 +452,9 @@ class BrickIndex:
         else:
             self.values = cat(values, np.float64, 0)
             self.qvalues = self.qbase = None
-        self.own_offs, self.own_full = _qk.full_columns(self.own_cols, order)
+        # quantised tables' column offsets as int16 (every brick's fit: full_columns)
+        offs_dtype = np.int16 if quantised is not None else np.int32
+        self.own_offs, self.own_full = _qk.full_columns(self.own_cols, order, offs_dtype)
         if any(folded):
             self.fold_base = cat(fold_bases, np.int64, 0)
             fold_cols = [self.own_cols[p[0]:p[1]] if isinstance(p, tuple) else p for p in fold_cols]

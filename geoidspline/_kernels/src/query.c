@@ -48,17 +48,23 @@ typedef struct {
     const int64_t *fold_base, *own_base;        /* per brick: first value of its table */
     const int32_t *fold_cols, *own_cols;        /* (bricks, side, side) column entries */
     const double *values;
-    const int32_t *fold_offs, *own_offs;        /* (bricks, side, side) per column: run offset - first k */
+    /* (bricks, side, side) per column: run offset - first k; int32, or int16 with quantised
+     * values (qwidth != 0: column_offset; a brick holds at most side^3 < 2^15 values) */
+    const void *fold_offs, *own_offs;
     const uint16_t *fold_full, *own_full;       /* (bricks, S, S) per cell column: bit lz = all columns full */
     /* Quantised tables (qwidth 2 or 4; values then unused): the coefficient at value
      * position v of brick b is (double)(qbase[b] + qvalues[v]) * value_step, bitwise what
      * a store's decoder gives (codec.py: int32 q times the step); qvalues int16 (qwidth 2)
-     * or int32 (4, qbase 0): 2 or 4 bytes a value, not 8. */
+     * or int32 (4, qbase 0): 2 or 4 bytes a value, not 8. With qwidth 2 a brick whose
+     * values span more than 65,535 steps holds them as int32 (qbase QBASE_WIDE, as 0),
+     * two int16 slots each: the bases (fold_base, own_base) count qwidth-byte slots. */
     const void *qvalues;
     const int32_t *qbase; /* per brick */
     double value_step;
     int64_t qwidth; /* 0: float64 values */
 } gs_spline;
+
+#define QBASE_WIDE INT32_MIN /* qbase of a brick of int32 values in an int16 table */
 
 /* ---- the brick hash --------------------------------------------------------------- */
 
@@ -174,42 +180,71 @@ GS_INLINE double dequantised_at(const int quant, const void *qv, int64_t i, int3
 /* The order coefficients of a quantised table (quant 2: int16, 4: int32) at qv + at, as
  * lanes (laid out as lanes_axpy reads a column): (double)(qb + q) * step per lane, the
  * decoder's product (gs_spline), converted in vector registers (a column dequantised
- * into memory and loaded back as vectors waits on store forwarding: 3 times slower). */
+ * into memory and loaded back as vectors waits on store forwarding: 3 times slower).
+ *
+ * The int16 conversion is the magic-number one, in 64-bit lanes: q
+ * sign-extended to int64, plus qmagic = qb + the bits of 1.5 2**52 (one constant a
+ * brick, dequant_magic), is the bit pattern of the double 1.5 2**52 + (qb + q) (its
+ * mantissa field 2**51 + qb + q does not carry into the exponent: |qb + q| < 2**51, as
+ * qb and q are int32 and int16); minus 1.5 2**52 that is exactly (double)
+ * (qb + q) (Sterbenz: both within a factor 2; a zero is +0.0 either way), then times step:
+ * the same bits as the decoder's product. (GCC 12 widened 4 int16 to int32 through
+ * general registers, one at a time.) */
 typedef int32_t gs_i32x4 __attribute__((vector_size(16)));
-typedef int16_t gs_i16x4 __attribute__((vector_size(8)));
 typedef int32_t gs_i32x2 __attribute__((vector_size(8)));
-typedef int16_t gs_i16x2 __attribute__((vector_size(4)));
+typedef int64_t gs_i64x4 __attribute__((vector_size(32)));
+typedef int64_t gs_i64x2 __attribute__((vector_size(16)));
+typedef uint64_t gs_u64x4 __attribute__((vector_size(32)));
+typedef uint64_t gs_u64x2 __attribute__((vector_size(16)));
+#define DEQUANT_MAGIC 6755399441055744.0           /* 1.5 2**52 */
+#define DEQUANT_MAGIC_BITS 0x4338000000000000LL    /* its bits */
 
-GS_INLINE gs_v4 dequantised4(const int quant, const void *qv, int64_t at, int32_t qb, double step)
+/* qb + the bits of 1.5 2**52, the per-brick constant of dequantised4 */
+GS_INLINE int64_t dequant_magic(int32_t qb)
 {
-    gs_i32x4 q;
+    return (int64_t)qb + DEQUANT_MAGIC_BITS;
+}
+
+GS_INLINE gs_v4 dequantised4(const int quant, const void *qv, int64_t at, int32_t qb, int64_t qmagic, double step)
+{
     if (quant == 2) {
-        gs_i16x4 h;
-        memcpy(&h, (const int16_t *)qv + at, sizeof h);
-        q = __builtin_convertvector(h, gs_i32x4);
-    } else {
-        memcpy(&q, (const int32_t *)qv + at, sizeof q);
+        gs_i64x4 q;
+        /* the 4 int16 in every lane, each lane's own moved to the top and shifted back
+         * down with its sign (vpbroadcastq, vpsllvq, vpsraq; GCC 12 made
+         * __builtin_convertvector of 4 int16 to int64 one lane at a time through general
+         * registers) */
+        uint64_t x;
+        memcpy(&x, (const int16_t *)qv + at, sizeof x);
+        const gs_u64x4 up = {48, 32, 16, 0};
+        q = (gs_i64x4)((gs_u64x4){x, x, x, x} << up) >> 48;
+        return ((gs_v4)(q + qmagic) - DEQUANT_MAGIC) * step;
     }
+    /* int32 (qb 0, qb + q an int32): their own conversion (vpaddd, vcvtdq2pd), fewer
+     * instructions than widening to 64-bit lanes for the magic number */
+    gs_i32x4 q;
+    memcpy(&q, (const int32_t *)qv + at, sizeof q);
     return __builtin_convertvector(q + qb, gs_v4) * step;
 }
 
 GS_INLINE void lanes_dequantised(const int order, const int quant, const void *qv, int64_t at, int32_t qb,
-                                 double step, lanes *c)
+                                 int64_t qmagic, double step, lanes *c)
 {
     for (int k = 0; k < LANE_V(order); ++k)
-        c->v[k] = dequantised4(quant, qv, at + 4 * k, qb, step);
+        c->v[k] = dequantised4(quant, qv, at + 4 * k, qb, qmagic, step);
     if (LANE_OVER(order))
-        c->over = dequantised4(quant, qv, at + order - 4, qb, step);
+        c->over = dequantised4(quant, qv, at + order - 4, qb, qmagic, step);
     if (LANE_PAIR(order)) {
-        gs_i32x2 q;
         if (quant == 2) {
-            gs_i16x2 h;
-            memcpy(&h, (const int16_t *)qv + at + 4 * LANE_V(order), sizeof h);
-            q = __builtin_convertvector(h, gs_i32x2);
+            uint32_t x;
+            memcpy(&x, (const int16_t *)qv + at + 4 * LANE_V(order), sizeof x);
+            const gs_u64x2 up = {48, 32};
+            gs_i64x2 q = (gs_i64x2)((gs_u64x2){x, x} << up) >> 48;
+            c->pair = ((gs_v2)(q + qmagic) - DEQUANT_MAGIC) * step;
         } else {
+            gs_i32x2 q;
             memcpy(&q, (const int32_t *)qv + at + 4 * LANE_V(order), sizeof q);
+            c->pair = __builtin_convertvector(q + qb, gs_v2) * step;
         }
-        c->pair = __builtin_convertvector(q + qb, gs_v2) * step;
     }
     if (LANE_ONE(order))
         c->one = dequantised_at(quant, qv, at + order - 1, qb, step);
@@ -257,6 +292,21 @@ GS_INLINE const double *dequantised(const int order, const int quant, const void
     return pad;
 }
 
+/* The bytes of a quantised spline's column offsets (2: int16; before 2026-12-06 int32, 4):
+ * benchmarks/query_ab.py gives older libraries int32 ones. */
+GS_EXPORT int64_t gs_quantised_offs_width(void)
+{
+    return 2;
+}
+
+/* Entry i of a table's column offsets (gs_spline's *_offs): int16 with quantised values
+ * (quant), else int32: a point's order rows of offsets, side apart, span half the bytes
+ * and about half the cache lines (tables beyond the caches: benchmarks/README.md). */
+GS_INLINE int64_t column_offset(const int quant, const void *offs, int64_t i)
+{
+    return quant ? (int64_t)((const int16_t *)offs)[i] : (int64_t)((const int32_t *)offs)[i];
+}
+
 /* The first of the order coefficients k = lz .. lz + order - 1 of column entry packed
  * (a run of length coefficients from local k0 at values + run offset), or pad filled with
  * them and zeros where the run does not reach; NULL when the column is empty. quant: the
@@ -293,23 +343,28 @@ GS_INLINE const double *column_run(const int order, const int quant, const doubl
  * zero-padded copy. Both add the same products in the same order (the same bits). */
 GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, const int full, const int quant,
                          const double *wx, const double *wy, const double *wz, const int ws, int64_t base,
-                         const int32_t *cols, const int32_t *offs,
+                         const int32_t *cols, const void *offs,
                          int64_t brick, int64_t lx, int64_t ly, int64_t lz, double inv_h, double *result)
 {
     const int64_t side = (1 << BRICK_BITS) + order - 1;
     const int64_t col_at = (brick * side + lx) * side + ly;
     /* quant (a constant): the table's values are quantised, width 2 (int16) or 4 (int32)
-     * bytes (see gs_spline); else float64 */
-    const int width = quant ? (int)S->qwidth : 0;
+     * bytes (see gs_spline: this brick's own, a wide brick of an int16 table int32); else
+     * float64 */
+    int width = quant ? (int)S->qwidth : 0;
+    int32_t qb = width ? S->qbase[brick] : 0;
+    const void *qv = width ? (const void *)((const char *)S->qvalues + S->qwidth * base) : NULL;
+    if (quant && qb == QBASE_WIDE) {
+        width = 4;
+        qb = 0;
+    }
     const double *values = width ? NULL : S->values + base;
     const double *values_lz = width ? NULL : values + lz;
     /* the column address as one register plus the column's offset (a load's base and
      * index): without this GCC adds base + lz to each offset, one more instruction a column */
     if (!width)
         __asm__("" : "+r"(values_lz));
-    const void *qv = width == 2 ? (const void *)((const int16_t *)S->qvalues + base)
-                                : (const void *)((const int32_t *)S->qvalues + base);
-    const int32_t qb = width ? S->qbase[brick] : 0;
+    const int64_t qmagic = dequant_magic(qb);
     const double step = S->value_step;
     /* A per derivative (x, y): 00 value; 10 01 first; 20 02 11 second */
     lanes a00, a10, a01, a20, a02, a11;
@@ -336,7 +391,8 @@ GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, 
             if (full && quant) {
                 lanes col;
                 lanes_zero(order, &col); /* the lanes it does not fill (unread: for the compiler) */
-                lanes_dequantised(order, width, qv, lz + offs[col_at + p * side + q], qb, step, &col);
+                lanes_dequantised(order, width, qv, lz + column_offset(1, offs, col_at + p * side + q), qb, qmagic, step,
+                                  &col);
                 lanes_add(order, &b0, wy[q * ws], &col);
                 if (nderiv >= 1)
                     lanes_add(order, &b1, wy[(order + q) * ws], &col);
@@ -345,7 +401,7 @@ GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, 
                 continue;
             }
             if (full) {
-                c = values_lz + offs[col_at + p * side + q];
+                c = values_lz + column_offset(quant, offs, col_at + p * side + q);
             } else {
                 c = column_run(order, width, values, qv, qb, step, cols[col_at + p * side + q], lz, pad);
                 if (c == NULL)
@@ -389,7 +445,7 @@ GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, 
  * the decoding one otherwise (quant: from quantised values). */
 GS_INLINE void table_sums(const gs_spline *S, const int order, const int nderiv, const int quant, const double *wx,
                           const double *wy, const double *wz, const int ws, int64_t base, const int32_t *cols,
-                          const int32_t *offs, const uint16_t *full, int64_t brick, int64_t lx, int64_t ly,
+                          const void *offs, const uint16_t *full, int64_t brick, int64_t lx, int64_t ly,
                           int64_t lz, double inv_h, double *result)
 {
     if ((full[(brick << (2 * BRICK_BITS)) + (lx << BRICK_BITS) + ly] >> lz) & 1)
@@ -404,7 +460,7 @@ GS_INLINE void table_sums(const gs_spline *S, const int order, const int nderiv,
 #define GS_QUANTISED_SUMS(o, d)                                                                                       \
     GS_HOT static void quantised_sums_##o##_##d(const gs_spline *S, int order_, const double *wx, const double *wy, \
                                                 const double *wz, int ws, int64_t base, const int32_t *cols,         \
-                                                const int32_t *offs, const uint16_t *full, int64_t brick, int64_t lx, \
+                                                const void *offs, const uint16_t *full, int64_t brick, int64_t lx,    \
                                                 int64_t ly, int64_t lz, double inv_h, double *result)                \
     {                                                                                                                 \
         table_sums(S, (o) ? (o) : order_, d, 1, wx, wy, wz, ws, base, cols, offs, full, brick, lx, ly, lz, inv_h,    \
@@ -422,7 +478,7 @@ GS_QUANTISED_SUMS(0, 2)
 
 /* One brick table at a point (table_sums), from quantised values when the spline has them. */
 GS_INLINE void brick_sum(const gs_spline *S, const int order, const int nderiv, const double *wx, const double *wy,
-                         const double *wz, const int ws, int64_t base, const int32_t *cols, const int32_t *offs,
+                         const double *wz, const int ws, int64_t base, const int32_t *cols, const void *offs,
                          const uint16_t *full, int64_t brick, int64_t lx, int64_t ly, int64_t lz, double inv_h,
                          double *result)
 {
@@ -1054,8 +1110,9 @@ GS_INLINE void latlon_locate(const gs_spline *S, const int order, const int chai
         if (!chain || (brick == prev->brick && L->lx == prev->lx && L->ly == prev->ly))
             return;
         /* the order rows of order offsets, side apart: every line from the first to the last */
-        const int32_t *row = S->fold_offs + (brick * side + L->lx) * side + L->ly;
-        uintptr_t last = (uintptr_t)(row + (order - 1) * side + order - 1);
+        const int64_t ow = S->qwidth ? 2 : 4; /* bytes an offset (column_offset) */
+        const char *row = (const char *)S->fold_offs + ow * ((brick * side + L->lx) * side + L->ly);
+        uintptr_t last = (uintptr_t)(row + ow * ((order - 1) * side + order - 1));
         for (uintptr_t at = (uintptr_t)row & ~(uintptr_t)63; at <= last; at += 64)
             __builtin_prefetch((const void *)at, 0, LL_LOC_OFFS);
         __builtin_prefetch(S->fold_full + (brick << (2 * BRICK_BITS)) + (L->lx << BRICK_BITS) + L->ly, 0, LL_LOC_OFFS);
@@ -1075,12 +1132,16 @@ GS_INLINE void prefetch_values(const gs_spline *S, const int order, const int ch
     const int64_t side = (1 << BRICK_BITS) + order - 1;
     if (chain && L->brick == prev->brick && L->lx == prev->lx && L->ly == prev->ly && L->lz == prev->lz)
         return;
-    const int32_t *row = S->fold_offs + (L->brick * side + L->lx) * side + L->ly;
-    const int64_t width = S->qwidth ? S->qwidth : (int64_t)sizeof(double);
-    const char *v = (const char *)(S->qwidth ? S->qvalues : (const void *)S->values) +
-                    width * (S->fold_base[L->brick] + L->lz);
+    const int quant = S->qwidth != 0;
+    const int64_t row = (L->brick * side + L->lx) * side + L->ly;
+    int64_t width = S->qwidth ? S->qwidth : (int64_t)sizeof(double); /* the brick's bytes a value */
+    const char *v = (const char *)(S->qwidth ? S->qvalues : (const void *)S->values) + width * S->fold_base[L->brick];
+    if (quant && S->qbase[L->brick] == QBASE_WIDE)
+        width = 4;
+    v += width * L->lz;
     for (int p = 0; p < order; ++p) {
-        const char *first = v + width * row[p * side], *last = v + width * (row[p * side + order - 1] + order - 1);
+        const char *first = v + width * column_offset(quant, S->fold_offs, row + p * side);
+        const char *last = v + width * (column_offset(quant, S->fold_offs, row + p * side + order - 1) + order - 1);
         if (chain) {
             for (uintptr_t at = (uintptr_t)first & ~(uintptr_t)63; at <= (uintptr_t)last; at += 64)
                 __builtin_prefetch((const void *)at, 0, LL_LOC_VALUES);
@@ -1593,13 +1654,54 @@ GS_EXPORT int64_t gs_quantise_table(const double *values, int64_t total, const i
     return 0;
 }
 
+/* A table's values as gs_quantise_table's width 2, except that a brick whose q span
+ * more than 65,535 steps holds them as int32 (qbase QBASE_WIDE), two int16 slots each:
+ * starts (nb) receives each brick's first slot. q: room for 2 total slots. Returns the
+ * slots used, or -(the first brick whose values are not multiples of step + 1). */
+GS_EXPORT int64_t gs_quantise_mixed(const double *values, int64_t total, const int64_t *base, int64_t nb, double step,
+                                    int16_t *q, int32_t *qbase, int64_t *starts)
+{
+    int64_t at = 0;
+    for (int64_t b = 0; b < nb; ++b) {
+        int64_t lo = base[b], hi = b + 1 < nb ? base[b + 1] : total;
+        int64_t q_min = INT64_MAX, q_max = INT64_MIN;
+        for (int64_t v = lo; v < hi; ++v) {
+            double r = rint(values[v] / step);
+            if (!(fabs(r) < 2147483648.0))
+                return -(b + 1);
+            int64_t qv = (int64_t)r;
+            double back = (double)(int32_t)qv * step;
+            if (memcmp(&back, &values[v], sizeof back) != 0) /* bitwise: -0.0 is not 0.0 */
+                return -(b + 1);
+            if (qv < q_min) q_min = qv;
+            if (qv > q_max) q_max = qv;
+        }
+        starts[b] = at;
+        if (hi > lo && q_max - q_min > 65535) {
+            qbase[b] = QBASE_WIDE;
+            for (int64_t v = lo; v < hi; ++v, at += 2) {
+                int32_t qv = (int32_t)rint(values[v] / step);
+                memcpy(q + at, &qv, sizeof qv);
+            }
+        } else {
+            int64_t qb = hi > lo ? q_min + 32768 : 0;
+            qbase[b] = (int32_t)qb; /* > QBASE_WIDE: q_min >= -2**31 */
+            for (int64_t v = lo; v < hi; ++v)
+                q[at++] = (int16_t)((int64_t)rint(values[v] / step) - qb);
+        }
+    }
+    return at;
+}
+
 /* The full-column maps of a table (gs_spline's *_offs and *_full, see table_sum) from its
  * column entries cols (nb, side, side): offs, per column, its run's offset minus its first
  * local k (0 for an empty column), so that local k is at values + base + offs + k; full
  * (nb, S, S), per cell column (lx, ly), bit lz set when every column (lx + p, ly + q),
  * p, q < order, holds k = lz .. lz + order - 1 (first k <= lz, lz + order <= first k +
- * length). */
-GS_EXPORT void gs_full_columns(const int32_t *cols, int64_t nb, int64_t order, int32_t *offs, uint16_t *full)
+ * length). offs_width: 4, int32 offs; 2, int16 (a brick's runs hold at most side^3 <=
+ * 31^3 < 2^15 values, so every offset fits). */
+GS_EXPORT void gs_full_columns(const int32_t *cols, int64_t nb, int64_t order, void *offs, int64_t offs_width,
+                               uint16_t *full)
 {
     const int64_t cells = 1 << BRICK_BITS, side = cells + order - 1;
     uint32_t column_mask[(1 << COL_KBITS) * (1 << COL_KBITS)], row_mask[(1 << COL_KBITS) << BRICK_BITS];
@@ -1608,7 +1710,11 @@ GS_EXPORT void gs_full_columns(const int32_t *cols, int64_t nb, int64_t order, i
         for (int64_t c = 0; c < side * side; ++c) {
             int64_t length = bc[c] & COL_KMASK, k0 = (bc[c] >> COL_KBITS) & COL_KMASK;
             int64_t last = k0 + length - order < cells - 1 ? k0 + length - order : cells - 1; /* last lz */
-            offs[b * side * side + c] = length ? (int32_t)((bc[c] >> COL_SHIFT) - k0) : 0;
+            int32_t off = length ? (int32_t)((bc[c] >> COL_SHIFT) - k0) : 0;
+            if (offs_width == 2)
+                ((int16_t *)offs)[b * side * side + c] = (int16_t)off;
+            else
+                ((int32_t *)offs)[b * side * side + c] = off;
             column_mask[c] = length && last >= k0 ? (uint32_t)(((1u << (last + 1)) - 1) & ~((1u << k0) - 1)) : 0;
         }
         /* over the order columns along y, then along x (inner loops over ly: vectors) */
