@@ -24,7 +24,8 @@ hits all alike); the figures are medians of wall time / N in ns per point, and t
 ratios pyproj / ours come from the same run.
 
 Roofline note: per point and evaluated table, an order-n query reads n² column offsets
-(4 B), one entry of the table's full-column map (2 B) and n³ coefficients (8 B), and does n³ multiplies and n³ adds on z lanes, n²
+(4 B; 2 B in quantised tables), one entry of the table's full-column map (2 B) and n³
+coefficients (8 B; 2 B in quantised tables), and does n³ multiplies and n³ adds on z lanes, n²
 products of weights, 2n for the last dot product, about 15n for the three axes' weights
 and about 60 for the direction (two sin/cos pairs): printed with the measured ns/pt, the
 achieved GFLOP/s and the compute limit of one core (8 double flops a cycle with AVX2
@@ -69,11 +70,14 @@ def cpu_mhz():
         return None
 
 
-def roofline(order, ns_per_point, mhz):
+def roofline(order, ns_per_point, mhz, value_bytes=8, offset_bytes=4):
+    """Flops and table bytes a point and table; value_bytes / offset_bytes: 8 / 4 for
+    float64 tables, 2 / 2 for quantised ones (int16 values and column offsets)."""
     n = order
     flops = 2 * n**3 + n**2 + 2 * n + 3 * 15 * n + 60
-    bytes_ = 8 * n**3 + 4 * n**2 + 2
-    out = {"order": n, "flops_per_point": flops, "bytes_per_point": bytes_, "ns_per_point": ns_per_point,
+    bytes_ = value_bytes * n**3 + offset_bytes * n**2 + 2
+    out = {"order": n, "flops_per_point": flops, "bytes_per_point": bytes_, "value_bytes": value_bytes,
+           "offset_bytes": offset_bytes, "ns_per_point": ns_per_point,
            "achieved_gflops": flops / ns_per_point, "achieved_gbytes_s": bytes_ / ns_per_point}
     if mhz:
         limit = flops / (8 * mhz * 1e-3)  # ns at 8 flops a cycle
@@ -162,7 +166,10 @@ def run_store(store, points, region, repeat, pgm):
         "geographiclib_pgm": str(pgm) if karney is not None else None,
         "first_call_s": first, "ns_per_point": samples, "median_ns_per_point": medians,
         "ratio_pyproj_over_ours": ratios,
-        "roofline_1_thread_global": roofline(st.spline.order, medians["ours-1/global"], mhz),
+        "roofline_1_thread_global": roofline(
+            st.spline.order, medians["ours-1/global"], mhz,
+            value_bytes=index.values.itemsize if index.qvalues is None else index.qvalues.itemsize,
+            offset_bytes=index.own_offs.itemsize),
         "load_average_during": [list(load_before), list(os.getloadavg())],
     }
 
@@ -188,7 +195,8 @@ def print_store(r):
     f = r["roofline_1_thread_global"]
     line = (f"roofline (1 thread, global): {f['flops_per_point']} flops and {f['bytes_per_point']} B of tables a "
             f"point and table; {f['ns_per_point']:.1f} ns/pt = {f['achieved_gflops']:.2f} GFLOP/s, "
-            f"{f['achieved_gbytes_s']:.1f} GB/s of table reads (mostly from cache: points sorted by cell)")
+            f"{f['achieved_gbytes_s']:.1f} GB/s of table reads ({f.get('value_bytes', 8)}-byte values, "
+            f"{f.get('offset_bytes', 4)}-byte column offsets)")
     if "compute_limit_ns_per_point" in f:
         line += (f"; compute limit at {f['cpu_mhz']:.0f} MHz, 8 flops/cycle: {f['compute_limit_ns_per_point']:.1f} "
                  f"ns/pt ({100 * f['fraction_of_limit']:.0f} % of it)")
