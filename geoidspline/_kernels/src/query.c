@@ -871,7 +871,6 @@ typedef struct {
     int cells;                 /* sort by cell_code4 (else latlon_code4) */
     int cell_shift;            /* cell_code4's lattice: cells of the finest level, 2**cell_shift a side */
     double cell_scale, cell_offset;
-    int oom; /* a task ran out of memory */
 } latlon_job;
 
 /* The lanes of 4 coordinates that gs_undulation_latlon refuses (all ones): a latitude beyond
@@ -965,17 +964,6 @@ static void latlon_scatter(void *ctx, int64_t blk)
     latlon_job *J = ctx;
     int64_t *counts = J->counts + blk * (LL_BUCKETS + 1);
     int64_t lo = blk * J->size, hi = lo + J->size < J->m ? lo + J->size : J->m;
-    if (J->cells) { /* the coordinates travel with their points: latitudes in out, longitudes in sorted */
-        double *lat = J->out, *lon = (double *)J->sorted;
-        for (int64_t s = lo; s < hi; ++s) {
-            uint32_t code = J->code[s];
-            int64_t at = counts[code >> LL_LOW_BITS]++;
-            J->by_bucket[at] = ((uint64_t)code << AT_BITS) | (uint64_t)s;
-            lat[at] = J->latitude[s];
-            lon[at] = J->longitude[s];
-        }
-        return;
-    }
     for (int64_t s = lo; s < hi; ++s) {
         uint32_t code = J->code[s];
         J->by_bucket[counts[code >> LL_LOW_BITS]++] = ((uint64_t)code << AT_BITS) | (uint64_t)s;
@@ -995,58 +983,17 @@ static void latlon_refine(void *ctx, int64_t task)
         b_hi = LL_BUCKETS + 1; /* NaN's bucket: its codes are all equal */
     const uint64_t low_mask = (1u << LL_LOW_BITS) - 1;
     int64_t counts[(1 << LL_LOW_BITS) + 1];
-    /* cells: the scatter left each bucket's latitudes in out and longitudes in sorted, in
-     * the order of by_bucket; a bucket's keys and coordinates are copied to scratch and
-     * come back sorted: keys in sorted, latitudes in out, longitudes in by_bucket (whose
-     * memory becomes ordered: latlon_range reads a point's longitude before it writes a
-     * value there, and only values of points before it) */
-    uint64_t *scratch = NULL;
-    if (J->cells) {
-        int64_t most = 0;
-        for (int64_t b = b_lo; b < b_hi; ++b)
-            if (J->bucket_start[b + 1] - J->bucket_start[b] > most)
-                most = J->bucket_start[b + 1] - J->bucket_start[b];
-        scratch = malloc(3 * sizeof(uint64_t) * (size_t)(most ? most : 1));
-        if (!scratch) {
-            J->oom = 1;
-            return;
-        }
-    }
     for (int64_t b = b_lo; b < b_hi; ++b) {
-        const int64_t first = J->bucket_start[b];
-        const uint64_t *in = J->by_bucket + first;
-        uint64_t *a = J->sorted + first;
-        int64_t n = J->bucket_start[b + 1] - first;
-        const double *in_lat = NULL, *in_lon = NULL;
-        double *a_lat = NULL, *a_lon = NULL;
-        if (J->cells) {
-            uint64_t *keys = scratch;
-            double *lat = (double *)(scratch + n), *lon = (double *)(scratch + 2 * n);
-            memcpy(keys, in, sizeof(uint64_t) * (size_t)n);
-            memcpy(lat, J->out + first, sizeof(double) * (size_t)n);
-            memcpy(lon, (const double *)J->sorted + first, sizeof(double) * (size_t)n);
-            in = keys;
-            in_lat = lat;
-            in_lon = lon;
-            a_lat = J->out + first;
-            a_lon = (double *)J->by_bucket + first;
-        }
+        const uint64_t *in = J->by_bucket + J->bucket_start[b];
+        uint64_t *a = J->sorted + J->bucket_start[b];
+        int64_t n = J->bucket_start[b + 1] - J->bucket_start[b];
         if (n <= 32 || b == LL_BUCKETS) {
             for (int64_t i = 0; i < n; ++i) {
                 uint64_t t = in[i];
                 int64_t j = i;
-                for (; j >= 1 && a[j - 1] > t; --j) {
+                for (; j >= 1 && a[j - 1] > t; --j)
                     a[j] = a[j - 1];
-                    if (J->cells) {
-                        a_lat[j] = a_lat[j - 1];
-                        a_lon[j] = a_lon[j - 1];
-                    }
-                }
                 a[j] = t;
-                if (J->cells) {
-                    a_lat[j] = in_lat[i];
-                    a_lon[j] = in_lon[i];
-                }
             }
             continue;
         }
@@ -1055,19 +1002,9 @@ static void latlon_refine(void *ctx, int64_t task)
             counts[(KEY_CODE(in[i]) & low_mask) + 1] += 1;
         for (uint64_t k = 1; k <= low_mask; ++k)
             counts[k] += counts[k - 1];
-        if (J->cells) {
-            for (int64_t i = 0; i < n; ++i) {
-                int64_t at = counts[KEY_CODE(in[i]) & low_mask]++;
-                a[at] = in[i];
-                a_lat[at] = in_lat[i];
-                a_lon[at] = in_lon[i];
-            }
-            continue;
-        }
         for (int64_t i = 0; i < n; ++i)
             a[counts[KEY_CODE(in[i]) & low_mask]++] = in[i];
     }
-    free(scratch);
 }
 
 /* The value weights of a point's three axes at once (t: its position in its cell per axis):
@@ -1235,10 +1172,7 @@ GS_INLINE void latlon_range(const latlon_job *J, const int order, const int chai
     const int64_t to_sum = chain ? LL_SLOT + LL_OFFS + LL_VALUES : LL_AHEAD;
     const located none = {.brick = -1};
     for (int64_t p = lo; p < hi + to_sum; ++p) {
-        /* the coordinates in place (direct), in sorted order (cells: latitudes in out,
-         * longitudes in ordered; latlon_refine), or read out of order: asked for early */
-        const int in_sequence = direct || J->cells;
-        if (!in_sequence && p + 16 < hi) {
+        if (!direct && p + 16 < hi) { /* the coordinates are read out of order: ask for them early */
             __builtin_prefetch(&J->latitude[KEY_AT(J->sorted[p + 16])]);
             __builtin_prefetch(&J->longitude[KEY_AT(J->sorted[p + 16])]);
         }
@@ -1247,9 +1181,9 @@ GS_INLINE void latlon_range(const latlon_job *J, const int order, const int chai
             if (i == 0) { /* the next 4 points' directions at once */
                 gs_v4 la, lo_;
                 for (int k = 0; k < 4; ++k) {
-                    int64_t at = in_sequence ? (p + k < hi ? p + k : hi - 1) : KEY_AT(J->sorted[p + k < hi ? p + k : hi - 1]);
-                    la[k] = direct || !J->cells ? J->latitude[at] : J->out[at];
-                    lo_[k] = direct || !J->cells ? J->longitude[at] : J->ordered[at];
+                    int64_t at = direct ? (p + k < hi ? p + k : hi - 1) : KEY_AT(J->sorted[p + k < hi ? p + k : hi - 1]);
+                    la[k] = J->latitude[at];
+                    lo_[k] = J->longitude[at];
                 }
                 if (direct) { /* the check of latlon_count; an invalid point is summed as NaN */
                     gs_i4 wrong = invalid_lanes(la, lo_, J->max_abs_longitude);
@@ -1364,9 +1298,7 @@ GS_HOT static void latlon_direct(void *ctx, int64_t task)
  *    high 11 bits (the bucket) per block;
  * 2. exclusive prefix sums over (bucket, block): a stable order by bucket;
  * 3. per block: each point's (code, position) scattered in that order; then each bucket
- *    sorted by the low bits of the code (latlon_refine); with cell codes the coordinates
- *    travel with their points (latitudes in out, longitudes in sorted, then in by_bucket's
- *    memory), so that step 4 reads them in sequence, not 16 bytes at random a point;
+ *    sorted by the low bits of the code (latlon_refine);
  * 4. per chunk of the sorted points, in that order: directions (4 at a time), each
  *    point's loads asked for points before its sum (latlon_range);
  * 5. per block: each value written to its point's place (writing it from step 4 is
@@ -1430,10 +1362,6 @@ GS_EXPORT int64_t gs_undulation_latlon(const gs_spline *S, const double *latitud
     J.bucket_start[LL_BUCKETS + 1] = total;
     gs_parallel_for((int)nthreads, nblocks, latlon_scatter, &J);
     gs_parallel_for((int)nthreads, (LL_BUCKETS + SORT_TASK_BUCKETS) / SORT_TASK_BUCKETS, latlon_refine, &J);
-    if (J.oom) {
-        result = -1;
-        goto done;
-    }
     J.ordered = (double *)J.by_bucket; /* 8 bytes a point, no longer needed */
     gs_parallel_for((int)nthreads, (m + CHUNK - 1) / CHUNK, latlon_evaluate, &J);
     gs_parallel_for((int)nthreads, nblocks, latlon_back, &J);
