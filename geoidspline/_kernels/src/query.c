@@ -1615,6 +1615,26 @@ GS_EXPORT int64_t gs_finest_step(const double *coefficients, int64_t n, double s
     return k;
 }
 
+/* The least and greatest q = c / step of values [lo, hi) (INT64_MAX, INT64_MIN when
+ * empty); 0 when a value is not (double)(int32) q * step bitwise. */
+static int brick_q_range(const double *values, int64_t lo, int64_t hi, double step, int64_t *q_min, int64_t *q_max)
+{
+    *q_min = INT64_MAX;
+    *q_max = INT64_MIN;
+    for (int64_t v = lo; v < hi; ++v) {
+        double r = rint(values[v] / step);
+        if (!(fabs(r) < 2147483648.0))
+            return 0;
+        int64_t qv = (int64_t)r;
+        double back = (double)(int32_t)qv * step;
+        if (memcmp(&back, &values[v], sizeof back) != 0) /* bitwise: -0.0 is not 0.0 */
+            return 0;
+        if (qv < *q_min) *q_min = qv;
+        if (qv > *q_max) *q_max = qv;
+    }
+    return 1;
+}
+
 /* A table's values (total, bricks by base (nb): brick b owns [base[b], base[b + 1]) as
  * integers q[v] = c / step - qbase[b] when every value c is (double)(int32) q * step
  * bitwise (a store's coefficients are): width 2, int16 (qbase[b] = the brick's least q +
@@ -1625,18 +1645,9 @@ GS_EXPORT int64_t gs_quantise_table(const double *values, int64_t total, const i
 {
     for (int64_t b = 0; b < nb; ++b) {
         int64_t lo = base[b], hi = b + 1 < nb ? base[b + 1] : total;
-        int64_t q_min = INT64_MAX, q_max = INT64_MIN;
-        for (int64_t v = lo; v < hi; ++v) {
-            double r = rint(values[v] / step);
-            if (!(fabs(r) < 2147483648.0))
-                return b + 1;
-            int64_t qv = (int64_t)r;
-            double back = (double)(int32_t)qv * step;
-            if (memcmp(&back, &values[v], sizeof back) != 0) /* bitwise: -0.0 is not 0.0 */
-                return b + 1;
-            if (qv < q_min) q_min = qv;
-            if (qv > q_max) q_max = qv;
-        }
+        int64_t q_min, q_max;
+        if (!brick_q_range(values, lo, hi, step, &q_min, &q_max))
+            return b + 1;
         if (width == 2 && hi > lo && q_max - q_min > 65535)
             return b + 1;
         int64_t qb = width == 2 && hi > lo ? q_min + 32768 : 0;
@@ -1664,18 +1675,9 @@ GS_EXPORT int64_t gs_quantise_mixed(const double *values, int64_t total, const i
     int64_t at = 0;
     for (int64_t b = 0; b < nb; ++b) {
         int64_t lo = base[b], hi = b + 1 < nb ? base[b + 1] : total;
-        int64_t q_min = INT64_MAX, q_max = INT64_MIN;
-        for (int64_t v = lo; v < hi; ++v) {
-            double r = rint(values[v] / step);
-            if (!(fabs(r) < 2147483648.0))
-                return -(b + 1);
-            int64_t qv = (int64_t)r;
-            double back = (double)(int32_t)qv * step;
-            if (memcmp(&back, &values[v], sizeof back) != 0) /* bitwise: -0.0 is not 0.0 */
-                return -(b + 1);
-            if (qv < q_min) q_min = qv;
-            if (qv > q_max) q_max = qv;
-        }
+        int64_t q_min, q_max;
+        if (!brick_q_range(values, lo, hi, step, &q_min, &q_max))
+            return -(b + 1);
         starts[b] = at;
         if (hi > lo && q_max - q_min > 65535) {
             qbase[b] = QBASE_WIDE;
