@@ -684,6 +684,7 @@ GS_EXPORT void gs_query_order(const double *points, int64_t m, int64_t *key, int
  * does the operations a scalar would, in the same order, so the bits do not depend on the
  * lane or the build. */
 typedef int64_t gs_i4 __attribute__((vector_size(32)));
+typedef int32_t gs_w4 __attribute__((vector_size(16)));
 
 GS_INLINE gs_v4 v4_splat(double a)
 {
@@ -720,11 +721,20 @@ GS_INLINE gs_v4 v4_floor(gs_v4 x)
  * instructions). */
 GS_INLINE gs_v4 v4_floor_small(gs_v4 x)
 {
-    typedef int32_t gs_w4 __attribute__((vector_size(16)));
     const gs_i4 sign = {INT64_MIN, INT64_MIN, INT64_MIN, INT64_MIN};
     gs_v4 whole = __builtin_convertvector(__builtin_convertvector(x, gs_w4), gs_v4);
     gs_v4 t = v4_select(whole > x, whole - v4_splat(1.0), whole);
     return (gs_v4)(((gs_i4)t & ~sign) | ((gs_i4)x & sign));
+}
+
+/* Longitudes outside [-180, 180) wrapped into it (lanes inside keep their bits; the
+ * division and floor only when a lane needs them). */
+GS_INLINE gs_v4 wrapped_longitude4(gs_v4 longitude)
+{
+    gs_i4 outside = (longitude < -180.0) | (longitude >= 180.0);
+    if (v4_any(outside))
+        longitude = v4_select(outside, longitude - 360.0 * v4_floor((longitude + 180.0) / 360.0), longitude);
+    return longitude;
 }
 
 /* sin and cos of one angle per lane (fdlibm's k_sin.c/k_cos.c polynomials on [-pi/4, pi/4]
@@ -768,10 +778,8 @@ GS_INLINE void directions4(const gs_v4 *latitude_, const gs_v4 *longitude_, gs_v
      * longitude wraps inexactly). */
     gs_i4 inside = ((gs_v4)((gs_i4)latitude & ~sign) <= 90.0) & (longitude >= -180.0) & (longitude < 180.0);
     const int small = !v4_any(~inside);
-    if (!small) {
-        gs_i4 outside = (longitude < -180.0) | (longitude >= 180.0);
-        longitude = v4_select(outside, longitude - 360.0 * v4_floor((longitude + 180.0) / 360.0), longitude);
-    }
+    if (!small)
+        longitude = wrapped_longitude4(longitude);
     gs_v4 sin_phi, cos_phi, sin_lam, cos_lam;
     gs_sincos(latitude * d2r, small, &sin_phi, &cos_phi);
     gs_sincos(longitude * d2r, small, &sin_lam, &cos_lam);
@@ -792,6 +800,14 @@ GS_INLINE gs_u4 spread2(gs_u4 v)
     return v;
 }
 
+/* Sort codes with the lanes of a NaN coordinate moved to bucket LL_BUCKETS (the last). */
+GS_INLINE gs_u4 nan_in_last_bucket(gs_u4 code, gs_v4 la, gs_v4 lo)
+{
+    gs_i4 nan = (la != la) | (lo != lo);
+    gs_u4 nan32 = __builtin_convertvector(nan, gs_u4); /* all ones or zero */
+    return (code & ~nan32) | (nan32 & ((uint32_t)LL_BUCKETS << LL_LOW_BITS));
+}
+
 /* Morton codes of 4 points' cells on the latitude/longitude sort grid, one lane each;
  * a code's bucket of the sort's first pass (a 5.6 degree cell) is code >> LL_LOW_BITS.
  * NaN: bucket LL_BUCKETS. (The codes only order the points: a value does not depend on
@@ -800,20 +816,14 @@ GS_INLINE gs_u4 latlon_code4(gs_v4 la, gs_v4 lo)
 {
     const double lat_cells = 1 << LL_LAT_BITS, lon_cells = 1 << LL_LON_BITS;
     gs_v4 fi = (la + 90.0) * (lat_cells / 180.0);
-    gs_v4 w = lo + 180.0;
-    gs_i4 outside = (w < 0.0) | (w >= 360.0);
-    if (v4_any(outside)) /* rare: the wrap's division and floor only then */
-        w = v4_select(outside, w - 360.0 * v4_floor(w / 360.0), w);
+    gs_v4 w = wrapped_longitude4(lo) + 180.0;
     gs_v4 fj = w * (lon_cells / 360.0);
     /* clamped to the grid (NaN to 0 here, its own bucket below), then truncated */
     fi = v4_select(fi >= lat_cells, v4_splat(lat_cells - 1.0), v4_select(fi >= 0.0, fi, v4_splat(0.0)));
     fj = v4_select(fj >= lon_cells, v4_splat(lon_cells - 1.0), v4_select(fj >= 0.0, fj, v4_splat(0.0)));
-    typedef int32_t gs_w4 __attribute__((vector_size(16)));
     gs_u4 i = (gs_u4)__builtin_convertvector(fi, gs_w4), j = (gs_u4)__builtin_convertvector(fj, gs_w4);
     gs_u4 code = spread2(j) | (spread2(i) << 1);
-    gs_i4 nan = (la != la) | (lo != lo);
-    gs_u4 nan32 = __builtin_convertvector(nan, gs_u4); /* all ones or zero */
-    return (code & ~nan32) | (nan32 & ((uint32_t)LL_BUCKETS << LL_LOW_BITS));
+    return nan_in_last_bucket(code, la, lo);
 }
 
 typedef struct {
@@ -892,8 +902,6 @@ GS_INLINE void rough_sincos(gs_v4 x, gs_v4 *sin_x, gs_v4 *cos_x)
     *cos_x = 1.0 + z * (-0.5 + z * (1.0 / 24.0 + z * (-1.0 / 720.0 + z * (1.0 / 40320.0 + z * (-1.0 / 3628800.0)))));
 }
 
-typedef int32_t gs_w4 __attribute__((vector_size(16)));
-
 GS_INLINE gs_u4 spread3_4(gs_u4 v)
 {
     v = (v | (v << 8)) & 0x0000F00F;
@@ -911,9 +919,7 @@ GS_INLINE gs_u4 cell_code4(const latlon_job *J, gs_v4 la, gs_v4 lo)
 {
     const double d2r = 3.141592653589793 / 180.0;
     gs_v4 sin_phi, cos_phi, sin_half, cos_half;
-    gs_i4 outside = (lo < -180.0) | (lo > 180.0);
-    if (v4_any(outside)) /* rare: wrapped to [-180, 180) */
-        lo = v4_select(outside, lo - 360.0 * v4_floor((lo + 180.0) / 360.0), lo);
+    lo = wrapped_longitude4(lo);
     rough_sincos(la * d2r, &sin_phi, &cos_phi);
     rough_sincos(lo * (0.5 * d2r), &sin_half, &cos_half); /* half the longitude: within +-pi/2 */
     gs_v4 sin_lam = 2.0 * sin_half * cos_half, cos_lam = 1.0 - 2.0 * sin_half * sin_half;
@@ -924,9 +930,7 @@ GS_INLINE gs_u4 cell_code4(const latlon_job *J, gs_v4 la, gs_v4 lo)
     gs_u4 j = ((gs_u4)__builtin_convertvector(fy, gs_w4) >> shift) & 127;
     gs_u4 k = ((gs_u4)__builtin_convertvector(fz, gs_w4) >> shift) & 127;
     gs_u4 code = (spread3_4(i) << 2) | (spread3_4(j) << 1) | spread3_4(k);
-    gs_i4 nan = (la != la) | (lo != lo);
-    gs_u4 nan32 = __builtin_convertvector(nan, gs_u4);
-    return (code & ~nan32) | (nan32 & ((uint32_t)LL_BUCKETS << LL_LOW_BITS));
+    return nan_in_last_bucket(code, la, lo);
 }
 
 GS_INLINE void latlon_count_range(latlon_job *J, const int cells, int64_t blk)
