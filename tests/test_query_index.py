@@ -667,11 +667,29 @@ def test_quantised_tables_give_the_bits_of_float_tables(order, spread_steps, wid
 
     want = results(plain)
     assert np.abs(want[3]).max() > 1.0
-    for got, expected in zip(results(quantised), want):
-        np.testing.assert_array_equal(got, expected)
-    quantised.fold_full[:] = 0  # every point through the decoding path
-    for got, expected in zip(results(quantised), want):
-        np.testing.assert_array_equal(got, expected)
+    full = quantised.fold_full.copy()
+    previous = _kernels.quantised_sums_avx2()
+    try:  # both builds of the quantised sums: the AVX2 one (where the CPU has AVX2), the target clones
+        for avx2 in (True, False):
+            _kernels.quantised_sums_avx2(avx2)
+            assert _kernels.quantised_sums_avx2() == (avx2 and _has_avx2())
+            quantised.fold_full[:] = full
+            for got, expected in zip(results(quantised), want):
+                np.testing.assert_array_equal(got, expected)
+            quantised.fold_full[:] = 0  # every point through the decoding path
+            for got, expected in zip(results(quantised), want):
+                np.testing.assert_array_equal(got, expected)
+    finally:
+        _kernels.quantised_sums_avx2(previous)
+
+
+def _has_avx2():
+    """Whether this CPU has AVX2 (Linux's /proc/cpuinfo; elsewhere: assumed not)."""
+    try:
+        with open("/proc/cpuinfo") as fh:
+            return any(line.startswith("flags") and " avx2" in line for line in fh)
+    except OSError:
+        return False
 
 
 def test_tables_of_one_width_for_older_kernels(monkeypatch):

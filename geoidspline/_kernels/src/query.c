@@ -199,16 +199,38 @@ typedef uint64_t gs_u64x2 __attribute__((vector_size(16)));
 #define DEQUANT_MAGIC 6755399441055744.0           /* 1.5 2**52 */
 #define DEQUANT_MAGIC_BITS 0x4338000000000000LL    /* its bits */
 
+/* The int16 tables' sign extension in the hot loop: GCC 12 builds 4 int16 into 64-bit
+ * lanes one lane at a time (__builtin_convertvector) or, as dequantised4 writes it, by a
+ * broadcast and two shifts; AVX2's vpmovsxwq does it in one instruction from memory, which
+ * GCC emits only from an intrinsic or asm, and neither compiles in the baseline clone of a
+ * target_clones function. So the quantised table sums are built once more as AVX2
+ * functions (GS_QUANTISED_SUMS, sx = 1, the asm), chosen at run time when the CPU has
+ * AVX2 (gs_sx_ok); the same values, bitwise (the same lanes, then the same operations).
+ * The asm is in a branch on a constant that the baseline builds fold away (-O1 and up). */
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+#define GS_SX 1
+#else
+#define GS_SX 0
+#endif
+typedef uint64_t gs_u64_alias __attribute__((may_alias));
+
 /* qb + the bits of 1.5 2**52, the per-brick constant of dequantised4 */
 GS_INLINE int64_t dequant_magic(int32_t qb)
 {
     return (int64_t)qb + DEQUANT_MAGIC_BITS;
 }
 
-GS_INLINE gs_v4 dequantised4(const int quant, const void *qv, int64_t at, int32_t qb, int64_t qmagic, double step)
+GS_INLINE gs_v4 dequantised4(const int quant, const int sx, const void *qv, int64_t at, int32_t qb, int64_t qmagic,
+                              double step)
 {
     if (quant == 2) {
         gs_i64x4 q;
+#if GS_SX
+        if (sx) { /* the AVX2 functions (GS_SX): one vpmovsxwq from memory */
+            __asm__("vpmovsxwq %1, %0" : "=x"(q) : "m"(*(const gs_u64_alias *)((const int16_t *)qv + at)));
+            return ((gs_v4)(q + qmagic) - DEQUANT_MAGIC) * step;
+        }
+#endif
         /* the 4 int16 in every lane, each lane's own moved to the top and shifted back
          * down with its sign (vpbroadcastq, vpsllvq, vpsraq; GCC 12 made
          * __builtin_convertvector of 4 int16 to int64 one lane at a time through general
@@ -226,13 +248,13 @@ GS_INLINE gs_v4 dequantised4(const int quant, const void *qv, int64_t at, int32_
     return __builtin_convertvector(q + qb, gs_v4) * step;
 }
 
-GS_INLINE void lanes_dequantised(const int order, const int quant, const void *qv, int64_t at, int32_t qb,
-                                 int64_t qmagic, double step, lanes *c)
+GS_INLINE void lanes_dequantised(const int order, const int quant, const int sx, const void *qv, int64_t at,
+                                 int32_t qb, int64_t qmagic, double step, lanes *c)
 {
     for (int k = 0; k < LANE_V(order); ++k)
-        c->v[k] = dequantised4(quant, qv, at + 4 * k, qb, qmagic, step);
+        c->v[k] = dequantised4(quant, sx, qv, at + 4 * k, qb, qmagic, step);
     if (LANE_OVER(order))
-        c->over = dequantised4(quant, qv, at + order - 4, qb, qmagic, step);
+        c->over = dequantised4(quant, sx, qv, at + order - 4, qb, qmagic, step);
     if (LANE_PAIR(order)) {
         if (quant == 2) {
             uint32_t x;
@@ -342,7 +364,7 @@ GS_INLINE const double *column_run(const int order, const int quant, const doubl
  * its entry (column_run), an empty one skipped, one cut by the run's end read through a
  * zero-padded copy. Both add the same products in the same order (the same bits). */
 GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, const int full, const int quant,
-                         const double *wx, const double *wy, const double *wz, const int ws, int64_t base,
+                         const int sx, const double *wx, const double *wy, const double *wz, const int ws, int64_t base,
                          const int32_t *cols, const void *offs,
                          int64_t brick, int64_t lx, int64_t ly, int64_t lz, double inv_h, double *result)
 {
@@ -391,8 +413,8 @@ GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, 
             if (full && quant) {
                 lanes col;
                 lanes_zero(order, &col); /* the lanes it does not fill (unread: for the compiler) */
-                lanes_dequantised(order, width, qv, lz + column_offset(1, offs, col_at + p * side + q), qb, qmagic, step,
-                                  &col);
+                lanes_dequantised(order, width, sx, qv, lz + column_offset(1, offs, col_at + p * side + q), qb, qmagic,
+                                  step, &col);
                 lanes_add(order, &b0, wy[q * ws], &col);
                 if (nderiv >= 1)
                     lanes_add(order, &b1, wy[(order + q) * ws], &col);
@@ -443,29 +465,36 @@ GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, 
 
 /* One brick table at a point: the full-column sum where the table's full map allows it,
  * the decoding one otherwise (quant: from quantised values). */
-GS_INLINE void table_sums(const gs_spline *S, const int order, const int nderiv, const int quant, const double *wx,
-                          const double *wy, const double *wz, const int ws, int64_t base, const int32_t *cols,
-                          const void *offs, const uint16_t *full, int64_t brick, int64_t lx, int64_t ly,
-                          int64_t lz, double inv_h, double *result)
+GS_INLINE void table_sums(const gs_spline *S, const int order, const int nderiv, const int quant, const int sx,
+                          const double *wx, const double *wy, const double *wz, const int ws, int64_t base,
+                          const int32_t *cols, const void *offs, const uint16_t *full, int64_t brick, int64_t lx,
+                          int64_t ly, int64_t lz, double inv_h, double *result)
 {
     if ((full[(brick << (2 * BRICK_BITS)) + (lx << BRICK_BITS) + ly] >> lz) & 1)
-        table_sum(S, order, nderiv, 1, quant, wx, wy, wz, ws, base, cols, offs, brick, lx, ly, lz, inv_h, result);
+        table_sum(S, order, nderiv, 1, quant, sx, wx, wy, wz, ws, base, cols, offs, brick, lx, ly, lz, inv_h, result);
     else
-        table_sum(S, order, nderiv, 0, quant, wx, wy, wz, ws, base, cols, offs, brick, lx, ly, lz, inv_h, result);
+        table_sum(S, order, nderiv, 0, quant, sx, wx, wy, wz, ws, base, cols, offs, brick, lx, ly, lz, inv_h, result);
 }
 
 /* table_sums of quantised tables, one function per (order, nderiv) that the callers call
  * (inlined into each of them, like the float64 one, it tripled the kernels' compile
- * time); order 0: any order, given as order_. */
-#define GS_QUANTISED_SUMS(o, d)                                                                                       \
-    GS_HOT static void quantised_sums_##o##_##d(const gs_spline *S, int order_, const double *wx, const double *wy, \
-                                                const double *wz, int ws, int64_t base, const int32_t *cols,         \
-                                                const void *offs, const uint16_t *full, int64_t brick, int64_t lx,    \
-                                                int64_t ly, int64_t lz, double inv_h, double *result)                \
+ * time); order 0: any order, given as order_. Each twice with GS_SX: the target clones and
+ * an AVX2 function (name_sx: vpmovsxwq, see GS_SX), chosen by brick_sum. */
+#define GS_QUANTISED_SUMS_AS(o, d, name, attributes, sx)                                                              \
+    attributes static void name(const gs_spline *S, int order_, const double *wx, const double *wy, const double *wz, \
+                                int ws, int64_t base, const int32_t *cols, const void *offs, const uint16_t *full,    \
+                                int64_t brick, int64_t lx, int64_t ly, int64_t lz, double inv_h, double *result)      \
     {                                                                                                                 \
-        table_sums(S, (o) ? (o) : order_, d, 1, wx, wy, wz, ws, base, cols, offs, full, brick, lx, ly, lz, inv_h,    \
+        table_sums(S, (o) ? (o) : order_, d, 1, sx, wx, wy, wz, ws, base, cols, offs, full, brick, lx, ly, lz, inv_h, \
                    result);                                                                                           \
     }
+#if GS_SX
+#define GS_QUANTISED_SUMS(o, d)                                                                                       \
+    GS_QUANTISED_SUMS_AS(o, d, quantised_sums_##o##_##d, GS_HOT, 0)                                                  \
+    GS_QUANTISED_SUMS_AS(o, d, quantised_sums_##o##_##d##_sx, __attribute__((target("avx2"))), 1)
+#else
+#define GS_QUANTISED_SUMS(o, d) GS_QUANTISED_SUMS_AS(o, d, quantised_sums_##o##_##d, GS_HOT, 0)
+#endif
 GS_QUANTISED_SUMS(4, 0)
 GS_QUANTISED_SUMS(4, 1)
 GS_QUANTISED_SUMS(4, 2)
@@ -476,6 +505,35 @@ GS_QUANTISED_SUMS(0, 0)
 GS_QUANTISED_SUMS(0, 1)
 GS_QUANTISED_SUMS(0, 2)
 
+#if GS_SX
+/* whether this CPU runs the AVX2 sums (GS_SX), found when the library loads */
+static int gs_sx_ok;
+__attribute__((constructor)) static void gs_sx_detect(void)
+{
+    __builtin_cpu_init();
+    gs_sx_ok = __builtin_cpu_supports("avx2") != 0;
+}
+#endif
+
+/* Whether the quantised sums run as the AVX2 functions (GS_SX): use 1 to allow them where
+ * the CPU has AVX2, 0 to run the target clones instead (tests compare the two), -1 to
+ * ask; returns the previous setting (0 where they are not built). Not thread-safe: call
+ * it between batches. */
+GS_EXPORT int64_t gs_quantised_sums_avx2(int64_t use)
+{
+#if GS_SX
+    int64_t previous = gs_sx_ok;
+    if (use >= 0) {
+        __builtin_cpu_init();
+        gs_sx_ok = use && __builtin_cpu_supports("avx2");
+    }
+    return previous;
+#else
+    (void)use;
+    return 0;
+#endif
+}
+
 /* One brick table at a point (table_sums), from quantised values when the spline has them. */
 GS_INLINE void brick_sum(const gs_spline *S, const int order, const int nderiv, const double *wx, const double *wy,
                          const double *wz, const int ws, int64_t base, const int32_t *cols, const void *offs,
@@ -483,18 +541,35 @@ GS_INLINE void brick_sum(const gs_spline *S, const int order, const int nderiv, 
                          double *result)
 {
     if (!S->qwidth) {
-        table_sums(S, order, nderiv, 0, wx, wy, wz, ws, base, cols, offs, full, brick, lx, ly, lz, inv_h, result);
+        table_sums(S, order, nderiv, 0, 0, wx, wy, wz, ws, base, cols, offs, full, brick, lx, ly, lz, inv_h, result);
         return;
     }
-#define GS_QUANTISED_CALL(o, d)                                                                                       \
-    quantised_sums_##o##_##d(S, order, wx, wy, wz, ws, base, cols, offs, full, brick, lx, ly, lz, inv_h, result)
-    if (order == 4) {
-        if (nderiv == 0) GS_QUANTISED_CALL(4, 0); else if (nderiv == 1) GS_QUANTISED_CALL(4, 1); else GS_QUANTISED_CALL(4, 2);
-    } else if (order == 6) {
-        if (nderiv == 0) GS_QUANTISED_CALL(6, 0); else if (nderiv == 1) GS_QUANTISED_CALL(6, 1); else GS_QUANTISED_CALL(6, 2);
-    } else {
-        if (nderiv == 0) GS_QUANTISED_CALL(0, 0); else if (nderiv == 1) GS_QUANTISED_CALL(0, 1); else GS_QUANTISED_CALL(0, 2);
+#define GS_QUANTISED_CALL(o, d, suffix)                                                                               \
+    quantised_sums_##o##_##d##suffix(S, order, wx, wy, wz, ws, base, cols, offs, full, brick, lx, ly, lz, inv_h, result)
+#define GS_QUANTISED_CALLS(suffix)                                                                                    \
+    do {                                                                                                              \
+        if (order == 4) {                                                                                             \
+            if (nderiv == 0) GS_QUANTISED_CALL(4, 0, suffix);                                                         \
+            else if (nderiv == 1) GS_QUANTISED_CALL(4, 1, suffix);                                                    \
+            else GS_QUANTISED_CALL(4, 2, suffix);                                                                     \
+        } else if (order == 6) {                                                                                      \
+            if (nderiv == 0) GS_QUANTISED_CALL(6, 0, suffix);                                                         \
+            else if (nderiv == 1) GS_QUANTISED_CALL(6, 1, suffix);                                                    \
+            else GS_QUANTISED_CALL(6, 2, suffix);                                                                     \
+        } else {                                                                                                      \
+            if (nderiv == 0) GS_QUANTISED_CALL(0, 0, suffix);                                                         \
+            else if (nderiv == 1) GS_QUANTISED_CALL(0, 1, suffix);                                                    \
+            else GS_QUANTISED_CALL(0, 2, suffix);                                                                     \
+        }                                                                                                             \
+    } while (0)
+#if GS_SX
+    if (gs_sx_ok) {
+        GS_QUANTISED_CALLS(_sx);
+        return;
     }
+#endif
+    GS_QUANTISED_CALLS();
+#undef GS_QUANTISED_CALLS
 #undef GS_QUANTISED_CALL
 }
 
@@ -1089,7 +1164,9 @@ GS_INLINE void prefetch_slot(const gs_spline *S, double x, double y, double z)
 /* Locate a point on the sphere as point_sum does (brick_at: the same products, so the
  * same weights). chain (a constant): ask the memory for what the next link needs, the
  * column offsets of the rows of the folded table it will read (full columns), its full
- * map and qbase, unless the point before (prev) was in the same cell column. */
+ * map, qbase and fold_base (prefetch_values reads it: 2 MB for the 1 mm store, evicted
+ * from the caches by the values streaming through them), unless the point before (prev)
+ * was in the same cell column. */
 GS_INLINE void latlon_locate(const gs_spline *S, const int order, const int chain, located *L, const located *prev,
                              int64_t *last_key, int64_t *last_brick)
 {
@@ -1122,6 +1199,7 @@ GS_INLINE void latlon_locate(const gs_spline *S, const int order, const int chai
         __builtin_prefetch(S->fold_full + (brick << (2 * BRICK_BITS)) + (L->lx << BRICK_BITS) + L->ly, 0, LL_LOC_OFFS);
         if (S->qwidth)
             __builtin_prefetch(S->qbase + brick, 0, LL_LOC_OFFS);
+        __builtin_prefetch(S->fold_base + brick, 0, LL_LOC_OFFS);
         return;
     }
 }
