@@ -206,8 +206,9 @@ typedef uint64_t gs_u64x2 __attribute__((vector_size(16)));
  * target_clones function. So the quantised table sums are built once more as AVX2
  * functions (GS_QUANTISED_SUMS, sx = 1, the asm), chosen at run time when the CPU has
  * AVX2 (gs_sx_ok); the same values, bitwise (the same lanes, then the same operations).
- * The asm is in a branch on a constant that the baseline builds fold away (-O1 and up). */
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+ * The asm is in a branch on a constant that the baseline builds fold away, which needs
+ * optimisation: an -O0 build (__OPTIMIZE__ undefined) has the target clones only. */
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && defined(__OPTIMIZE__)
 #define GS_SX 1
 #else
 #define GS_SX 0
@@ -506,12 +507,17 @@ GS_QUANTISED_SUMS(0, 1)
 GS_QUANTISED_SUMS(0, 2)
 
 #if GS_SX
+static int cpu_has_avx2(void)
+{
+    __builtin_cpu_init();
+    return __builtin_cpu_supports("avx2") != 0;
+}
+
 /* whether this CPU runs the AVX2 sums (GS_SX), found when the library loads */
 static int gs_sx_ok;
 __attribute__((constructor)) static void gs_sx_detect(void)
 {
-    __builtin_cpu_init();
-    gs_sx_ok = __builtin_cpu_supports("avx2") != 0;
+    gs_sx_ok = cpu_has_avx2();
 }
 #endif
 
@@ -523,10 +529,8 @@ GS_EXPORT int64_t gs_quantised_sums_avx2(int64_t use)
 {
 #if GS_SX
     int64_t previous = gs_sx_ok;
-    if (use >= 0) {
-        __builtin_cpu_init();
-        gs_sx_ok = use && __builtin_cpu_supports("avx2");
-    }
+    if (use >= 0)
+        gs_sx_ok = use && cpu_has_avx2();
     return previous;
 #else
     (void)use;
