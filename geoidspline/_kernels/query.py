@@ -97,7 +97,7 @@ _finest_step = function("gs_finest_step", PTR, I64, F64, I64, restype=I64)
 _quantise_table = function("gs_quantise_table", PTR, I64, PTR, I64, F64, I64, PTR, PTR, restype=I64)
 _quantise_mixed = function("gs_quantise_mixed", PTR, I64, PTR, I64, F64, PTR, PTR, PTR, restype=I64)
 _full_columns = function("gs_full_columns", PTR, I64, I64, PTR, I64, PTR)
-_quantised_sums_avx2 = function("gs_quantised_sums_avx2", I64, restype=I64)
+_quantised_sums_level = function("gs_quantised_sums_level", I64, restype=I64)
 _subdivide_bricks = function("gs_subdivide_bricks", PTR, I64, PTR, PTR, PTR, I64, PTR, I64, I64)
 
 
@@ -257,12 +257,12 @@ def full_columns(cols, order, offs_dtype=np.int32):
     return offs, full
 
 
-def quantised_sums_avx2(use=None) -> bool:
-    """Whether quantised tables are summed by the AVX2 build of the sums (one instruction
-    where the target clones take three to widen int16; the same bits): ``use`` True allows
-    it where the CPU has AVX2, False runs the target clones; None only asks. Returns the
-    previous setting. For tests and benchmarks; call it between batches."""
-    return bool(_quantised_sums_avx2(-1 if use is None else int(bool(use))))
+def quantised_sums_level(level=None) -> int:
+    """Which build sums quantised tables: 0 the target clones, 1 AVX2 (one instruction to
+    widen 4 int16), 2 AVX-512DQ (and one to convert them); the same values from each.
+    ``level`` sets the widest allowed (as far as the CPU has it), None only asks. Returns
+    the previous level. For tests and benchmarks; call it between batches."""
+    return int(_quantised_sums_level(-1 if level is None else int(level)))
 
 
 def build_hash(keys):

@@ -363,9 +363,14 @@ class BrickIndex:
     multiples of it or of a power-of-two fraction of it, bitwise), the tables of a spline
     of :data:`QUANTISE_FROM_COEFFICIENTS` coefficients or more (or any, ``quantise=True``)
     hold those integers instead of float64: int16 with a base per brick, or int32 (in two
-    int16 slots) for a brick spanning more than 65,535 steps (:data:`MIXED_WIDTHS`); the kernels multiply them back exactly as the
-    store's decoder does, so every result has the same bits. Such an index holds one copy
-    of its column tables (own and folded are the same).
+    int16 slots) for a brick spanning more than 65,535 steps (:data:`MIXED_WIDTHS`), the int16
+    ones about the middle of their brick's range. Points whose cell's columns are all
+    full (most) are summed from those integers and the brick's base added once: within
+    16 units in the last place of the largest coefficient of the float64 tables' result
+    (below 1e-13 m for a geoid's ±110 m); the others from the coefficients as the
+    store's decoder gives them, bitwise as the float64 tables (tests in
+    ``tests/test_query_index.py``). Such an index holds one copy of its column tables
+    (own and folded are the same).
     Memory: :attr:`nbytes`. Immutable once built; evaluation is
     thread-safe.
     """

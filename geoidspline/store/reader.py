@@ -114,7 +114,8 @@ class StoreSpline:
       not read adds 0 elsewhere), so every value, gradient and Hessian has the same
       bits as the whole store's index gives (tests: single- and multi-level stores,
       seams, poles). Its tables hold the store's integers when the whole store's
-      would (stores of 50 M coefficients or more): same bits, same bytes a coefficient.
+      would (stores of 50 M coefficients or more), a point's brick with the same integers
+      and base (its whole table is there): same bits, same bytes a coefficient.
       A batch of latitudes/longitudes takes the tiles of its bounding rectangle's
       box when they are at most ``_LATLON_BOX_SLACK`` times those of its points.
 

@@ -177,19 +177,19 @@ GS_INLINE double dequantised_at(const int quant, const void *qv, int64_t i, int3
     return (double)(qb + q) * step;
 }
 
-/* The order coefficients of a quantised table (quant 2: int16, 4: int32) at qv + at, as
- * lanes (laid out as lanes_axpy reads a column): (double)(qb + q) * step per lane, the
- * decoder's product (gs_spline), converted in vector registers (a column dequantised
- * into memory and loaded back as vectors waits on store forwarding: 3 times slower).
+/* The integers q of order coefficients of a quantised table (quant 2: int16, 4: int32)
+ * at qv + at, as doubles in lanes (laid out as lanes_axpy reads a column; exact: |q| <
+ * 2**31): the full-column sums add w q, and table_sum scales the sum by the step and adds
+ * the brick's base once (see there), instead of (qb + q) step per coefficient. Converted
+ * in vector registers (a column converted into memory and loaded back as vectors waits
+ * on store forwarding: 3 times slower).
  *
- * The int16 conversion is the magic-number one, in 64-bit lanes: q
- * sign-extended to int64, plus qmagic = qb + the bits of 1.5 2**52 (one constant a
- * brick, dequant_magic), is the bit pattern of the double 1.5 2**52 + (qb + q) (its
- * mantissa field 2**51 + qb + q does not carry into the exponent: |qb + q| < 2**51, as
- * qb and q are int32 and int16); minus 1.5 2**52 that is exactly (double)
- * (qb + q) (Sterbenz: both within a factor 2; a zero is +0.0 either way), then times step:
- * the same bits as the decoder's product. (GCC 12 widened 4 int16 to int32 through
- * general registers, one at a time.) */
+ * int16 q is widened to int64 lanes by the build chosen at run time (sx, see GS_SX): 0
+ * (the target clones) a broadcast and two shifts (GCC 12 widens int16 vectors one lane
+ * at a time through general registers), 1 (AVX2) one vpmovsxwq from memory; then the
+ * magic-number conversion: q + the bits of 1.5 2**52 is the bit pattern of the double
+ * 1.5 2**52 + q (its mantissa field 2**51 + q does not carry), minus 1.5 2**52 exactly q.
+ * 2 (AVX-512DQ): vpmovsxwq, then vcvtqq2pd. Every build gives the same doubles. */
 typedef int32_t gs_i32x4 __attribute__((vector_size(16)));
 typedef int32_t gs_i32x2 __attribute__((vector_size(8)));
 typedef int64_t gs_i64x4 __attribute__((vector_size(32)));
@@ -199,15 +199,13 @@ typedef uint64_t gs_u64x2 __attribute__((vector_size(16)));
 #define DEQUANT_MAGIC 6755399441055744.0           /* 1.5 2**52 */
 #define DEQUANT_MAGIC_BITS 0x4338000000000000LL    /* its bits */
 
-/* The int16 tables' sign extension in the hot loop: GCC 12 builds 4 int16 into 64-bit
- * lanes one lane at a time (__builtin_convertvector) or, as dequantised4 writes it, by a
- * broadcast and two shifts; AVX2's vpmovsxwq does it in one instruction from memory, which
- * GCC emits only from an intrinsic or asm, and neither compiles in the baseline clone of a
- * target_clones function. So the quantised table sums are built once more as AVX2
- * functions (GS_QUANTISED_SUMS, sx = 1, the asm), chosen at run time when the CPU has
- * AVX2 (gs_sx_ok); the same values, bitwise (the same lanes, then the same operations).
- * The asm is in a branch on a constant that the baseline builds fold away, which needs
- * optimisation: an -O0 build (__OPTIMIZE__ undefined) has the target clones only. */
+/* The widening instructions in the hot loop: vpmovsxwq (AVX2) and vcvtqq2pd (AVX-512DQ),
+ * which GCC emits only from intrinsics or asm, and neither compiles in the baseline clone
+ * of a target_clones function. So the quantised table sums are built twice more as
+ * functions for those instruction sets (GS_QUANTISED_SUMS, sx = 1 and 2, the asm), chosen
+ * at run time by what the CPU has (gs_sx_level). The asm is in branches on a constant
+ * that the baseline builds fold away, which needs optimisation: an -O0 build
+ * (__OPTIMIZE__ undefined) has the target clones only. */
 #if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && defined(__OPTIMIZE__)
 #define GS_SX 1
 #else
@@ -215,62 +213,55 @@ typedef uint64_t gs_u64x2 __attribute__((vector_size(16)));
 #endif
 typedef uint64_t gs_u64_alias __attribute__((may_alias));
 
-/* qb + the bits of 1.5 2**52, the per-brick constant of dequantised4 */
-GS_INLINE int64_t dequant_magic(int32_t qb)
-{
-    return (int64_t)qb + DEQUANT_MAGIC_BITS;
-}
-
-GS_INLINE gs_v4 dequantised4(const int quant, const int sx, const void *qv, int64_t at, int32_t qb, int64_t qmagic,
-                              double step)
+GS_INLINE gs_v4 widened4(const int quant, const int sx, const void *qv, int64_t at)
 {
     if (quant == 2) {
         gs_i64x4 q;
 #if GS_SX
-        if (sx) { /* the AVX2 functions (GS_SX): one vpmovsxwq from memory */
+        if (sx) {
             __asm__("vpmovsxwq %1, %0" : "=x"(q) : "m"(*(const gs_u64_alias *)((const int16_t *)qv + at)));
-            return ((gs_v4)(q + qmagic) - DEQUANT_MAGIC) * step;
+            if (sx == 2) {
+                gs_v4 d;
+                __asm__("vcvtqq2pd %1, %0" : "=x"(d) : "x"(q));
+                return d;
+            }
+            return (gs_v4)(q + DEQUANT_MAGIC_BITS) - DEQUANT_MAGIC;
         }
 #endif
         /* the 4 int16 in every lane, each lane's own moved to the top and shifted back
-         * down with its sign (vpbroadcastq, vpsllvq, vpsraq; GCC 12 made
-         * __builtin_convertvector of 4 int16 to int64 one lane at a time through general
-         * registers) */
+         * down with its sign (vpbroadcastq, vpsllvq, vpsraq) */
         uint64_t x;
         memcpy(&x, (const int16_t *)qv + at, sizeof x);
         const gs_u64x4 up = {48, 32, 16, 0};
         q = (gs_i64x4)((gs_u64x4){x, x, x, x} << up) >> 48;
-        return ((gs_v4)(q + qmagic) - DEQUANT_MAGIC) * step;
+        return (gs_v4)(q + DEQUANT_MAGIC_BITS) - DEQUANT_MAGIC;
     }
-    /* int32 (qb 0, qb + q an int32): their own conversion (vpaddd, vcvtdq2pd), fewer
-     * instructions than widening to 64-bit lanes for the magic number */
-    gs_i32x4 q;
+    gs_i32x4 q; /* int32: their own conversion (vcvtdq2pd) */
     memcpy(&q, (const int32_t *)qv + at, sizeof q);
-    return __builtin_convertvector(q + qb, gs_v4) * step;
+    return __builtin_convertvector(q, gs_v4);
 }
 
-GS_INLINE void lanes_dequantised(const int order, const int quant, const int sx, const void *qv, int64_t at,
-                                 int32_t qb, int64_t qmagic, double step, lanes *c)
+GS_INLINE void lanes_widened(const int order, const int quant, const int sx, const void *qv, int64_t at, lanes *c)
 {
     for (int k = 0; k < LANE_V(order); ++k)
-        c->v[k] = dequantised4(quant, sx, qv, at + 4 * k, qb, qmagic, step);
+        c->v[k] = widened4(quant, sx, qv, at + 4 * k);
     if (LANE_OVER(order))
-        c->over = dequantised4(quant, sx, qv, at + order - 4, qb, qmagic, step);
+        c->over = widened4(quant, sx, qv, at + order - 4);
     if (LANE_PAIR(order)) {
         if (quant == 2) {
             uint32_t x;
             memcpy(&x, (const int16_t *)qv + at + 4 * LANE_V(order), sizeof x);
             const gs_u64x2 up = {48, 32};
             gs_i64x2 q = (gs_i64x2)((gs_u64x2){x, x} << up) >> 48;
-            c->pair = ((gs_v2)(q + qmagic) - DEQUANT_MAGIC) * step;
+            c->pair = (gs_v2)(q + DEQUANT_MAGIC_BITS) - DEQUANT_MAGIC;
         } else {
             gs_i32x2 q;
             memcpy(&q, (const int32_t *)qv + at + 4 * LANE_V(order), sizeof q);
-            c->pair = __builtin_convertvector(q + qb, gs_v2) * step;
+            c->pair = __builtin_convertvector(q, gs_v2);
         }
     }
     if (LANE_ONE(order))
-        c->one = dequantised_at(quant, qv, at + order - 1, qb, step);
+        c->one = quant == 2 ? (double)((const int16_t *)qv)[at + order - 1] : (double)((const int32_t *)qv)[at + order - 1];
 }
 
 /* a += w b */
@@ -363,7 +354,14 @@ GS_INLINE const double *column_run(const int order, const int quant, const doubl
  * (p, q) starts at values + offs[p][q] + lz: no decoding and no branch per column (most
  * points: a folded table covers its band whole). Otherwise each column is decoded from
  * its entry (column_run), an empty one skipped, one cut by the run's end read through a
- * zero-padded copy. Both add the same products in the same order (the same bits). */
+ * zero-padded copy. Both add the same products in the same order (the same bits).
+ *
+ * Quantised tables (quant): the decoding path sums the decoder's coefficients (qb + q)
+ * step, bitwise as the float64 tables; the full-column path sums w q and adds qb step
+ * once (the weights sum to 1, to 0 for derivatives): per coefficient a conversion
+ * instead of an addition, a conversion and a product (benchmarks/README.md), within a few
+ * units in the last place of the brick's largest coefficient of that (below 1e-13 m for
+ * a geoid's +-110 m; tests/test_query_index.py). */
 GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, const int full, const int quant,
                          const int sx, const double *wx, const double *wy, const double *wz, const int ws, int64_t base,
                          const int32_t *cols, const void *offs,
@@ -387,7 +385,6 @@ GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, 
      * index): without this GCC adds base + lz to each offset, one more instruction a column */
     if (!width)
         __asm__("" : "+r"(values_lz));
-    const int64_t qmagic = dequant_magic(qb);
     const double step = S->value_step;
     /* A per derivative (x, y): 00 value; 10 01 first; 20 02 11 second */
     lanes a00, a10, a01, a20, a02, a11;
@@ -414,8 +411,7 @@ GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, 
             if (full && quant) {
                 lanes col;
                 lanes_zero(order, &col); /* the lanes it does not fill (unread: for the compiler) */
-                lanes_dequantised(order, width, sx, qv, lz + column_offset(1, offs, col_at + p * side + q), qb, qmagic,
-                                  step, &col);
+                lanes_widened(order, width, sx, qv, lz + column_offset(1, offs, col_at + p * side + q), &col);
                 lanes_add(order, &b0, wy[q * ws], &col);
                 if (nderiv >= 1)
                     lanes_add(order, &b1, wy[(order + q) * ws], &col);
@@ -446,6 +442,25 @@ GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, 
             lanes_add(order, &a02, wx[p * ws], &b2);
             lanes_add(order, &a11, wx[(order + p) * ws], &b1);
         }
+    }
+    if (full && quant) { /* sums of w q: times the step, plus the brick's base (qb step, times 1 = the sum of w) */
+        result[0] += lanes_dot(order, &a00, wz, ws) * step + (double)qb * step;
+        if (nderiv >= 1) { /* the base's term is 0: the derivative weights sum to 0 */
+            const double ih = inv_h * step;
+            result[1] += lanes_dot(order, &a10, wz, ws) * ih;
+            result[2] += lanes_dot(order, &a01, wz, ws) * ih;
+            result[3] += lanes_dot(order, &a00, wz + order * ws, ws) * ih;
+        }
+        if (nderiv >= 2) {
+            const double ih2 = inv_h * inv_h * step;
+            result[4] += lanes_dot(order, &a20, wz, ws) * ih2;
+            result[5] += lanes_dot(order, &a02, wz, ws) * ih2;
+            result[6] += lanes_dot(order, &a00, wz + 2 * order * ws, ws) * ih2;
+            result[7] += lanes_dot(order, &a11, wz, ws) * ih2;
+            result[8] += lanes_dot(order, &a10, wz + order * ws, ws) * ih2;
+            result[9] += lanes_dot(order, &a01, wz + order * ws, ws) * ih2;
+        }
+        return;
     }
     result[0] += lanes_dot(order, &a00, wz, ws);
     if (nderiv >= 1) {
@@ -479,8 +494,9 @@ GS_INLINE void table_sums(const gs_spline *S, const int order, const int nderiv,
 
 /* table_sums of quantised tables, one function per (order, nderiv) that the callers call
  * (inlined into each of them, like the float64 one, it tripled the kernels' compile
- * time); order 0: any order, given as order_. Each twice with GS_SX: the target clones and
- * an AVX2 function (name_sx: vpmovsxwq, see GS_SX), chosen by brick_sum. */
+ * time); order 0: any order, given as order_. Each three times with GS_SX: the target
+ * clones, an AVX2 function (name_sx1: vpmovsxwq) and an AVX-512DQ one (name_sx2:
+ * vcvtqq2pd), chosen by brick_sum (see widened4). */
 #define GS_QUANTISED_SUMS_AS(o, d, name, attributes, sx)                                                              \
     attributes static void name(const gs_spline *S, int order_, const double *wx, const double *wy, const double *wz, \
                                 int ws, int64_t base, const int32_t *cols, const void *offs, const uint16_t *full,    \
@@ -492,7 +508,9 @@ GS_INLINE void table_sums(const gs_spline *S, const int order, const int nderiv,
 #if GS_SX
 #define GS_QUANTISED_SUMS(o, d)                                                                                       \
     GS_QUANTISED_SUMS_AS(o, d, quantised_sums_##o##_##d, GS_HOT, 0)                                                  \
-    GS_QUANTISED_SUMS_AS(o, d, quantised_sums_##o##_##d##_sx, __attribute__((target("avx2"))), 1)
+    GS_QUANTISED_SUMS_AS(o, d, quantised_sums_##o##_##d##_sx1, __attribute__((target("avx2"))), 1)               \
+    GS_QUANTISED_SUMS_AS(o, d, quantised_sums_##o##_##d##_sx2,                                                       \
+                         __attribute__((target("avx2,avx512f,avx512dq,avx512vl"))), 2)
 #else
 #define GS_QUANTISED_SUMS(o, d) GS_QUANTISED_SUMS_AS(o, d, quantised_sums_##o##_##d, GS_HOT, 0)
 #endif
@@ -507,33 +525,37 @@ GS_QUANTISED_SUMS(0, 1)
 GS_QUANTISED_SUMS(0, 2)
 
 #if GS_SX
-static int cpu_has_avx2(void)
+/* the widest build of the quantised sums this CPU runs (see widened4): 2 AVX-512DQ (and
+ * VL), 1 AVX2, 0 the target clones */
+static int cpu_sx_level(void)
 {
     __builtin_cpu_init();
-    return __builtin_cpu_supports("avx2") != 0;
+    if (__builtin_cpu_supports("avx512dq") && __builtin_cpu_supports("avx512vl") && __builtin_cpu_supports("avx2"))
+        return 2;
+    return __builtin_cpu_supports("avx2") ? 1 : 0;
 }
 
-/* whether this CPU runs the AVX2 sums (GS_SX), found when the library loads */
-static int gs_sx_ok;
+/* the build the quantised sums run as, found when the library loads */
+static int gs_sx_level;
 __attribute__((constructor)) static void gs_sx_detect(void)
 {
-    gs_sx_ok = cpu_has_avx2();
+    gs_sx_level = cpu_sx_level();
 }
 #endif
 
-/* Whether the quantised sums run as the AVX2 functions (GS_SX): use 1 to allow them where
- * the CPU has AVX2, 0 to run the target clones instead (tests compare the two), -1 to
- * ask; returns the previous setting (0 where they are not built). Not thread-safe: call
- * it between batches. */
-GS_EXPORT int64_t gs_quantised_sums_avx2(int64_t use)
+/* Which build the quantised sums run as (widened4's sx: 0 the target clones, 1 AVX2, 2
+ * AVX-512DQ): level >= 0 sets the widest allowed (as far as the CPU has it; tests compare
+ * the builds), -1 only asks; returns the previous level (0 where no other is built). Not
+ * thread-safe: call it between batches. */
+GS_EXPORT int64_t gs_quantised_sums_level(int64_t level)
 {
 #if GS_SX
-    int64_t previous = gs_sx_ok;
-    if (use >= 0)
-        gs_sx_ok = use && cpu_has_avx2();
+    int64_t previous = gs_sx_level, widest = cpu_sx_level();
+    if (level >= 0)
+        gs_sx_level = (int)(level < widest ? level : widest);
     return previous;
 #else
-    (void)use;
+    (void)level;
     return 0;
 #endif
 }
@@ -567,8 +589,12 @@ GS_INLINE void brick_sum(const gs_spline *S, const int order, const int nderiv, 
         }                                                                                                             \
     } while (0)
 #if GS_SX
-    if (gs_sx_ok) {
-        GS_QUANTISED_CALLS(_sx);
+    if (gs_sx_level == 2) {
+        GS_QUANTISED_CALLS(_sx2);
+        return;
+    }
+    if (gs_sx_level == 1) {
+        GS_QUANTISED_CALLS(_sx1);
         return;
     }
 #endif
@@ -1721,11 +1747,21 @@ static int brick_q_range(const double *values, int64_t lo, int64_t hi, double st
     return 1;
 }
 
+/* The base of an int16 brick whose integers span q_min .. q_max (at most 65,535 apart):
+ * their middle, so that q - base lies in [-32768, 32767] and the base times the step is
+ * about the brick's mean value (table_sum adds it once to sums of w (q - base): their
+ * rounding then scales with the values, not with an offset of 32,768 steps); > INT32_MIN
+ * (QBASE_WIDE), as q_min is (brick_q_range). */
+static int64_t centred_base(int64_t q_min, int64_t q_max)
+{
+    return q_min + (q_max - q_min + 1) / 2;
+}
+
 /* A table's values (total, bricks by base (nb): brick b owns [base[b], base[b + 1]) as
  * integers q[v] = c / step - qbase[b] when every value c is (double)(int32) q * step
- * bitwise (a store's coefficients are): width 2, int16 (qbase[b] = the brick's least q +
- * 32768; its q must span at most 65,535 steps), or 4, int32 (qbase 0). Returns 0, or the
- * first brick that is not so (+ 1): q and qbase are then partly written. */
+ * bitwise (a store's coefficients are): width 2, int16 (qbase[b] = centred_base: its q
+ * must span at most 65,535 steps), or 4, int32 (qbase 0). Returns 0, or the first brick
+ * that is not so (+ 1): q and qbase are then partly written. */
 GS_EXPORT int64_t gs_quantise_table(const double *values, int64_t total, const int64_t *base, int64_t nb,
                                     double step, int64_t width, void *q, int32_t *qbase)
 {
@@ -1736,7 +1772,7 @@ GS_EXPORT int64_t gs_quantise_table(const double *values, int64_t total, const i
             return b + 1;
         if (width == 2 && hi > lo && q_max - q_min > 65535)
             return b + 1;
-        int64_t qb = width == 2 && hi > lo ? q_min + 32768 : 0;
+        int64_t qb = width == 2 && hi > lo ? centred_base(q_min, q_max) : 0;
         if (qb > INT32_MAX || qb < INT32_MIN)
             return b + 1;
         qbase[b] = (int32_t)qb;
@@ -1772,8 +1808,8 @@ GS_EXPORT int64_t gs_quantise_mixed(const double *values, int64_t total, const i
                 memcpy(q + at, &qv, sizeof qv);
             }
         } else {
-            int64_t qb = hi > lo ? q_min + 32768 : 0;
-            qbase[b] = (int32_t)qb; /* > QBASE_WIDE: q_min >= -2**31 */
+            int64_t qb = hi > lo ? centred_base(q_min, q_max) : 0;
+            qbase[b] = (int32_t)qb;
             for (int64_t v = lo; v < hi; ++v)
                 q[at++] = (int16_t)((int64_t)rint(values[v] / step) - qb);
         }
