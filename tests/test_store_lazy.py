@@ -289,6 +289,31 @@ def test_large_batches_read_only_their_tiles_and_give_the_whole_stores_bits(patc
         assert lazy.spline._full is None and lazy.spline.tiles_read < total / 2
 
 
+def test_quantised_indexes_of_a_part_give_the_whole_stores_bits(patch_stores, monkeypatch):
+    """A store big enough for integer tables (the threshold lowered to 0 here): the index
+    of the tiles a batch needs holds the point's bricks with the same integers and base as
+    the whole store's, so the full-column sums (w q summed, the base added once) give the
+    same bits, values and derivatives."""
+    from geoidspline.bspline import index as index_module
+
+    monkeypatch.setattr(index_module, "QUANTISE_FROM_COEFFICIENTS", 0)
+    path = patch_stores["one level, order 6"]
+    eager = TileStore.open(path, lazy=False)
+    assert eager.spline.full.index.qvalues is not None
+    rng = np.random.default_rng(12)
+    for s, w, n, e in BATCHES:
+        lazy = geoidspline.open_store(path)
+        lat, lon = rng.uniform(s, n, 3 * FOLDED_FROM_POINTS), rng.uniform(w, e, 3 * FOLDED_FROM_POINTS)
+        got = lazy.undulation(lat, lon)
+        assert lazy.spline._full is None and lazy.spline._partial.index.qvalues is not None
+        np.testing.assert_array_equal(got, eager.undulation(lat, lon))
+        assert np.abs(got).max() > 1.0
+        u = directions(lat, lon) * rng.choice([1.0, 1.0 - 1e-4, 1.0 + 1e-4], lat.size)[:, None]
+        for nderiv in (0, 1, 2):
+            np.testing.assert_array_equal(lazy.spline.evaluate_points(u, nderiv),
+                                          eager.spline.evaluate_points(u, nderiv))
+
+
 def test_index_tiles_hold_every_bspline_touching_the_points_bricks(patch_stores):
     """index_tiles_at names every tile holding a coefficient whose B-spline touches a
     brick (of its level) that holds a point: what the index of those tiles needs to have
