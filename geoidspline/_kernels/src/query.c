@@ -443,33 +443,19 @@ GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, 
             lanes_add(order, &a11, wx[(order + p) * ws], &b1);
         }
     }
-    if (full && quant) { /* sums of w q: times the step, plus the brick's base (qb step, times 1 = the sum of w) */
-        result[0] += lanes_dot(order, &a00, wz, ws) * step + (double)qb * step;
-        if (nderiv >= 1) { /* the base's term is 0: the derivative weights sum to 0 */
-            const double ih = inv_h * step;
-            result[1] += lanes_dot(order, &a10, wz, ws) * ih;
-            result[2] += lanes_dot(order, &a01, wz, ws) * ih;
-            result[3] += lanes_dot(order, &a00, wz + order * ws, ws) * ih;
-        }
-        if (nderiv >= 2) {
-            const double ih2 = inv_h * inv_h * step;
-            result[4] += lanes_dot(order, &a20, wz, ws) * ih2;
-            result[5] += lanes_dot(order, &a02, wz, ws) * ih2;
-            result[6] += lanes_dot(order, &a00, wz + 2 * order * ws, ws) * ih2;
-            result[7] += lanes_dot(order, &a11, wz, ws) * ih2;
-            result[8] += lanes_dot(order, &a10, wz + order * ws, ws) * ih2;
-            result[9] += lanes_dot(order, &a01, wz + order * ws, ws) * ih2;
-        }
-        return;
-    }
-    result[0] += lanes_dot(order, &a00, wz, ws);
+    /* quantised full columns summed w q: times the step, plus the brick's base once (qb
+     * step times the weights' sum, 1; the derivative weights sum to 0); scale 1 folds away */
+    const double scale = full && quant ? step : 1.0;
+    const double value = lanes_dot(order, &a00, wz, ws);
+    result[0] += full && quant ? value * step + (double)qb * step : value;
     if (nderiv >= 1) {
-        result[1] += lanes_dot(order, &a10, wz, ws) * inv_h;
-        result[2] += lanes_dot(order, &a01, wz, ws) * inv_h;
-        result[3] += lanes_dot(order, &a00, wz + order * ws, ws) * inv_h;
+        const double ih = inv_h * scale;
+        result[1] += lanes_dot(order, &a10, wz, ws) * ih;
+        result[2] += lanes_dot(order, &a01, wz, ws) * ih;
+        result[3] += lanes_dot(order, &a00, wz + order * ws, ws) * ih;
     }
     if (nderiv >= 2) {
-        double ih2 = inv_h * inv_h;
+        const double ih2 = inv_h * inv_h * scale;
         result[4] += lanes_dot(order, &a20, wz, ws) * ih2;
         result[5] += lanes_dot(order, &a02, wz, ws) * ih2;
         result[6] += lanes_dot(order, &a00, wz + 2 * order * ws, ws) * ih2;
