@@ -390,6 +390,32 @@ def test_a_directory_of_user_files_is_never_taken(race_base, tmp_path):
         assert snapshot(out) == before and sorted(p.name for p in out.iterdir()) == ["tiles"]
 
 
+def test_a_first_write_in_progress_is_named_as_another_writer_not_leftovers(race_base, tmp_path):
+    """Seen: two geoid-fit into one new directory; the second, at its write, found the
+    first's tiles in progress and called them leftovers of a write that did not finish,
+    to be cleared with --overwrite. While another writer holds the lock it names that
+    writer, with or without overwrite, and nothing changes; once the holder is gone the
+    same files are leftovers again."""
+    out = tmp_path / "out"
+    (out / "tiles").mkdir(parents=True)
+    (out / ".geoidspline-store").write_text("")
+    (out / "tiles" / ".t+0000-0003-0001.v1.gst.51xqddvn.tmp").write_bytes(b"a tile being written")
+    holder = _stopped_holder(out)
+    try:
+        before = snapshot(out)
+        for overwrite in (False, True):
+            with pytest.raises(StoreError, match=rf"another writer \(pid {holder.pid}\) is writing this store"):
+                write_store(out, race_base[1], Provenance(source="x"), overwrite=overwrite)
+            assert snapshot(out) == before
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        assert holder.wait(timeout=60) == -signal.SIGKILL
+    with pytest.raises(StoreError, match="leftovers of a store write.*overwrite"):
+        write_store(out, race_base[1], Provenance(source="x"))
+    write_store(out, race_base[1], Provenance(source="x"), overwrite=True)
+    assert verify_store(out) == []
+
+
 def test_old_tiles_without_a_manifest_need_overwrite_and_keep_the_rest(race_base, tmp_path):
     """Seen: a directory with old tiles but no manifest was overwritten without --overwrite."""
     out = tmp_path / "out"

@@ -176,13 +176,7 @@ class StoreLock:
                 except BlockingIOError:
                     left = deadline - time.monotonic()
                     if left <= 0.0:
-                        holder = _read_pid(fd)
-                        waited = f" (waited {self.wait_seconds:g} s)" if self.wait_seconds > 0 else ""
-                        raise StoreError(
-                            f"{self.root}: another writer{f' (pid {holder})' if holder else ''} is writing this "
-                            f"store{waited}; try again when it has finished, or let this command wait for it "
-                            f"(geoid-update --wait SECONDS; wait_seconds= in Python)"
-                        ) from None
+                        raise _another_writer(self.root, _read_pid(fd), self.wait_seconds) from None
                     _pause(min(LOCK_POLL_SECONDS, left))
                 except OSError as exc:
                     raise StoreError(f"{self.root}: cannot take the writer lock {LOCK}: {fault_cause(exc)}") from None
@@ -209,6 +203,37 @@ class StoreLock:
             fcntl.flock(fd, fcntl.LOCK_UN)
             os.close(fd)
         return False
+
+
+def _another_writer(root: Path, holder: int | None, waited_seconds: float = 0.0) -> StoreError:
+    """The refusal when another writer holds the lock of the store at ``root``."""
+    waited = f" (waited {waited_seconds:g} s)" if waited_seconds > 0 else ""
+    return StoreError(
+        f"{root}: another writer{f' (pid {holder})' if holder else ''} is writing this "
+        f"store{waited}; try again when it has finished, or let this command wait for it "
+        f"(geoid-update --wait SECONDS; wait_seconds= in Python)")
+
+
+def _lock_holder(root: Path) -> tuple[bool, int | None]:
+    """Whether another open file holds the writer lock of ``root`` now (and its pid when
+    it wrote one), for the checks made before this writer takes the lock: an unfinished
+    write's files are then another writer's work in progress, not leftovers. A lock file
+    that cannot be opened or locked counts as free (StoreLock reports it when taken)."""
+    import fcntl
+
+    try:
+        fd = os.open(root / LOCK, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError:
+        return False, None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)  # released by the close below
+    except BlockingIOError:
+        return True, _read_pid(fd)
+    except OSError:
+        return False, None
+    finally:
+        os.close(fd)
+    return False, None
 
 
 def _read_pid(fd) -> int | None:
@@ -250,11 +275,13 @@ def _manifest_state(root: Path) -> str | None:
         return None
 
 
-def _previous_store(root: Path, overwrite: bool) -> dict | None:
+def _previous_store(root: Path, overwrite: bool, locked: bool = False) -> dict | None:
     """The manifest of the store at ``root`` that a new write replaces, or None.
 
     Refuses (before anything is written) a directory that is not a store, a store
-    without ``overwrite``, and leftovers of an unfinished write without ``overwrite``.
+    without ``overwrite``, and leftovers of an unfinished write without ``overwrite``;
+    before the lock is taken (not ``locked``), such files while another writer holds the
+    lock as that writer's work in progress.
     """
     if not root.exists():
         return None
@@ -282,6 +309,9 @@ def _previous_store(root: Path, overwrite: bool) -> dict | None:
         return previous
     leftovers = [name for name in ours if name not in (LOCK, MARKER)]
     if leftovers:
+        held, holder = (False, None) if locked else _lock_holder(root)
+        if held:  # another writer's work in progress, not leftovers: its lock refuses this write
+            raise _another_writer(root, holder)
         if not overwrite:
             raise StoreError(
                 f"{root}: holds the leftovers of a store write that did not finish ({len(leftovers)} files such as "
@@ -505,7 +535,7 @@ def write_store(path, result, provenance, check=None,
     _create_store_directory(root)
     with StoreLock(root):
         crash_point("after-lock")
-        previous = _previous_store(root, overwrite)  # again, under the lock
+        previous = _previous_store(root, overwrite, locked=True)  # again, under the lock
         state = _manifest_state(root)
         version = (previous["store_version"] + 1) if previous else 1
         with _Attempt(root, previous["store_version"] if previous else None) as attempt:
@@ -721,7 +751,7 @@ class BandedWrite:
         try:
             record = self._check_directory()  # again, under the lock
             if record is None:
-                self.previous = _previous_store(self.root, self.overwrite)
+                self.previous = _previous_store(self.root, self.overwrite, locked=True)
                 version = (self.previous["store_version"] + 1) if self.previous else 1
                 self.progress = {"identity": self.identity, "store_id": uuid.uuid4().hex, "store_version": version,
                                  "started": utc_now(), "bands": {}}
