@@ -359,8 +359,8 @@ GS_INLINE const double *column_run(const int order, const int quant, const doubl
  * Quantised tables (quant): the decoding path sums the decoder's coefficients (qb + q)
  * step, bitwise as the float64 tables; the full-column path sums w q and adds qb step
  * once (the weights sum to 1, to 0 for derivatives): per coefficient a conversion
- * instead of an addition, a conversion and a product (benchmarks/README.md), within a few
- * units in the last place of the brick's largest coefficient of that (below 1e-13 m for
+ * instead of an addition, a conversion and a product (benchmarks/README.md); the two
+ * differ by a few units in the last place of the largest coefficient (below 1e-13 m for
  * a geoid's +-110 m; tests/test_query_index.py). */
 GS_INLINE void table_sum(const gs_spline *S, const int order, const int nderiv, const int full, const int quant,
                          const int sx, const double *wx, const double *wy, const double *wz, const int ws, int64_t base,
