@@ -1066,10 +1066,17 @@ static void latlon_scatter(void *ctx, int64_t blk)
 }
 
 #define SORT_TASK_BUCKETS 16
+/* Brick-major (cell) codes are refined by the top LL_LOW_BITS - CELL_REFINE_SHIFT of their
+ * low bits only: groups of 32 codes in input order, still within a few bricks, for a
+ * 32-entry count a bucket instead of 1,024 (egm96-15 0.92-0.94x, the 2 mm store 0.95-1.0x;
+ * the latitude/longitude codes of quantised tables lose locality that way: 1.09x
+ * regional, so they keep every bit; benchmarks/README.md) */
+#define CELL_REFINE_SHIFT 5
 
 /* The sort's second pass: each bucket's points from by_bucket into sorted by their low
- * code bits, stably (a bucket holds increasing positions), so the order is that of
- * (code, position): insertion sort for small buckets, a counting sort otherwise. */
+ * code bits (from bit shift up: CELL_REFINE_SHIFT for cell codes, else all), stably (a
+ * bucket holds increasing positions), so the order is that of (code >> shift, position):
+ * insertion sort for small buckets (by the whole code), a counting sort otherwise. */
 static void latlon_refine(void *ctx, int64_t task)
 {
     latlon_job *J = ctx;
@@ -1077,6 +1084,8 @@ static void latlon_refine(void *ctx, int64_t task)
     if (b_hi > LL_BUCKETS + 1)
         b_hi = LL_BUCKETS + 1; /* NaN's bucket: its codes are all equal */
     const uint64_t low_mask = (1u << LL_LOW_BITS) - 1;
+    const int shift = J->cells ? CELL_REFINE_SHIFT : 0;
+    const uint64_t top = low_mask >> shift; /* the last group */
     int64_t counts[(1 << LL_LOW_BITS) + 1];
     for (int64_t b = b_lo; b < b_hi; ++b) {
         const uint64_t *in = J->by_bucket + J->bucket_start[b];
@@ -1092,13 +1101,13 @@ static void latlon_refine(void *ctx, int64_t task)
             }
             continue;
         }
-        memset(counts, 0, sizeof counts);
+        memset(counts, 0, sizeof(int64_t) * (top + 2));
         for (int64_t i = 0; i < n; ++i)
-            counts[(KEY_CODE(in[i]) & low_mask) + 1] += 1;
-        for (uint64_t k = 1; k <= low_mask; ++k)
+            counts[((KEY_CODE(in[i]) & low_mask) >> shift) + 1] += 1;
+        for (uint64_t k = 1; k <= top; ++k)
             counts[k] += counts[k - 1];
         for (int64_t i = 0; i < n; ++i)
-            a[counts[KEY_CODE(in[i]) & low_mask]++] = in[i];
+            a[counts[(KEY_CODE(in[i]) & low_mask) >> shift]++] = in[i];
     }
 }
 
@@ -1396,7 +1405,7 @@ GS_HOT static void latlon_direct(void *ctx, int64_t task)
  *    high 11 bits (the bucket) per block;
  * 2. exclusive prefix sums over (bucket, block): a stable order by bucket;
  * 3. per block: each point's (code, position) scattered in that order; then each bucket
- *    sorted by the low bits of the code (latlon_refine);
+ *    sorted by the low bits of the code (latlon_refine; cell codes by their top 5);
  * 4. per chunk of the sorted points, in that order: directions (4 at a time), each
  *    point's loads asked for points before its sum (latlon_range);
  * 5. per block: each value written to its point's place (writing it from step 4 is
