@@ -626,7 +626,7 @@ def _assert_near(got, want, level, ulps=16):
     of want: how far a quantised table's full-column sums (w q summed, the brick's base
     added once) may round away from the decoder's coefficients summed."""
     scale = np.abs(level.coefficients).max() * np.array([1.0] + [1 / level.h] * 3 + [1 / level.h**2] * 6)
-    bound = ulps * np.finfo(float).eps * scale[: want.shape[1]] if want.ndim == 2 else ulps * np.finfo(float).eps * scale[0]
+    bound = ulps * np.finfo(float).eps * (scale[: want.shape[1]] if want.ndim == 2 else scale[0])
     assert np.all(np.abs(got - want) <= bound), f"{np.max(np.abs(got - want) / bound):.3g} x the bound"
 
 

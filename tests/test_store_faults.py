@@ -34,6 +34,7 @@ from geoidspline.hierarchy.ambient import AmbientSpline
 from geoidspline.sources.base import Provenance
 from geoidspline.sources.grid import GeoidGrid
 from geoidspline.sphere.region import Region
+from geoidspline.store.format import MARKER, TILE_DIR
 from geoidspline.store.reader import verify_store
 from geoidspline.api.regional import update_store
 from geoidspline.store.writer import StoreLock, commit, write_store
@@ -397,9 +398,9 @@ def test_a_first_write_in_progress_is_named_as_another_writer_not_leftovers(race
     writer, with or without overwrite, and nothing changes; once the holder is gone the
     same files are leftovers again."""
     out = tmp_path / "out"
-    (out / "tiles").mkdir(parents=True)
-    (out / ".geoidspline-store").write_text("")
-    (out / "tiles" / ".t+0000-0003-0001.v1.gst.51xqddvn.tmp").write_bytes(b"a tile being written")
+    (out / TILE_DIR).mkdir(parents=True)
+    (out / MARKER).write_text("")
+    (out / TILE_DIR / ".t+0000-0003-0001.v1.gst.51xqddvn.tmp").write_bytes(b"a tile being written")
     holder = _stopped_holder(out)
     try:
         before = snapshot(out)

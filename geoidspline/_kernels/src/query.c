@@ -1068,9 +1068,8 @@ static void latlon_scatter(void *ctx, int64_t blk)
 #define SORT_TASK_BUCKETS 16
 /* Brick-major (cell) codes are refined by the top LL_LOW_BITS - CELL_REFINE_SHIFT of their
  * low bits only: groups of 32 codes in input order, still within a few bricks, for a
- * 32-entry count a bucket instead of 1,024 (egm96-15 0.92-0.94x, the 2 mm store 0.95-1.0x;
- * the latitude/longitude codes of quantised tables lose locality that way: 1.09x
- * regional, so they keep every bit; benchmarks/README.md) */
+ * 32-entry count a bucket instead of 1,024. The latitude/longitude codes of quantised
+ * tables lose locality that way, so they keep every bit (benchmarks/README.md). */
 #define CELL_REFINE_SHIFT 5
 
 /* The sort's second pass: each bucket's points from by_bucket into sorted by their low
