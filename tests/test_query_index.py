@@ -450,6 +450,44 @@ def test_latlon_batches_in_input_order_give_the_bits_of_sorted_ones(order, h0, n
     assert calls == [False, True]
 
 
+@pytest.mark.parametrize("order", [4, 6])
+def test_bricks_prefetched_ahead_and_sparse_chunks_give_the_same_bits(order, monkeypatch):
+    """Float64 tables beyond the caches (``PREFETCH_BRICKS_FROM_BYTES``, lowered here) give
+    the kernels each brick's table size: a batch's chunks then prefetch the bricks ahead of
+    their points (a dense global batch, hundreds of points a brick) or, with fewer than
+    AHEAD_SPARSE points a brick (a sparse one), take the chain pipeline. Both give the bits
+    of the plain evaluation, on one thread and two, with NaN among the points."""
+    from geoidspline._kernels import _clib
+    from geoidspline.bspline import index as index_module
+
+    monkeypatch.setattr(index_module, "IN_ORDER_MAX_BYTES", -1)  # every batch sorted by cell
+    levels = random_overlays(63, order=order, h0=0.05, nlevels=3)
+    plain = AmbientSpline(levels).index
+    monkeypatch.setattr(index_module, "PREFETCH_BRICKS_FROM_BYTES", 0)
+    ahead = AmbientSpline(levels).index
+    assert plain.fold_size is None and ahead.fold_size is not None
+    # a brick's table ends where its furthest column run does: level 0's own tables lie
+    # one after another, each up to the next one's start
+    level0 = ahead.slots[ahead.slot_start[0]:ahead.slot_start[0] + ahead.slot_mask[0] + 1, 0]
+    nb0 = int((level0 != -1).sum())
+    assert nb0 > 10 and ahead.fold_size.shape == ahead.fold_base.shape
+    np.testing.assert_array_equal(ahead.fold_size[:nb0 - 1], np.diff(ahead.fold_base[:nb0]))
+    rng = np.random.default_rng(64)
+    threads = _clib.threads()
+    try:
+        for count in (5000, 20 * 4096 + 1):  # about 13 points a finest brick; hundreds
+            lat = np.degrees(np.arcsin(rng.uniform(-1, 1, count)))
+            lon = rng.uniform(-180, 180, count)
+            lat[::101] = np.nan
+            want = plain.undulation_latlon(lat, lon)[0]
+            assert np.isnan(want).sum() == len(lat[::101]) and np.nanmax(np.abs(want)) > 1.0
+            for n in sorted({1, 2, threads}):
+                _clib.set_threads(n)
+                np.testing.assert_array_equal(ahead.undulation_latlon(lat, lon)[0], want)
+    finally:
+        _clib.set_threads(threads)
+
+
 def test_compiled_directions_agree_with_numpy_trigonometry():
     """Large batches compute directions with their own sin/cos (fdlibm polynomials):
     within 2.3e-16 of numpy's per component (2 ulp of 1), unit length to 4.5e-16,

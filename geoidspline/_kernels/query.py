@@ -44,12 +44,12 @@ class Spline(ctypes.Structure):
                 ("slots", PTR), ("slot_start", PTR), ("slot_mask", PTR),
                 ("fold_base", PTR), ("own_base", PTR), ("fold_cols", PTR), ("own_cols", PTR),
                 ("values", PTR), ("fold_offs", PTR), ("own_offs", PTR), ("fold_full", PTR), ("own_full", PTR),
-                ("qvalues", PTR), ("qbase", PTR), ("value_step", F64), ("qwidth", I64)]
+                ("qvalues", PTR), ("qbase", PTR), ("value_step", F64), ("qwidth", I64), ("fold_size", PTR)]
 
     @classmethod
     def of(cls, order, inv_hs, band_lo2, band_hi2, presence, slots, slot_start, slot_mask, fold_base, fold_cols,
            own_base, own_cols, values, fold_offs, fold_full, own_offs, own_full, qvalues=None, qbase=None,
-           value_step=0.0) -> "Spline":
+           value_step=0.0, fold_size=None) -> "Spline":
         """``presence`` (levels, PRESENCE_SIDE³) uint8; ``slots`` (capacity, 2) int64;
         ``fold_cols``/``own_cols`` and ``fold_offs``/``own_offs`` (bricks, side, side) int32
         (the offsets int16 with quantised values),
@@ -57,7 +57,10 @@ class Spline(ctypes.Structure):
         :func:`full_columns`); the rest per level or per brick (int64) and ``values``
         float64. Quantised tables (:func:`quantise_table`): ``qvalues`` int16 or int32 and
         ``qbase`` int32 per brick with ``value_step`` (metres), ``values`` then unused;
-        ``None`` (the default): the float64 ``values``. Every array must be C-contiguous already."""
+        ``None`` (the default): the float64 ``values``. ``fold_size`` (int64 per brick, the
+        values of its folded table) asks the kernels to prefetch the bricks ahead of a batch's
+        points (float64 tables beyond the caches); ``None``: they do not. Every array must be
+        C-contiguous already."""
         arrays = dict(inv_hs=(inv_hs, np.float64), band_lo2=(band_lo2, np.float64),
                       band_hi2=(band_hi2, np.float64), presence=(presence, np.uint8), slots=(slots, np.int64),
                       slot_start=(slot_start, np.int64), slot_mask=(slot_mask, np.int64),
@@ -67,6 +70,8 @@ class Spline(ctypes.Structure):
                       fold_offs=(fold_offs, np.int32 if qvalues is None else np.int16),
                       own_offs=(own_offs, np.int32 if qvalues is None else np.int16),
                       fold_full=(fold_full, np.uint16), own_full=(own_full, np.uint16))
+        if fold_size is not None:
+            arrays.update(fold_size=(fold_size, np.int64))
         if qvalues is not None:
             arrays.update(qvalues=(qvalues, np.int32 if qvalues.dtype == np.int32 else np.int16),
                           qbase=(qbase, np.int32))

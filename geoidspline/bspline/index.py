@@ -32,6 +32,14 @@ in the caches buys nothing there and costs a third of the batch (benchmarks/READ
 branch q23q). Bigger ones are sorted. Either gives the same bits."""
 
 
+PREFETCH_BRICKS_FROM_BYTES = 32 << 20
+"""Float64 tables (values) of this many bytes or more, beyond a last-level cache, have the
+bricks ahead of a latitude/longitude batch's points prefetched (``fold_size``, see
+``src/query.c``'s ``prefetch_bricks``): a global batch of 1,000,000 points enters a new brick
+every few hundred points, and its table comes from memory (benchmarks/README.md). Tables
+that fit the caches gain nothing from it. Either gives the same bits."""
+
+
 _FOLD_CHUNK_BRICKS = 512  # bricks folded at once (a dense (side³) block each, transient)
 
 
@@ -470,6 +478,12 @@ class BrickIndex:
             self.fold_offs, self.fold_full = self.own_offs, self.own_full
         n = _qk.PRESENCE_SIDE
         self.presence = np.stack(presence) if presence else np.zeros((0, n, n, n), np.uint8)
+        self.fold_size = None
+        if quantised is None and self.values.nbytes >= PREFETCH_BRICKS_FROM_BYTES:
+            # a brick's folded table ends where its furthest column run does
+            runs = self.fold_cols.reshape(self.fold_cols.shape[0], -1)
+            ends = (runs >> _qk.COL_SHIFT) + (runs & ((1 << _qk.COL_KBITS) - 1))
+            self.fold_size = np.ascontiguousarray(ends.max(axis=1, initial=0), dtype=np.int64)
         self._spline = None
 
     @property
@@ -480,7 +494,7 @@ class BrickIndex:
                                          self.slots, self.slot_start, self.slot_mask, self.fold_base,
                                          self.fold_cols, self.own_base, self.own_cols, self.values,
                                          self.fold_offs, self.fold_full, self.own_offs, self.own_full,
-                                         self.qvalues, self.qbase, self.value_step or 0.0)
+                                         self.qvalues, self.qbase, self.value_step or 0.0, self.fold_size)
         return self._spline
 
     def __getstate__(self):
@@ -573,7 +587,7 @@ class BrickIndex:
     def nbytes(self) -> int:
         arrays = (self.slots, self.fold_base, self.fold_cols, self.own_base, self.own_cols, self.values,
                   self.qvalues, self.qbase, self.presence, self.fold_offs, self.fold_full, self.own_offs,
-                  self.own_full)
+                  self.own_full, self.fold_size)
         return sum(a.nbytes for a in {id(a): a for a in arrays if a is not None}.values())  # shared ones once
 
     @property

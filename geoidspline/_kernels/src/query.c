@@ -62,6 +62,9 @@ typedef struct {
     const int32_t *qbase; /* per brick */
     double value_step;
     int64_t qwidth; /* 0: float64 values */
+    /* per brick: the values of its folded table (float64 tables beyond the caches: the
+     * batches' bricks ahead are prefetched, see prefetch_bricks), else NULL */
+    const int64_t *fold_size;
 } gs_spline;
 
 #define QBASE_WIDE INT32_MIN /* qbase of a brick of int32 values in an int16 table */
@@ -972,6 +975,9 @@ typedef struct {
     int cells;                 /* sort by cell_code4 (else latlon_code4) */
     int cell_shift;            /* cell_code4's lattice: cells of the finest level, 2**cell_shift a side */
     double cell_scale, cell_offset;
+    int ahead;                 /* prefetch_bricks: the tables' bricks are prefetched ahead of the points */
+    int brick_code_shift;      /* a cell code >> brick_code_shift: the Morton code of its finest-level brick */
+    int64_t brick_code_offset; /* that brick's index per axis minus the brick key's */
 } latlon_job;
 
 /* The lanes of 4 coordinates that gs_undulation_latlon refuses (all ones): a latitude beyond
@@ -1258,13 +1264,76 @@ GS_INLINE void prefetch_values(const gs_spline *S, const int order, const int ch
     }
 }
 
+/* Bricks ahead (prefetch_bricks): AHEAD_LINES lines are asked for every 4 points, up to
+ * AHEAD_MAX_BYTES of a brick's table, the next brick's once the last one's are asked for
+ * and its first point is at most AHEAD_POINTS ahead; into L2 (locality 2). */
+#define AHEAD_LINES 16
+#define AHEAD_POINTS 512
+#define AHEAD_MAX_BYTES 65536
+/* chunks with fewer points than this a brick take the chain pipeline instead
+ * (latlon_evaluate) */
+#define AHEAD_SPARSE 48
+
+/* The bricks ahead of a brick-major batch's points: scan, the first point not yet
+ * looked at; code, the brick code of the points before it; brick, the last brick
+ * prefetched; [at, end) the lines of its table still to ask for. */
+typedef struct {
+    int64_t scan, code, brick;
+    uintptr_t at, end;
+} bricks_ahead;
+
+/* Ask the memory for the tables of the bricks the points after p will read, a part every
+ * 4 points (float64 tables beyond the caches: a global batch's brick-major order enters a
+ * new brick every few hundred points, whose table no hardware prefetcher sees coming;
+ * benchmarks/README.md). The brick comes from the next points' sort codes (a rough
+ * direction: a hint, never a value): the finest level with a brick at that brick code
+ * (levels halve their spacing: a coarser level's key is the finer's halved). */
+GS_INLINE void prefetch_bricks(const latlon_job *J, bricks_ahead *B, int64_t p)
+{
+    const gs_spline *S = J->S;
+    for (int k = 0; k < AHEAD_LINES && B->at < B->end; ++k) {
+        __builtin_prefetch((const void *)B->at, 0, 2);
+        B->at += 64;
+    }
+    if (B->at < B->end || B->scan >= J->m || B->scan >= p + AHEAD_POINTS)
+        return;
+    int64_t scan = B->scan;
+    while (scan < J->m && (int64_t)(KEY_CODE(J->sorted[scan]) >> J->brick_code_shift) == B->code)
+        ++scan;
+    B->scan = scan;
+    if (scan >= J->m)
+        return;
+    B->code = (int64_t)(KEY_CODE(J->sorted[scan]) >> J->brick_code_shift);
+    int64_t key[3]; /* the Morton code's three axes (spread3_4 undone) */
+    for (int a = 0; a < 3; ++a) {
+        uint32_t v = ((uint32_t)B->code >> (2 - a)) & 0x00249249u;
+        v = (v | (v >> 2)) & 0x000C30C3u;
+        v = (v | (v >> 4)) & 0x0000F00Fu;
+        v = (v | (v >> 8)) & 0x000000FFu;
+        key[a] = (int64_t)v - J->brick_code_offset;
+    }
+    int64_t brick = -1;
+    for (int64_t lev = S->nlev - 1, u = 0; lev >= 0 && brick < 0; --lev, ++u)
+        brick = hash_find(S->slots + 2 * S->slot_start[lev], S->slot_mask[lev],
+                          gs_pack(key[0] >> u, key[1] >> u, key[2] >> u));
+    if (brick < 0 || brick == B->brick)
+        return;
+    B->brick = brick;
+    int64_t bytes = (int64_t)sizeof(double) * S->fold_size[brick];
+    const char *table = (const char *)(S->values + S->fold_base[brick]);
+    B->at = (uintptr_t)table & ~(uintptr_t)63;
+    B->end = (uintptr_t)table + (bytes < AHEAD_MAX_BYTES ? bytes : AHEAD_MAX_BYTES);
+}
+
 /* Values at the points sorted[lo..hi) into ordered[lo..hi): nearby points follow each
  * other, so they read the same coefficients. A point's loads depend on its own location
  * (and, for a new brick, on each other: hash slot, column offsets, values), so they are
  * asked for points ahead of its sum (see LL_AHEAD): chain (a constant) for tables beyond
- * the caches. */
+ * the caches at sparse points; ahead for float64 ones at denser points, whole bricks
+ * asked for ahead (prefetch_bricks; a variable: one more copy of this loop would make
+ * latlon_evaluate's others slower). */
 GS_INLINE void latlon_range(const latlon_job *J, const int order, const int chain, const int direct, int64_t lo,
-                             int64_t hi, int64_t *invalid)
+                             int64_t hi, int64_t *invalid, int ahead)
 {
     const gs_spline *S = J->S;
     int64_t last_key[S->nlev], last_brick[S->nlev], sum_key[S->nlev], sum_brick[S->nlev];
@@ -1272,6 +1341,7 @@ GS_INLINE void latlon_range(const latlon_job *J, const int order, const int chai
     gs_v4 dx, dy, dz; /* directions of the points from p - (p - lo) % 4 on */
     reset_cache(S->nlev, last_key, last_brick);
     reset_cache(S->nlev, sum_key, sum_brick);
+    bricks_ahead bricks = {lo, -1, -1, 0, 0};
     /* point p read at step p, located at p + to_locate, values asked for at p + to_values,
      * summed at p + to_sum */
     const int64_t to_locate = chain ? LL_SLOT : 0, to_values = chain ? LL_SLOT + LL_OFFS : 0;
@@ -1285,6 +1355,8 @@ GS_INLINE void latlon_range(const latlon_job *J, const int order, const int chai
         if (p < hi) {
             int64_t i = (p - lo) & 3; /* p >= lo: masks, not signed remainders */
             if (i == 0) { /* the next 4 points' directions at once */
+                if (ahead)
+                    prefetch_bricks(J, &bricks, p);
                 gs_v4 la, lo_;
                 for (int k = 0; k < 4; ++k) {
                     int64_t at = direct ? (p + k < hi ? p + k : hi - 1) : KEY_AT(J->sorted[p + k < hi ? p + k : hi - 1]);
@@ -1359,17 +1431,28 @@ GS_HOT static void latlon_evaluate(void *ctx, int64_t task)
      * (1,000,000 global points about 2, a regional batch of as many 0.04); dense points
      * find their tables in the caches and would pay the chain's prefetches for nothing. */
     uint64_t span = KEY_CODE(J->sorted[hi - 1]) - KEY_CODE(J->sorted[lo]);
-    if (J->S->qwidth && span > (uint64_t)(LL_SPARSE * (hi - lo))) {
+    int chain = J->S->qwidth && span > (uint64_t)(LL_SPARSE * (hi - lo)), ahead = 0;
+    /* float64 tables beyond the caches (J->ahead): the chain pipeline where the chunk
+     * has fewer than AHEAD_SPARSE points a brick (a global batch of 100,000 points: about
+     * 25; of 1,000,000 about 230), else the bricks ahead unless its points share one */
+    if (J->ahead) {
+        int64_t bricks = 1;
+        for (int64_t p = lo + 1; p < hi; ++p)
+            bricks += KEY_CODE(J->sorted[p]) >> J->brick_code_shift != KEY_CODE(J->sorted[p - 1]) >> J->brick_code_shift;
+        chain = bricks * AHEAD_SPARSE > hi - lo;
+        ahead = !chain && bricks > 1;
+    }
+    if (chain) {
         if (order == 6)
-            latlon_range(J, 6, 1, 0, lo, hi, NULL);
+            latlon_range(J, 6, 1, 0, lo, hi, NULL, 0);
         else
-            latlon_range(J, order, 1, 0, lo, hi, NULL);
+            latlon_range(J, order, 1, 0, lo, hi, NULL, 0);
     } else if (order == 4)
-        latlon_range(J, 4, 0, 0, lo, hi, NULL);
+        latlon_range(J, 4, 0, 0, lo, hi, NULL, ahead);
     else if (order == 6)
-        latlon_range(J, 6, 0, 0, lo, hi, NULL);
+        latlon_range(J, 6, 0, 0, lo, hi, NULL, ahead);
     else
-        latlon_range(J, order, 0, 0, lo, hi, NULL);
+        latlon_range(J, order, 0, 0, lo, hi, NULL, ahead);
 }
 
 /* The points lo..hi of task as they come (gs_undulation_latlon's in_order): each value
@@ -1380,11 +1463,11 @@ GS_HOT static void latlon_direct(void *ctx, int64_t task)
     int64_t lo = task * CHUNK, hi = lo + CHUNK < J->m ? lo + CHUNK : J->m, bad = 0;
     const int order = (int)J->S->order;
     if (order == 4)
-        latlon_range(J, 4, 0, 1, lo, hi, &bad);
+        latlon_range(J, 4, 0, 1, lo, hi, &bad, 0);
     else if (order == 6)
-        latlon_range(J, 6, 0, 1, lo, hi, &bad);
+        latlon_range(J, 6, 0, 1, lo, hi, &bad, 0);
     else
-        latlon_range(J, order, 0, 1, lo, hi, &bad);
+        latlon_range(J, order, 0, 1, lo, hi, &bad, 0);
     J->invalid[task] = bad;
 }
 
@@ -1406,7 +1489,9 @@ GS_HOT static void latlon_direct(void *ctx, int64_t task)
  * 3. per block: each point's (code, position) scattered in that order; then each bucket
  *    sorted by the low bits of the code (latlon_refine; cell codes by their top 5);
  * 4. per chunk of the sorted points, in that order: directions (4 at a time), each
- *    point's loads asked for points before its sum (latlon_range);
+ *    point's loads asked for points before its sum (latlon_range); float64 tables beyond
+ *    the caches (S->fold_size) have the tables of the bricks ahead asked for, or at
+ *    sparse points take the chain pipeline (latlon_evaluate);
  * 5. per block: each value written to its point's place (writing it from step 4 is
  *    slower: scattered stores in the hot loop).
  * A point's value does not depend on the order, blocks or threads, and equals
@@ -1449,6 +1534,11 @@ GS_EXPORT int64_t gs_undulation_latlon(const gs_spline *S, const double *latitud
         J.cell_scale = inv_h;
         J.cell_offset = offset;
         J.cell_shift = shift;
+        /* a brick is 2**(BRICK_BITS - shift) cells of the code's lattice a side when that
+         * is whole (offset: whole bricks) */
+        J.ahead = S->fold_size != NULL && shift <= BRICK_BITS;
+        J.brick_code_shift = 3 * (BRICK_BITS - shift);
+        J.brick_code_offset = (int64_t)offset >> BRICK_BITS;
     }
     gs_parallel_for((int)nthreads, nblocks, latlon_count, &J);
     result = 0;
