@@ -1007,6 +1007,16 @@ GS_INLINE gs_u4 spread3_4(gs_u4 v)
     return v;
 }
 
+/* spread3_4 undone for one lane: every third bit of v from bit 0, packed */
+GS_INLINE uint32_t compact3(uint32_t v)
+{
+    v &= 0x00249249;
+    v = (v | (v >> 2)) & 0x000C30C3;
+    v = (v | (v >> 4)) & 0x0000F00F;
+    v = (v | (v >> 8)) & 0x000000FF;
+    return v;
+}
+
 /* The sort codes of 4 points by their cell on the finest level's lattice (a brick-major
  * order: the bricks of every level are runs of codes): the 3-D Morton code of the cell,
  * coarsened to 2**cell_shift cells a side so that 7 bits an axis hold the unit sphere
@@ -1304,14 +1314,9 @@ GS_INLINE void prefetch_bricks(const latlon_job *J, bricks_ahead *B, int64_t p)
     if (scan >= J->m)
         return;
     B->code = (int64_t)(KEY_CODE(J->sorted[scan]) >> J->brick_code_shift);
-    int64_t key[3]; /* the Morton code's three axes (spread3_4 undone) */
-    for (int a = 0; a < 3; ++a) {
-        uint32_t v = ((uint32_t)B->code >> (2 - a)) & 0x00249249u;
-        v = (v | (v >> 2)) & 0x000C30C3u;
-        v = (v | (v >> 4)) & 0x0000F00Fu;
-        v = (v | (v >> 8)) & 0x000000FFu;
-        key[a] = (int64_t)v - J->brick_code_offset;
-    }
+    int64_t key[3]; /* the Morton code's three axes */
+    for (int a = 0; a < 3; ++a)
+        key[a] = (int64_t)compact3((uint32_t)B->code >> (2 - a)) - J->brick_code_offset;
     int64_t brick = -1;
     for (int64_t lev = S->nlev - 1, u = 0; lev >= 0 && brick < 0; --lev, ++u)
         brick = hash_find(S->slots + 2 * S->slot_start[lev], S->slot_mask[lev],
