@@ -1284,6 +1284,12 @@ GS_INLINE void prefetch_values(const gs_spline *S, const int order, const int ch
  * (latlon_evaluate) */
 #define AHEAD_SPARSE 48
 
+/* The brick code of sorted point p (J->ahead: the Morton code of its finest-level brick) */
+GS_INLINE int64_t brick_code(const latlon_job *J, int64_t p)
+{
+    return (int64_t)(KEY_CODE(J->sorted[p]) >> J->brick_code_shift);
+}
+
 /* The bricks ahead of a brick-major batch's points: scan, the first point not yet
  * looked at; code, the brick code of the points before it; brick, the last brick
  * prefetched; [at, end) the lines of its table still to ask for. */
@@ -1308,12 +1314,12 @@ GS_INLINE void prefetch_bricks(const latlon_job *J, bricks_ahead *B, int64_t p)
     if (B->at < B->end || B->scan >= J->m || B->scan >= p + AHEAD_POINTS)
         return;
     int64_t scan = B->scan;
-    while (scan < J->m && (int64_t)(KEY_CODE(J->sorted[scan]) >> J->brick_code_shift) == B->code)
+    while (scan < J->m && brick_code(J, scan) == B->code)
         ++scan;
     B->scan = scan;
     if (scan >= J->m)
         return;
-    B->code = (int64_t)(KEY_CODE(J->sorted[scan]) >> J->brick_code_shift);
+    B->code = brick_code(J, scan);
     int64_t key[3]; /* the Morton code's three axes */
     for (int a = 0; a < 3; ++a)
         key[a] = (int64_t)compact3((uint32_t)B->code >> (2 - a)) - J->brick_code_offset;
@@ -1443,7 +1449,7 @@ GS_HOT static void latlon_evaluate(void *ctx, int64_t task)
     if (J->ahead) {
         int64_t bricks = 1;
         for (int64_t p = lo + 1; p < hi; ++p)
-            bricks += KEY_CODE(J->sorted[p]) >> J->brick_code_shift != KEY_CODE(J->sorted[p - 1]) >> J->brick_code_shift;
+            bricks += brick_code(J, p) != brick_code(J, p - 1);
         chain = bricks * AHEAD_SPARSE > hi - lo;
         ahead = !chain && bricks > 1;
     }
