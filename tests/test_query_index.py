@@ -488,6 +488,56 @@ def test_bricks_prefetched_ahead_and_sparse_chunks_give_the_same_bits(order, mon
         _clib.set_threads(threads)
 
 
+def test_points_near_the_edges_of_finer_bricks_end_where_the_descent_would():
+    """A batch's points inside the box of the last point's descent (the bricks it met on
+    every level, latlon_locate) skip the descent: where a finer level's bricks begin and
+    end among dense points, and on the planes between bricks (the equator z = 0 and the
+    prime meridian y = 0 exactly, -0.0 among them), every point gets the bits of the
+    descent (evaluate_points), sorted by cell and in input order, on one thread and two."""
+    from geoidspline._kernels import _clib
+
+    rng = np.random.default_rng(66)
+    order, h0 = 4, 0.1
+    # level 0 about (1, 0, 0); level 1 only in bricks above y = 0 and z = 0, level 2 only
+    # in bricks below y = 0 and above z = 0 (bricks of 16 cells: the planes through 0 part them)
+    patches = [((1.0, 0.0, 0.0), 0.5), ((1.0, 0.15, 0.15), 0.1), ((1.0, -0.15, 0.15), 0.1)]
+    levels = []
+    for ell, (centre, radius) in enumerate(patches):
+        h = h0 / 2**ell
+        centre = np.asarray(centre) / np.linalg.norm(centre)
+        idx = patch_keys(rng, h, order, centre, radius, keep=0.9)
+        levels.append(LevelSpline.from_indices(ell, h, order, idx, rng.normal(scale=10.0 / 2**ell, size=len(idx))))
+    spline = AmbientSpline(levels)
+    index = spline.index
+    count = 60_001
+    lat = rng.uniform(-4.0, 4.0, count)  # +-0.07 about (1, 0, 0): the three levels' bricks meet
+    lon = rng.uniform(-4.0, 4.0, count)
+    lat[::7], lon[1::7] = 0.0, 0.0  # on the planes z = 0 and y = 0 between bricks
+    lat[::21], lon[2::21] = -0.0, -0.0
+    lat[3::11] = rng.choice([1e-300, -1e-300, 1e-15, -1e-15], len(lat[3::11]))
+    f = directions(lat, lon)
+    want = spline.evaluate_points(f)
+    assert np.isfinite(want).all() and np.abs(want).max() > 1.0
+    # the level each point's descent ends on: every level ends thousands of them
+    ends = np.full(count, -1)
+    for lev in range(index.inv_hs.size - 1, -1, -1):
+        slots = index.slots[index.slot_start[lev]:index.slot_start[lev] + index.slot_mask[lev] + 1, 0]
+        cells = np.floor(f * index.inv_hs[lev]).astype(np.int64) >> _kernels.BRICK_BITS
+        here = (ends < 0) & np.isin(pack_keys(cells), slots[slots != -1])
+        ends[here] = lev
+    assert [int((ends == lev).sum()) > 2000 for lev in range(3)] == [True] * 3
+    threads = _clib.threads()
+    try:
+        for n in sorted({1, 2, threads}):
+            _clib.set_threads(n)
+            for in_order in (False, True):
+                out = np.empty(count)
+                assert _kernels.undulation_latlon(index.spline, lat, lon, 3, out, 1e6, in_order=in_order) == 0
+                np.testing.assert_array_equal(out, want)
+    finally:
+        _clib.set_threads(threads)
+
+
 def test_compiled_directions_agree_with_numpy_trigonometry():
     """Large batches compute directions with their own sin/cos (fdlibm polynomials):
     within 2.3e-16 of numpy's per component (2 ulp of 1), unit length to 4.5e-16,

@@ -592,13 +592,11 @@ GS_INLINE void brick_sum(const gs_spline *S, const int order, const int nderiv, 
 #undef GS_QUANTISED_CALL
 }
 
-/* The brick of level lev holding the point (x, y, z), or -1; cell gets the point's cell
- * (ax, ay, az) on the level's lattice and t its position in that cell (fractions of a
- * spacing): point_sum and latlon_locate locate with these same products, so a point's
- * weights do not depend on which of them located it. last_key and last_brick (per level)
- * remember the last brick looked up. */
-GS_INLINE int64_t brick_at(const gs_spline *S, int64_t lev, double x, double y, double z, int64_t cell[3],
-                           double t[3], int64_t *last_key, int64_t *last_brick)
+/* The cell (ax, ay, az) of the point (x, y, z) on level lev's lattice and t its position
+ * in that cell (fractions of a spacing): point_sum and latlon_locate locate with these
+ * same products, so a point's weights do not depend on which of them located it. */
+GS_INLINE void lattice_cell(const gs_spline *S, int64_t lev, double x, double y, double z, int64_t cell[3],
+                            double t[3])
 {
     double inv_h = S->inv_hs[lev];
     double fx = x * inv_h, fy = y * inv_h, fz = z * inv_h;
@@ -609,6 +607,14 @@ GS_INLINE int64_t brick_at(const gs_spline *S, int64_t lev, double x, double y, 
     t[0] = fx - flx;
     t[1] = fy - fly;
     t[2] = fz - flz;
+}
+
+/* The brick of level lev holding the point (x, y, z), or -1, and its cell and t
+ * (lattice_cell). last_key and last_brick (per level) remember the last brick looked up. */
+GS_INLINE int64_t brick_at(const gs_spline *S, int64_t lev, double x, double y, double z, int64_t cell[3],
+                           double t[3], int64_t *last_key, int64_t *last_brick)
+{
+    lattice_cell(S, lev, x, y, z, cell, t);
     int64_t key = gs_pack(cell[0] >> BRICK_BITS, cell[1] >> BRICK_BITS, cell[2] >> BRICK_BITS);
     if (key == last_key[lev])
         return last_brick[lev];
@@ -978,6 +984,7 @@ typedef struct {
     int ahead;                 /* prefetch_bricks: the tables' bricks are prefetched ahead of the points */
     int brick_code_shift;      /* a cell code >> brick_code_shift: the Morton code of its finest-level brick */
     int64_t brick_code_offset; /* that brick's index per axis minus the brick key's */
+    int halving;               /* each level's 1/h is the finest's over a power of two (descent_box) */
 } latlon_job;
 
 /* The lanes of 4 coordinates that gs_undulation_latlon refuses (all ones): a latitude beyond
@@ -1201,14 +1208,30 @@ GS_INLINE void prefetch_slot(const gs_spline *S, double x, double y, double z)
     __builtin_prefetch(S->slots + 2 * (S->slot_start[lev] + hash_slot(key, S->slot_mask[lev])), 0, LL_LOC_SLOT);
 }
 
+/* Where the last point's descent ended (latlon_locate): the box of the finest level's
+ * brick it started in, in units of that level's lattice (the direction times inv_h, its
+ * 1/h; a fourth lane always inside). Levels halve their spacing exactly (latlon_job's
+ * halving), so a coarser level's product x 1/h is the finest level's scaled by a power of
+ * two and its bricks hold the finest level's whole: a point in the box meets the same
+ * brick key on every level, and its descent ends in the same brick (lev, brick). The test
+ * is exact. Brick-major batches enter a new box every few hundred points; a point inside
+ * skips the descent's keys (egm96-15's points end a level below the finest:
+ * benchmarks/README.md). */
+typedef struct {
+    gs_v4 lo, hi, inv_h;
+    int64_t lev, brick;
+    int boxed; /* 0: every point descends (one level: its key is all a descent reads) */
+} descent_box;
+
 /* Locate a point on the sphere as point_sum does (brick_at: the same products, so the
- * same weights). chain (a constant): ask the memory for what the next link needs, the
- * column offsets of the rows of the folded table it will read (full columns), its full
- * map, qbase and fold_base (prefetch_values reads it: 2 MB for the 1 mm store, evicted
- * from the caches by the values streaming through them), unless the point before (prev)
- * was in the same cell column. */
+ * same weights); inside the box of the last descent (D) only the cell on its level.
+ * chain (a constant): ask the memory for what the next link needs, the column offsets of
+ * the rows of the folded table it will read (full columns), its full map, qbase and
+ * fold_base (prefetch_values reads it: 2 MB for the 1 mm store, evicted from the caches
+ * by the values streaming through them), unless the point before (prev) was in the same
+ * cell column. */
 GS_INLINE void latlon_locate(const gs_spline *S, const int order, const int chain, located *L, const located *prev,
-                             int64_t *last_key, int64_t *last_brick)
+                             int64_t *last_key, int64_t *last_brick, descent_box *D)
 {
     const int64_t side = (1 << BRICK_BITS) + order - 1;
     L->brick = -1;
@@ -1216,32 +1239,54 @@ GS_INLINE void latlon_locate(const gs_spline *S, const int order, const int chai
     if (!(L->x == L->x && L->z == L->z))
         return;
     double x = L->x, y = L->y, z = L->z, r2 = x * x + y * y + z * z;
-    int64_t cell[3];
-    for (int64_t lev = S->nlev - 1; lev >= 0; --lev) {
-        int64_t brick = brick_at(S, lev, x, y, z, cell, L->t, last_key, last_brick);
-        if (brick < 0)
-            continue;
-        L->lev = lev;
-        if (!(S->band_lo2[lev] <= r2 && r2 <= S->band_hi2[lev]))
-            return; /* outside the band: point_sum's descent */
-        L->brick = brick;
-        L->lx = cell[0] & BRICK_MASK;
-        L->ly = cell[1] & BRICK_MASK;
-        L->lz = cell[2] & BRICK_MASK;
-        if (!chain || (brick == prev->brick && L->lx == prev->lx && L->ly == prev->ly))
-            return;
-        /* the order rows of order offsets, side apart: every line from the first to the last */
-        const int64_t ow = S->qwidth ? 2 : 4; /* bytes an offset (column_offset) */
-        const char *row = (const char *)S->fold_offs + ow * ((brick * side + L->lx) * side + L->ly);
-        uintptr_t last = (uintptr_t)(row + ow * ((order - 1) * side + order - 1));
-        for (uintptr_t at = (uintptr_t)row & ~(uintptr_t)63; at <= last; at += 64)
-            __builtin_prefetch((const void *)at, 0, LL_LOC_OFFS);
-        __builtin_prefetch(S->fold_full + (brick << (2 * BRICK_BITS)) + (L->lx << BRICK_BITS) + L->ly, 0, LL_LOC_OFFS);
-        if (S->qwidth)
-            __builtin_prefetch(S->qbase + brick, 0, LL_LOC_OFFS);
-        __builtin_prefetch(S->fold_base + brick, 0, LL_LOC_OFFS);
-        return;
+    int64_t cell[3], lev, brick = -1;
+    gs_v4 f = {0.0, 0.0, 0.0, 0.0};
+    int inside = 0;
+    if (D->boxed) {
+        f = (gs_v4){x, y, z, 0.0} * D->inv_h;
+        inside = !v4_any(~((f >= D->lo) & (f < D->hi)));
     }
+    if (inside) {
+        lev = D->lev;
+        brick = D->brick;
+        lattice_cell(S, lev, x, y, z, cell, L->t);
+    } else {
+        for (lev = S->nlev - 1; lev >= 0; --lev) {
+            brick = brick_at(S, lev, x, y, z, cell, L->t, last_key, last_brick);
+            if (brick >= 0)
+                break;
+        }
+        if (brick < 0)
+            return;
+        if (D->boxed) { /* the finest level's brick: every coarser one holds it whole */
+            for (int a = 0; a < 3; ++a) {
+                double first = (double)(((int64_t)floor(f[a]) >> BRICK_BITS) * (1 << BRICK_BITS));
+                D->lo[a] = first;
+                D->hi[a] = first + (1 << BRICK_BITS);
+            }
+            D->lev = lev;
+            D->brick = brick;
+        }
+    }
+    L->lev = lev;
+    if (!(S->band_lo2[lev] <= r2 && r2 <= S->band_hi2[lev]))
+        return; /* outside the band: point_sum's descent */
+    L->brick = brick;
+    L->lx = cell[0] & BRICK_MASK;
+    L->ly = cell[1] & BRICK_MASK;
+    L->lz = cell[2] & BRICK_MASK;
+    if (!chain || (brick == prev->brick && L->lx == prev->lx && L->ly == prev->ly))
+        return;
+    /* the order rows of order offsets, side apart: every line from the first to the last */
+    const int64_t ow = S->qwidth ? 2 : 4; /* bytes an offset (column_offset) */
+    const char *row = (const char *)S->fold_offs + ow * ((brick * side + L->lx) * side + L->ly);
+    uintptr_t last = (uintptr_t)(row + ow * ((order - 1) * side + order - 1));
+    for (uintptr_t at = (uintptr_t)row & ~(uintptr_t)63; at <= last; at += 64)
+        __builtin_prefetch((const void *)at, 0, LL_LOC_OFFS);
+    __builtin_prefetch(S->fold_full + (brick << (2 * BRICK_BITS)) + (L->lx << BRICK_BITS) + L->ly, 0, LL_LOC_OFFS);
+    if (S->qwidth)
+        __builtin_prefetch(S->qbase + brick, 0, LL_LOC_OFFS);
+    __builtin_prefetch(S->fold_base + brick, 0, LL_LOC_OFFS);
 }
 
 /* Ask the memory for the values a located point will sum (its folded table's full
@@ -1353,6 +1398,9 @@ GS_INLINE void latlon_range(const latlon_job *J, const int order, const int chai
     reset_cache(S->nlev, last_key, last_brick);
     reset_cache(S->nlev, sum_key, sum_brick);
     bricks_ahead bricks = {lo, -1, -1, 0, 0};
+    const double inv_h = S->nlev ? S->inv_hs[S->nlev - 1] : 0.0;
+    descent_box box = {{INFINITY, INFINITY, INFINITY, -1.0}, {-INFINITY, -INFINITY, -INFINITY, 1.0},
+                       {inv_h, inv_h, inv_h, 0.0}, -1, -1, J->halving && S->nlev > 1}; /* empty */
     /* point p read at step p, located at p + to_locate, values asked for at p + to_values,
      * summed at p + to_sum */
     const int64_t to_locate = chain ? LL_SLOT : 0, to_values = chain ? LL_SLOT + LL_OFFS : 0;
@@ -1393,7 +1441,7 @@ GS_INLINE void latlon_range(const latlon_job *J, const int order, const int chai
         if (q >= lo && q < hi) {
             located *L = &ring[(uint64_t)q % LL_RING];
             latlon_locate(S, order, chain, L, chain && q > lo ? &ring[(uint64_t)(q - 1) % LL_RING] : &none, last_key,
-                          last_brick);
+                          last_brick, &box);
             /* brick-major batches (J->cells) read the lines of the points before: asking
              * for a point's first and last values costs more than it saves there */
             if (!chain && !J->cells && L->brick >= 0)
@@ -1513,6 +1561,9 @@ GS_EXPORT int64_t gs_undulation_latlon(const gs_spline *S, const double *latitud
 {
     latlon_job J = {S, latitude, longitude, out, max_abs_longitude, m, nblocks, (m + nblocks - 1) / nblocks};
     int64_t result = -1;
+    J.halving = S->nlev > 0;
+    for (int64_t lev = 0; lev < S->nlev; ++lev)
+        J.halving &= ldexp(S->inv_hs[lev], (int)(S->nlev - 1 - lev)) == S->inv_hs[S->nlev - 1];
     if (in_order) {
         const int64_t ntasks = (m + CHUNK - 1) / CHUNK;
         J.invalid = malloc(sizeof(int64_t) * (size_t)(ntasks ? ntasks : 1));
