@@ -400,6 +400,21 @@ def test_latlon_kernel_counts_each_bad_coordinate_once():
         assert np.abs(good).max() > 0.1
 
 
+def threads_and_paths():
+    """in_order False (sorted by cell) and True (as given), on one thread, two and all:
+    the kernels' thread count is set while the loop's body runs and restored after."""
+    from geoidspline._kernels import _clib
+
+    threads = _clib.threads()
+    try:
+        for n in sorted({1, 2, threads}):
+            _clib.set_threads(n)
+            yield False
+            yield True
+    finally:
+        _clib.set_threads(threads)
+
+
 @pytest.mark.parametrize("order,h0,nlevels", [(4, 0.1, 2), (4, 0.05, 3), (6, 0.1, 2), (3, 0.1, 2)])
 def test_latlon_batches_in_input_order_give_the_bits_of_sorted_ones(order, h0, nlevels, monkeypatch):
     """A batch evaluated in the order given (small tables, BrickIndex.IN_ORDER_MAX_BYTES)
@@ -407,7 +422,6 @@ def test_latlon_batches_in_input_order_give_the_bits_of_sorted_ones(order, h0, n
     coordinates, on one thread and two: global and dense points, NaN, points where no
     brick lies (0), wrapped longitudes, the poles, and batches that are not a multiple of
     4 or of a task's 4,096 points; which path a batch takes follows the index's bytes."""
-    from geoidspline._kernels import _clib
     from geoidspline.bspline import index as index_module
 
     # no level 0: the finer levels' patches leave most of the sphere without a brick
@@ -424,18 +438,12 @@ def test_latlon_batches_in_input_order_give_the_bits_of_sorted_ones(order, h0, n
     bad_lat, bad_lon = lat.copy(), lon.copy()
     bad_lat[[0, 4100, count - 1]] = [90.5, -np.inf, 1e300]
     bad_lon[[1, 8200, count - 2]] = [np.inf, 2e6, -1e6 - 1]
-    threads = _clib.threads()
-    try:
-        for n in sorted({1, 2, threads}):
-            _clib.set_threads(n)
-            for in_order in (False, True):
-                out = np.empty(count)
-                assert _kernels.undulation_latlon(idx.spline, lat, lon, 3, out, 1e6, in_order=in_order) == 0
-                np.testing.assert_array_equal(out, want)
-                assert _kernels.undulation_latlon(idx.spline, bad_lat, bad_lon, 3, out, 1e6, in_order=in_order) == 6
-                assert _kernels.undulation_latlon(idx.spline, bad_lat, bad_lon, 3, out, 3e6, in_order=in_order) == 4
-    finally:
-        _clib.set_threads(threads)
+    for in_order in threads_and_paths():
+        out = np.empty(count)
+        assert _kernels.undulation_latlon(idx.spline, lat, lon, 3, out, 1e6, in_order=in_order) == 0
+        np.testing.assert_array_equal(out, want)
+        assert _kernels.undulation_latlon(idx.spline, bad_lat, bad_lon, 3, out, 1e6, in_order=in_order) == 6
+        assert _kernels.undulation_latlon(idx.spline, bad_lat, bad_lon, 3, out, 3e6, in_order=in_order) == 4
     calls = []
     real = _kernels.undulation_latlon
 
@@ -489,13 +497,11 @@ def test_bricks_prefetched_ahead_and_sparse_chunks_give_the_same_bits(order, mon
 
 
 def test_points_near_the_edges_of_finer_bricks_end_where_the_descent_would():
-    """A batch's points inside the box of the last point's descent (the bricks it met on
-    every level, latlon_locate) skip the descent: where a finer level's bricks begin and
+    """A batch's points inside the finest-level brick where the last point's descent
+    started (latlon_locate's box) skip the descent: where a finer level's bricks begin and
     end among dense points, and on the planes between bricks (the equator z = 0 and the
     prime meridian y = 0 exactly, -0.0 among them), every point gets the bits of the
     descent (evaluate_points), sorted by cell and in input order, on one thread and two."""
-    from geoidspline._kernels import _clib
-
     rng = np.random.default_rng(66)
     order, h0 = 4, 0.1
     # level 0 about (1, 0, 0); level 1 only in bricks above y = 0 and z = 0, level 2 only
@@ -526,16 +532,10 @@ def test_points_near_the_edges_of_finer_bricks_end_where_the_descent_would():
         here = (ends < 0) & np.isin(pack_keys(cells), slots[slots != -1])
         ends[here] = lev
     assert [int((ends == lev).sum()) > 2000 for lev in range(3)] == [True] * 3
-    threads = _clib.threads()
-    try:
-        for n in sorted({1, 2, threads}):
-            _clib.set_threads(n)
-            for in_order in (False, True):
-                out = np.empty(count)
-                assert _kernels.undulation_latlon(index.spline, lat, lon, 3, out, 1e6, in_order=in_order) == 0
-                np.testing.assert_array_equal(out, want)
-    finally:
-        _clib.set_threads(threads)
+    for in_order in threads_and_paths():
+        out = np.empty(count)
+        assert _kernels.undulation_latlon(index.spline, lat, lon, 3, out, 1e6, in_order=in_order) == 0
+        np.testing.assert_array_equal(out, want)
 
 
 def test_compiled_directions_agree_with_numpy_trigonometry():
