@@ -538,27 +538,69 @@ def test_points_near_the_edges_of_finer_bricks_end_where_the_descent_would():
         np.testing.assert_array_equal(out, want)
 
 
-def test_compiled_directions_agree_with_numpy_trigonometry():
-    """Large batches compute directions with their own sin/cos (fdlibm polynomials):
-    within 2.3e-16 of numpy's per component (2 ulp of 1), unit length to 4.5e-16,
-    on the axes to 1.3e-16, any longitude wrapped."""
-    from geoidspline.hierarchy.ambient import FOLDED_FROM_POINTS
-    from geoidspline.sphere.coordinates import unit_vectors as numpy_unit_vectors
+def _sin_cos_degrees(degrees):
+    """sin and cos of an angle in degrees (a float within +-180, taken exactly), rounded
+    once to floats from 50 digits (Python's decimal; the zeros exact): Taylor's series,
+    60 terms (pi^60/60! < 1e-52), pi from Newton's series of pi/6 = asin(1/2) (100 terms,
+    each a quarter of the one before)."""
+    from decimal import Decimal, localcontext
 
+    with localcontext() as ctx:
+        ctx.prec = 50
+        if not hasattr(_sin_cos_degrees, "pi"):
+            pi, term = Decimal(3), Decimal(3)
+            for k in range(1, 100):
+                term = term * (2 * k - 1) ** 2 / (8 * k * (2 * k + 1))
+                pi += term
+            _sin_cos_degrees.pi = pi
+        x = Decimal(degrees) * _sin_cos_degrees.pi / 180
+        terms, term = [], Decimal(1)
+        for n in range(60):  # x^n / n!
+            terms.append(term)
+            term = term * x / (n + 1)
+        sin = sum(terms[1::4]) - sum(terms[3::4])
+        cos = sum(terms[0::4]) - sum(terms[2::4])
+        return (0.0 if degrees % 180 == 0 else float(sin)), (0.0 if degrees % 180 == 90 else float(cos))
+
+
+def test_compiled_directions_are_the_sines_and_cosines_of_the_degrees_given():
+    """Large batches compute directions with their own sin/cos of the angle in degrees (a
+    table of whole degrees and short polynomials, no rounding of the angle in radians):
+    each sine and cosine within 1.12e-16 of the true one (half a unit in the last place of
+    the table's value and of the result), so z within that and x, y within 2.8e-16 (two
+    such factors and the product's rounding); whole degrees exactly the correctly rounded
+    sine and cosine (the axes exact: cos 90 is 0); any longitude wrapped."""
     rng = np.random.default_rng(41)
-    n = 20 * FOLDED_FROM_POINTS
+    n = 3000
     lat = np.degrees(np.arcsin(rng.uniform(-1, 1, n)))
     lon = rng.uniform(-180, 180, n)
     lat[:8] = [0, 0, 0, 0, 90, -90, 45, -45]
     lon[:8] = [0, 90, -180, -90, 0, 0, 135, -45]
-    got = directions(lat, lon)  # the compiled path from FOLDED_FROM_POINTS points on
-    want = numpy_unit_vectors(lat, lon)
-    assert np.abs(got - want).max() <= 2.3e-16
+    lat[8:16] = [0.5, -0.5, 89.5, 1.5, 0.25, -89.75, 1e-300, -0.0]  # halfway: rounded to even
+    lon[8:16] = [179.5, -179.5, -0.5, 2.5, 179.999999, -180.0, 1e-300, -0.0]
+    got = np.empty((n, 3))
+    _kernels.unit_vectors(lat, lon, got)  # the compiled formula of every large batch
+    true = np.array([[c1 * c2, c1 * s2, s1] for (s1, c1), (s2, c2) in
+                     zip(map(_sin_cos_degrees, lat), map(_sin_cos_degrees, lon))])
+    error = np.abs(got - true).max(axis=0)
+    assert error[0] <= 2.8e-16 and error[1] <= 2.8e-16 and error[2] <= 1.12e-16, error
     assert np.abs(np.linalg.norm(got, axis=1) - 1.0).max() <= 4.5e-16
     axes = [[1, 0, 0], [0, 1, 0], [-1, 0, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]]
-    np.testing.assert_allclose(got[:6], axes, rtol=0, atol=1.3e-16)  # cos(pi/2 rounded) = 6.1e-17
-    np.testing.assert_array_equal(np.abs(got[:6]).max(axis=1), 1.0)
-    wrapped = directions(lat, lon + 360.0 * rng.integers(-3, 4, n))
+    np.testing.assert_array_equal(got[:6], axes)
+    assert np.signbit(got[15, 2]) and got[14, 2] == 1e-300 * (np.pi / 180)  # sin keeps a zero's sign
+
+    whole = np.arange(-180.0, 180.0)
+    for lat_w, lon_w, sin_col, cos_col in ((np.clip(whole, -90, 90), np.zeros_like(whole), 2, 0),
+                                           (np.zeros_like(whole), whole, 1, 0)):
+        out = np.empty((whole.size, 3))
+        _kernels.unit_vectors(lat_w, lon_w, out)
+        angle = lat_w if sin_col == 2 else lon_w
+        want = np.array([_sin_cos_degrees(a) for a in angle])
+        np.testing.assert_array_equal(out[:, sin_col], want[:, 0])
+        np.testing.assert_array_equal(out[:, cos_col], want[:, 1])
+
+    wrapped = np.empty((n, 3))
+    _kernels.unit_vectors(lat, lon + 360.0 * rng.integers(-3, 4, n), wrapped)
     assert np.abs(wrapped - got).max() <= 1e-13  # the wrap rounds the longitude, not the formula
 
 

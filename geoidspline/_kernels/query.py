@@ -367,7 +367,8 @@ def undulation_latlon(spline, latitude, longitude, nblocks, out, max_abs_longitu
 def unit_vectors(latitude, longitude, out):
     """Directions (cos φ cos λ, cos φ sin λ, sin φ) of latitude/longitude in degrees into
     out (M, 3): the formula of :func:`undulation_latlon`, so they agree bit for bit
-    (sin and cos from fdlibm's kernels, absolute error at most 1.2e-16)."""
+    (sin and cos of the angle in degrees, each within 1.12e-16 of the true one: a table
+    of whole degrees and short polynomials, no rounding of the angle in radians)."""
     latitude = c_in(latitude, np.float64)
     longitude = c_in(longitude, np.float64)
     c_out(out, np.float64)

@@ -816,17 +816,6 @@ GS_INLINE gs_v4 v4_floor(gs_v4 x)
     return (gs_v4)(((gs_i4)t & ~sign) | ((gs_i4)x & sign)); /* floor(x) has the sign of x */
 }
 
-/* v4_floor for lanes known to be below 2**31 in magnitude (not NaN): a 32-bit truncation,
- * one less where that rounded up, the sign of x (the same bits in a third of the
- * instructions). */
-GS_INLINE gs_v4 v4_floor_small(gs_v4 x)
-{
-    const gs_i4 sign = {INT64_MIN, INT64_MIN, INT64_MIN, INT64_MIN};
-    gs_v4 whole = __builtin_convertvector(__builtin_convertvector(x, gs_w4), gs_v4);
-    gs_v4 t = v4_select(whole > x, whole - v4_splat(1.0), whole);
-    return (gs_v4)(((gs_i4)t & ~sign) | ((gs_i4)x & sign));
-}
-
 /* Longitudes outside [-180, 180) wrapped into it (lanes inside keep their bits; the
  * division and floor only when a lane needs them). */
 GS_INLINE gs_v4 wrapped_longitude4(gs_v4 longitude)
@@ -837,52 +826,155 @@ GS_INLINE gs_v4 wrapped_longitude4(gs_v4 longitude)
     return longitude;
 }
 
-/* sin and cos of one angle per lane (fdlibm's k_sin.c/k_cos.c polynomials on [-pi/4, pi/4]
- * after a Cody-Waite reduction by pi/2), in less time than two libm calls. Absolute error
- * at most 1.2e-16 on [-pi, pi] (below 1e-14 m in N: a unit vector only needs absolute
- * accuracy); |x| <= 2 pi. NaN gives NaN. small: the caller knows every lane is finite and
- * |x| < 2**30 (then the floors are v4_floor_small's, the same bits). */
-GS_INLINE void gs_sincos(gs_v4 x, const int small, gs_v4 *sin_x, gs_v4 *cos_x)
+/* sin and cos of n degrees, {sin, cos} in row n = 0 .. 180, each correctly rounded
+ * (tests/test_query_index.py recomputes every row to 60 digits with Python's decimal) */
+static const double gs_degree_sincos[181][2] = {
+    {0x0.0p+0, 0x1.0000000000000p+0}, {0x1.1df0b2b89dd1ep-6, 0x1.ffec097f5af8ap-1}, /* 0-1 */
+    {0x1.1de58c9f7dc27p-5, 0x1.ffb0278bf0567p-1}, {0x1.acbc748efc90ep-5, 0x1.ff4c5ed12e61dp-1}, /* 2-3 */
+    {0x1.1db8f6d6a5128p-4, 0x1.fec0b7170fff6p-1}, {0x1.64fd6b8c28103p-4, 0x1.fe0d3b41815a2p-1}, /* 4-5 */
+    {0x1.ac2609b3c576cp-4, 0x1.fd31f94f867c6p-1}, {0x1.f32d44c4f62d3p-4, 0x1.fc2f025a23e8bp-1}, /* 6-7 */
+    {0x1.1d06c968d9e19p-3, 0x1.fb046a930947ap-1}, {0x1.4060b67a85375p-3, 0x1.f9b24942fe45cp-1}, /* 8-9 */
+    {0x1.63a1a7e0b738ap-3, 0x1.f838b8c811c17p-1}, {0x1.86c6ddd76624fp-3, 0x1.f697d6938b6c2p-1}, /* 10-11 */
+    {0x1.a9cd9ac4258f6p-3, 0x1.f4cfc327a0080p-1}, {0x1.ccb3236cdc675p-3, 0x1.f2e0a214e870fp-1}, /* 12-13 */
+    {0x1.ef74bf2e4b91dp-3, 0x1.f0ca99f79ba25p-1}, {0x1.0907dc1930690p-2, 0x1.ee8dd4748bf15p-1}, /* 14-15 */
+    {0x1.1a40add328e29p-2, 0x1.ec2a7e35e7b80p-1}, {0x1.2b637cf83d5c7p-2, 0x1.e9a0c6e7bdb1fp-1}, /* 16-17 */
+    {0x1.3c6ef372fe950p-2, 0x1.e6f0e134454ffp-1}, {0x1.4d61bd000cddbp-2, 0x1.e41b02bfeb4cbp-1}, /* 18-19 */
+    {0x1.5e3a8748a0bf5p-2, 0x1.e11f642522d1cp-1}, {0x1.6ef801fced33cp-2, 0x1.ddfe40effb805p-1}, /* 20-21 */
+    {0x1.7f98deee59681p-2, 0x1.dab7d7997cb58p-1}, {0x1.901bd2298ffabp-2, 0x1.d74c6982c666fp-1}, /* 22-23 */
+    {0x1.a07f921061ad1p-2, 0x1.d3bc3aeff7f95p-1}, {0x1.b0c2d77379853p-2, 0x1.d0079302dd767p-1}, /* 24-25 */
+    {0x1.c0e45dabe05c8p-2, 0x1.cc2ebbb5638cap-1}, {0x1.d0e2e2b44de01p-2, 0x1.c83201d3d2c6dp-1}, /* 26-27 */
+    {0x1.e0bd274245078p-2, 0x1.c411b4f6d2708p-1}, {0x1.f071eedefa0ecp-2, 0x1.bfce277d339c7p-1}, /* 28-29 */
+    {0x1.0000000000000p-1, 0x1.bb67ae8584caap-1}, {0x1.07b3120fddf13p-1, 0x1.b6dea1e76eadep-1}, /* 30-31 */
+    {0x1.0f5193eacdd2ap-1, 0x1.b2335c2cda945p-1}, {0x1.16daed770771dp-1, 0x1.ad663a8ae2fdcp-1}, /* 32-33 */
+    {0x1.1e4e88411fd12p-1, 0x1.a8779cda8eea5p-1}, {0x1.25abcf87c4978p-1, 0x1.a367e59158747p-1}, /* 34-35 */
+    {0x1.2cf2304755a5ep-1, 0x1.9e3779b97f4a8p-1}, {0x1.342119455beb6p-1, 0x1.98e6c0ea27a14p-1}, /* 36-37 */
+    {0x1.3b37fb1bdc939p-1, 0x1.9376253f463d1p-1}, {0x1.4236484487abep-1, 0x1.8de613515a328p-1}, /* 38-39 */
+    {0x1.491b7523c161dp-1, 0x1.8836fa2cf5039p-1}, {0x1.4fe6f81384fd4p-1, 0x1.82694b4a11c37p-1}, /* 40-41 */
+    {0x1.5698496e20bd8p-1, 0x1.7c7d7a833bec2p-1}, {0x1.5d2ee398c9c2bp-1, 0x1.7673fe0c86982p-1}, /* 42-43 */
+    {0x1.63aa430e07310p-1, 0x1.704d4e6a54d39p-1}, {0x1.6a09e667f3bcdp-1, 0x1.6a09e667f3bcdp-1}, /* 44-45 */
+    {0x1.704d4e6a54d39p-1, 0x1.63aa430e07310p-1}, {0x1.7673fe0c86982p-1, 0x1.5d2ee398c9c2bp-1}, /* 46-47 */
+    {0x1.7c7d7a833bec2p-1, 0x1.5698496e20bd8p-1}, {0x1.82694b4a11c37p-1, 0x1.4fe6f81384fd4p-1}, /* 48-49 */
+    {0x1.8836fa2cf5039p-1, 0x1.491b7523c161dp-1}, {0x1.8de613515a328p-1, 0x1.4236484487abep-1}, /* 50-51 */
+    {0x1.9376253f463d1p-1, 0x1.3b37fb1bdc939p-1}, {0x1.98e6c0ea27a14p-1, 0x1.342119455beb6p-1}, /* 52-53 */
+    {0x1.9e3779b97f4a8p-1, 0x1.2cf2304755a5ep-1}, {0x1.a367e59158747p-1, 0x1.25abcf87c4978p-1}, /* 54-55 */
+    {0x1.a8779cda8eea5p-1, 0x1.1e4e88411fd12p-1}, {0x1.ad663a8ae2fdcp-1, 0x1.16daed770771dp-1}, /* 56-57 */
+    {0x1.b2335c2cda945p-1, 0x1.0f5193eacdd2ap-1}, {0x1.b6dea1e76eadep-1, 0x1.07b3120fddf13p-1}, /* 58-59 */
+    {0x1.bb67ae8584caap-1, 0x1.0000000000000p-1}, {0x1.bfce277d339c7p-1, 0x1.f071eedefa0ecp-2}, /* 60-61 */
+    {0x1.c411b4f6d2708p-1, 0x1.e0bd274245078p-2}, {0x1.c83201d3d2c6dp-1, 0x1.d0e2e2b44de01p-2}, /* 62-63 */
+    {0x1.cc2ebbb5638cap-1, 0x1.c0e45dabe05c8p-2}, {0x1.d0079302dd767p-1, 0x1.b0c2d77379853p-2}, /* 64-65 */
+    {0x1.d3bc3aeff7f95p-1, 0x1.a07f921061ad1p-2}, {0x1.d74c6982c666fp-1, 0x1.901bd2298ffabp-2}, /* 66-67 */
+    {0x1.dab7d7997cb58p-1, 0x1.7f98deee59681p-2}, {0x1.ddfe40effb805p-1, 0x1.6ef801fced33cp-2}, /* 68-69 */
+    {0x1.e11f642522d1cp-1, 0x1.5e3a8748a0bf5p-2}, {0x1.e41b02bfeb4cbp-1, 0x1.4d61bd000cddbp-2}, /* 70-71 */
+    {0x1.e6f0e134454ffp-1, 0x1.3c6ef372fe950p-2}, {0x1.e9a0c6e7bdb1fp-1, 0x1.2b637cf83d5c7p-2}, /* 72-73 */
+    {0x1.ec2a7e35e7b80p-1, 0x1.1a40add328e29p-2}, {0x1.ee8dd4748bf15p-1, 0x1.0907dc1930690p-2}, /* 74-75 */
+    {0x1.f0ca99f79ba25p-1, 0x1.ef74bf2e4b91dp-3}, {0x1.f2e0a214e870fp-1, 0x1.ccb3236cdc675p-3}, /* 76-77 */
+    {0x1.f4cfc327a0080p-1, 0x1.a9cd9ac4258f6p-3}, {0x1.f697d6938b6c2p-1, 0x1.86c6ddd76624fp-3}, /* 78-79 */
+    {0x1.f838b8c811c17p-1, 0x1.63a1a7e0b738ap-3}, {0x1.f9b24942fe45cp-1, 0x1.4060b67a85375p-3}, /* 80-81 */
+    {0x1.fb046a930947ap-1, 0x1.1d06c968d9e19p-3}, {0x1.fc2f025a23e8bp-1, 0x1.f32d44c4f62d3p-4}, /* 82-83 */
+    {0x1.fd31f94f867c6p-1, 0x1.ac2609b3c576cp-4}, {0x1.fe0d3b41815a2p-1, 0x1.64fd6b8c28103p-4}, /* 84-85 */
+    {0x1.fec0b7170fff6p-1, 0x1.1db8f6d6a5128p-4}, {0x1.ff4c5ed12e61dp-1, 0x1.acbc748efc90ep-5}, /* 86-87 */
+    {0x1.ffb0278bf0567p-1, 0x1.1de58c9f7dc27p-5}, {0x1.ffec097f5af8ap-1, 0x1.1df0b2b89dd1ep-6}, /* 88-89 */
+    {0x1.0000000000000p+0, 0x0.0p+0}, {0x1.ffec097f5af8ap-1, -0x1.1df0b2b89dd1ep-6}, /* 90-91 */
+    {0x1.ffb0278bf0567p-1, -0x1.1de58c9f7dc27p-5}, {0x1.ff4c5ed12e61dp-1, -0x1.acbc748efc90ep-5}, /* 92-93 */
+    {0x1.fec0b7170fff6p-1, -0x1.1db8f6d6a5128p-4}, {0x1.fe0d3b41815a2p-1, -0x1.64fd6b8c28103p-4}, /* 94-95 */
+    {0x1.fd31f94f867c6p-1, -0x1.ac2609b3c576cp-4}, {0x1.fc2f025a23e8bp-1, -0x1.f32d44c4f62d3p-4}, /* 96-97 */
+    {0x1.fb046a930947ap-1, -0x1.1d06c968d9e19p-3}, {0x1.f9b24942fe45cp-1, -0x1.4060b67a85375p-3}, /* 98-99 */
+    {0x1.f838b8c811c17p-1, -0x1.63a1a7e0b738ap-3}, {0x1.f697d6938b6c2p-1, -0x1.86c6ddd76624fp-3}, /* 100-101 */
+    {0x1.f4cfc327a0080p-1, -0x1.a9cd9ac4258f6p-3}, {0x1.f2e0a214e870fp-1, -0x1.ccb3236cdc675p-3}, /* 102-103 */
+    {0x1.f0ca99f79ba25p-1, -0x1.ef74bf2e4b91dp-3}, {0x1.ee8dd4748bf15p-1, -0x1.0907dc1930690p-2}, /* 104-105 */
+    {0x1.ec2a7e35e7b80p-1, -0x1.1a40add328e29p-2}, {0x1.e9a0c6e7bdb1fp-1, -0x1.2b637cf83d5c7p-2}, /* 106-107 */
+    {0x1.e6f0e134454ffp-1, -0x1.3c6ef372fe950p-2}, {0x1.e41b02bfeb4cbp-1, -0x1.4d61bd000cddbp-2}, /* 108-109 */
+    {0x1.e11f642522d1cp-1, -0x1.5e3a8748a0bf5p-2}, {0x1.ddfe40effb805p-1, -0x1.6ef801fced33cp-2}, /* 110-111 */
+    {0x1.dab7d7997cb58p-1, -0x1.7f98deee59681p-2}, {0x1.d74c6982c666fp-1, -0x1.901bd2298ffabp-2}, /* 112-113 */
+    {0x1.d3bc3aeff7f95p-1, -0x1.a07f921061ad1p-2}, {0x1.d0079302dd767p-1, -0x1.b0c2d77379853p-2}, /* 114-115 */
+    {0x1.cc2ebbb5638cap-1, -0x1.c0e45dabe05c8p-2}, {0x1.c83201d3d2c6dp-1, -0x1.d0e2e2b44de01p-2}, /* 116-117 */
+    {0x1.c411b4f6d2708p-1, -0x1.e0bd274245078p-2}, {0x1.bfce277d339c7p-1, -0x1.f071eedefa0ecp-2}, /* 118-119 */
+    {0x1.bb67ae8584caap-1, -0x1.0000000000000p-1}, {0x1.b6dea1e76eadep-1, -0x1.07b3120fddf13p-1}, /* 120-121 */
+    {0x1.b2335c2cda945p-1, -0x1.0f5193eacdd2ap-1}, {0x1.ad663a8ae2fdcp-1, -0x1.16daed770771dp-1}, /* 122-123 */
+    {0x1.a8779cda8eea5p-1, -0x1.1e4e88411fd12p-1}, {0x1.a367e59158747p-1, -0x1.25abcf87c4978p-1}, /* 124-125 */
+    {0x1.9e3779b97f4a8p-1, -0x1.2cf2304755a5ep-1}, {0x1.98e6c0ea27a14p-1, -0x1.342119455beb6p-1}, /* 126-127 */
+    {0x1.9376253f463d1p-1, -0x1.3b37fb1bdc939p-1}, {0x1.8de613515a328p-1, -0x1.4236484487abep-1}, /* 128-129 */
+    {0x1.8836fa2cf5039p-1, -0x1.491b7523c161dp-1}, {0x1.82694b4a11c37p-1, -0x1.4fe6f81384fd4p-1}, /* 130-131 */
+    {0x1.7c7d7a833bec2p-1, -0x1.5698496e20bd8p-1}, {0x1.7673fe0c86982p-1, -0x1.5d2ee398c9c2bp-1}, /* 132-133 */
+    {0x1.704d4e6a54d39p-1, -0x1.63aa430e07310p-1}, {0x1.6a09e667f3bcdp-1, -0x1.6a09e667f3bcdp-1}, /* 134-135 */
+    {0x1.63aa430e07310p-1, -0x1.704d4e6a54d39p-1}, {0x1.5d2ee398c9c2bp-1, -0x1.7673fe0c86982p-1}, /* 136-137 */
+    {0x1.5698496e20bd8p-1, -0x1.7c7d7a833bec2p-1}, {0x1.4fe6f81384fd4p-1, -0x1.82694b4a11c37p-1}, /* 138-139 */
+    {0x1.491b7523c161dp-1, -0x1.8836fa2cf5039p-1}, {0x1.4236484487abep-1, -0x1.8de613515a328p-1}, /* 140-141 */
+    {0x1.3b37fb1bdc939p-1, -0x1.9376253f463d1p-1}, {0x1.342119455beb6p-1, -0x1.98e6c0ea27a14p-1}, /* 142-143 */
+    {0x1.2cf2304755a5ep-1, -0x1.9e3779b97f4a8p-1}, {0x1.25abcf87c4978p-1, -0x1.a367e59158747p-1}, /* 144-145 */
+    {0x1.1e4e88411fd12p-1, -0x1.a8779cda8eea5p-1}, {0x1.16daed770771dp-1, -0x1.ad663a8ae2fdcp-1}, /* 146-147 */
+    {0x1.0f5193eacdd2ap-1, -0x1.b2335c2cda945p-1}, {0x1.07b3120fddf13p-1, -0x1.b6dea1e76eadep-1}, /* 148-149 */
+    {0x1.0000000000000p-1, -0x1.bb67ae8584caap-1}, {0x1.f071eedefa0ecp-2, -0x1.bfce277d339c7p-1}, /* 150-151 */
+    {0x1.e0bd274245078p-2, -0x1.c411b4f6d2708p-1}, {0x1.d0e2e2b44de01p-2, -0x1.c83201d3d2c6dp-1}, /* 152-153 */
+    {0x1.c0e45dabe05c8p-2, -0x1.cc2ebbb5638cap-1}, {0x1.b0c2d77379853p-2, -0x1.d0079302dd767p-1}, /* 154-155 */
+    {0x1.a07f921061ad1p-2, -0x1.d3bc3aeff7f95p-1}, {0x1.901bd2298ffabp-2, -0x1.d74c6982c666fp-1}, /* 156-157 */
+    {0x1.7f98deee59681p-2, -0x1.dab7d7997cb58p-1}, {0x1.6ef801fced33cp-2, -0x1.ddfe40effb805p-1}, /* 158-159 */
+    {0x1.5e3a8748a0bf5p-2, -0x1.e11f642522d1cp-1}, {0x1.4d61bd000cddbp-2, -0x1.e41b02bfeb4cbp-1}, /* 160-161 */
+    {0x1.3c6ef372fe950p-2, -0x1.e6f0e134454ffp-1}, {0x1.2b637cf83d5c7p-2, -0x1.e9a0c6e7bdb1fp-1}, /* 162-163 */
+    {0x1.1a40add328e29p-2, -0x1.ec2a7e35e7b80p-1}, {0x1.0907dc1930690p-2, -0x1.ee8dd4748bf15p-1}, /* 164-165 */
+    {0x1.ef74bf2e4b91dp-3, -0x1.f0ca99f79ba25p-1}, {0x1.ccb3236cdc675p-3, -0x1.f2e0a214e870fp-1}, /* 166-167 */
+    {0x1.a9cd9ac4258f6p-3, -0x1.f4cfc327a0080p-1}, {0x1.86c6ddd76624fp-3, -0x1.f697d6938b6c2p-1}, /* 168-169 */
+    {0x1.63a1a7e0b738ap-3, -0x1.f838b8c811c17p-1}, {0x1.4060b67a85375p-3, -0x1.f9b24942fe45cp-1}, /* 170-171 */
+    {0x1.1d06c968d9e19p-3, -0x1.fb046a930947ap-1}, {0x1.f32d44c4f62d3p-4, -0x1.fc2f025a23e8bp-1}, /* 172-173 */
+    {0x1.ac2609b3c576cp-4, -0x1.fd31f94f867c6p-1}, {0x1.64fd6b8c28103p-4, -0x1.fe0d3b41815a2p-1}, /* 174-175 */
+    {0x1.1db8f6d6a5128p-4, -0x1.fec0b7170fff6p-1}, {0x1.acbc748efc90ep-5, -0x1.ff4c5ed12e61dp-1}, /* 176-177 */
+    {0x1.1de58c9f7dc27p-5, -0x1.ffb0278bf0567p-1}, {0x1.1df0b2b89dd1ep-6, -0x1.ffec097f5af8ap-1}, /* 178-179 */
+    {0x0.0p+0, -0x1.0000000000000p+0} /* 180 */
+};
+
+/* sin and cos of one angle in degrees per lane, |a| <= 180 or NaN. |a| = n + d, n whole
+ * and |d| <= 1/2 (both exact: n is |a| rounded by adding and removing 1.5 2**52, d the
+ * difference of two doubles within a factor of 2), r = d pi/180 radians (|r| < 0.0088),
+ * then with S, C the sine and cosine of n degrees (gs_degree_sincos)
+ *   sin |a| = S + (C sin r - S (1 - cos r)),   cos |a| = C - (S sin r + C (1 - cos r)),
+ * sin r and 1 - cos r from their Taylor polynomials (the next terms below 1e-18). The
+ * corrections are below 0.0088, so their rounding is far below S's and C's last place:
+ * each result is within half a unit in the last place of S or C plus its own rounding
+ * (1.1e-16 absolute at most) of the sine and cosine of the degrees given, with no
+ * rounding of the angle in radians. sin a takes the sign of a. Whole degrees give S and
+ * C exactly (cos 90 is 0). nan (a constant): lanes may be NaN (then row 0, results NaN). */
+GS_INLINE void sincos_degrees(gs_v4 a, const int nan, gs_v4 *sin_a, gs_v4 *cos_a)
 {
-    const double pio2_hi = 1.57079632673412561417e+00; /* first 33 bits of pi/2: n * pio2_hi is exact */
-    const double pio2_lo = 6.07710050650619224932e-11, two_over_pi = 6.36619772367581382433e-01;
-    const double S1 = -1.66666666666666324348e-01, S2 = 8.33333333332248946124e-03, S3 = -1.98412698298579493134e-04,
-                 S4 = 2.75573137070700676789e-06, S5 = -2.50507602534068634195e-08, S6 = 1.58969099521155010221e-10;
-    const double C1 = 4.16666666666666019037e-02, C2 = -1.38888888888741095749e-03, C3 = 2.48015872894767294178e-05,
-                 C4 = -2.75573143513906633035e-07, C5 = 2.08757232129817482790e-09, C6 = -1.13596475577881948265e-11;
-    gs_v4 n = small ? v4_floor_small(x * two_over_pi + 0.5) : v4_floor(x * two_over_pi + 0.5);
-    gs_v4 r = (x - n * pio2_hi) - n * pio2_lo;
+    const double round_magic = 6755399441055744.0; /* 1.5 2**52 */
+    const int64_t round_magic_bits = 0x4338000000000000LL;
+    const double d2r = 3.141592653589793 / 180.0;
+    const gs_i4 sign = {INT64_MIN, INT64_MIN, INT64_MIN, INT64_MIN};
+    gs_v4 m = (gs_v4)((gs_i4)a & ~sign);
+    gs_v4 rounded = m + round_magic;
+    gs_i4 row = (gs_i4)rounded - round_magic_bits; /* the whole number in its low bits */
+    if (nan)
+        row &= (gs_i4)(m == m);
+    gs_v4 r = (m - (rounded - round_magic)) * d2r;
     gs_v4 z = r * r;
-    gs_v4 sin_r = r + (z * r) * (S1 + z * (S2 + z * (S3 + z * (S4 + z * (S5 + z * S6)))));
-    gs_v4 hz = 0.5 * z;
-    gs_v4 w = 1.0 - hz;
-    gs_v4 cos_r = w + (((1.0 - w) - hz) + z * (z * (C1 + z * (C2 + z * (C3 + z * (C4 + z * (C5 + z * C6)))))));
-    /* the quadrant n mod 4 (exact: n is small and whole); NaN takes the last case, NaN too */
-    gs_v4 quadrant = n - 4.0 * (small ? v4_floor_small(n * 0.25) : v4_floor(n * 0.25));
-    gs_i4 q0 = quadrant == 0.0, q1 = quadrant == 1.0, q2 = quadrant == 2.0;
-    *sin_x = v4_select(q0, sin_r, v4_select(q1, cos_r, v4_select(q2, -sin_r, -cos_r)));
-    *cos_x = v4_select(q0, cos_r, v4_select(q1, -sin_r, v4_select(q2, -cos_r, sin_r)));
+    gs_v4 sin_r = r + (r * z) * (-1.0 / 6.0 + z * (1.0 / 120.0));
+    gs_v4 one_minus_cos_r = z * (0.5 - z * (1.0 / 24.0 - z * (1.0 / 720.0)));
+    const double(*T)[2] = gs_degree_sincos;
+    gs_v4 S = {T[row[0]][0], T[row[1]][0], T[row[2]][0], T[row[3]][0]};
+    gs_v4 C = {T[row[0]][1], T[row[1]][1], T[row[2]][1], T[row[3]][1]};
+    gs_v4 sin_m = S + (C * sin_r - S * one_minus_cos_r);
+    *sin_a = (gs_v4)((gs_i4)sin_m ^ ((gs_i4)a & sign));
+    *cos_a = C - (S * sin_r + C * one_minus_cos_r);
 }
 
 /* Unit vectors of 4 latitude/longitude pairs in degrees: the one formula of every
- * compiled path (unit_vectors, undulation_latlon), so they agree bit for bit. Longitudes
- * are wrapped to [-180, 180) first. */
+ * compiled path (unit_vectors, undulation_latlon), so they agree bit for bit. Angles
+ * beyond +-180 degrees (longitudes outside [-180, 180); unit_vectors checks no range)
+ * are wrapped first (lanes inside keep their bits; a huge longitude wraps inexactly). */
 GS_INLINE void directions4(const gs_v4 *latitude_, const gs_v4 *longitude_, gs_v4 *x, gs_v4 *y, gs_v4 *z)
 {
     gs_v4 latitude = *latitude_, longitude = *longitude_;
-    const double d2r = 3.141592653589793 / 180.0;
     const gs_i4 sign = {INT64_MIN, INT64_MIN, INT64_MIN, INT64_MIN};
     /* Every latitude within +-90 and longitude in [-180, 180) (no NaN: every valid batch):
-     * no wrap, and the sin/cos floors of small arguments. Otherwise (one test for the 4)
-     * the wrap where needed and the general floors (unit_vectors checks no range; a huge
-     * longitude wraps inexactly). */
+     * no wrap, no NaN. Otherwise (one test for the 4) both wrapped, NaN lanes checked. */
     gs_i4 inside = ((gs_v4)((gs_i4)latitude & ~sign) <= 90.0) & (longitude >= -180.0) & (longitude < 180.0);
-    const int small = !v4_any(~inside);
-    if (!small)
-        longitude = wrapped_longitude4(longitude);
     gs_v4 sin_phi, cos_phi, sin_lam, cos_lam;
-    gs_sincos(latitude * d2r, small, &sin_phi, &cos_phi);
-    gs_sincos(longitude * d2r, small, &sin_lam, &cos_lam);
+    if (!v4_any(~inside)) {
+        sincos_degrees(latitude, 0, &sin_phi, &cos_phi);
+        sincos_degrees(longitude, 0, &sin_lam, &cos_lam);
+    } else {
+        sincos_degrees(wrapped_longitude4(latitude), 1, &sin_phi, &cos_phi);
+        sincos_degrees(wrapped_longitude4(longitude), 1, &sin_lam, &cos_lam);
+    }
     *x = cos_phi * cos_lam;
     *y = cos_phi * sin_lam;
     *z = sin_phi;
