@@ -603,6 +603,17 @@ def test_compiled_directions_are_the_sines_and_cosines_of_the_degrees_given():
     _kernels.unit_vectors(lat, lon + 360.0 * rng.integers(-3, 4, n), wrapped)
     assert np.abs(wrapped - got).max() <= 1e-13  # the wrap rounds the longitude, not the formula
 
+    # no range check here: huge angles wrap inexactly (the first three to -184, -256 and
+    # -1.2e285 degrees: taken as 180, never read outside the table), NaN stays NaN
+    lat_huge = np.array([4.2850653715770296e16, 9.900395701806764e17, 7.929227585702643e300, 540.0, -900.0, -1e300,
+                         1e300, np.inf, np.nan, 0.0])
+    lon_huge = np.array([7.929227585702643e300, -4.2850653715770296e16, 9.900395701806764e17, -900.0, 540.0, 7e299,
+                         np.nan, 0.0, 0.0, -np.inf])
+    out = np.empty((lat_huge.size, 3))
+    _kernels.unit_vectors(lat_huge, lon_huge, out)
+    np.testing.assert_allclose(np.linalg.norm(out[:6], axis=1), 1.0, rtol=0, atol=4.5e-16)
+    assert np.isnan(out[6:]).any(axis=1).all()
+
 
 def test_dense_latlon_batches_equal_directions_then_points():
     """A dense regional batch (thousands of points per 5.6° sort bucket: the buckets are

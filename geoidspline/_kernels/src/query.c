@@ -827,7 +827,7 @@ GS_INLINE gs_v4 wrapped_longitude4(gs_v4 longitude)
 }
 
 /* sin and cos of n degrees, {sin, cos} in row n = 0 .. 180, each correctly rounded
- * (tests/test_query_index.py recomputes every row to 60 digits with Python's decimal) */
+ * (tests/test_query_index.py recomputes every row to 50 digits with Python's decimal) */
 static const double gs_degree_sincos[181][2] = {
     {0x0.0p+0, 0x1.0000000000000p+0}, {0x1.1df0b2b89dd1ep-6, 0x1.ffec097f5af8ap-1}, /* 0-1 */
     {0x1.1de58c9f7dc27p-5, 0x1.ffb0278bf0567p-1}, {0x1.acbc748efc90ep-5, 0x1.ff4c5ed12e61dp-1}, /* 2-3 */
@@ -932,17 +932,21 @@ static const double gs_degree_sincos[181][2] = {
  * each result is within half a unit in the last place of S or C plus its own rounding
  * (1.1e-16 absolute at most) of the sine and cosine of the degrees given, with no
  * rounding of the angle in radians. sin a takes the sign of a. Whole degrees give S and
- * C exactly (cos 90 is 0). nan (a constant): lanes may be NaN (then row 0, results NaN). */
-GS_INLINE void sincos_degrees(gs_v4 a, const int nan, gs_v4 *sin_a, gs_v4 *cos_a)
+ * C exactly (cos 90 is 0). checked (a constant): lanes may be NaN (then row 0, results
+ * NaN) or beyond 180 degrees (a huge angle's inexact wrap: taken as 180), so that the
+ * table is never read outside its rows. */
+GS_INLINE void sincos_degrees(gs_v4 a, const int checked, gs_v4 *sin_a, gs_v4 *cos_a)
 {
     const double round_magic = 6755399441055744.0; /* 1.5 2**52 */
     const int64_t round_magic_bits = 0x4338000000000000LL;
     const double d2r = 3.141592653589793 / 180.0;
     const gs_i4 sign = {INT64_MIN, INT64_MIN, INT64_MIN, INT64_MIN};
     gs_v4 m = (gs_v4)((gs_i4)a & ~sign);
+    if (checked)
+        m = v4_select(m > 180.0, v4_splat(180.0), m);
     gs_v4 rounded = m + round_magic;
     gs_i4 row = (gs_i4)rounded - round_magic_bits; /* the whole number in its low bits */
-    if (nan)
+    if (checked)
         row &= (gs_i4)(m == m);
     gs_v4 r = (m - (rounded - round_magic)) * d2r;
     gs_v4 z = r * r;
@@ -965,7 +969,7 @@ GS_INLINE void directions4(const gs_v4 *latitude_, const gs_v4 *longitude_, gs_v
     gs_v4 latitude = *latitude_, longitude = *longitude_;
     const gs_i4 sign = {INT64_MIN, INT64_MIN, INT64_MIN, INT64_MIN};
     /* Every latitude within +-90 and longitude in [-180, 180) (no NaN: every valid batch):
-     * no wrap, no NaN. Otherwise (one test for the 4) both wrapped, NaN lanes checked. */
+     * no wrap, no NaN. Otherwise (one test for the 4) both wrapped, their lanes checked. */
     gs_i4 inside = ((gs_v4)((gs_i4)latitude & ~sign) <= 90.0) & (longitude >= -180.0) & (longitude < 180.0);
     gs_v4 sin_phi, cos_phi, sin_lam, cos_lam;
     if (!v4_any(~inside)) {
