@@ -539,10 +539,10 @@ def test_points_near_the_edges_of_finer_bricks_end_where_the_descent_would():
 
 
 def _sin_cos_degrees(degrees):
-    """sin and cos of an angle in degrees (a float within +-180, taken exactly), rounded
-    once to floats from 50 digits (Python's decimal; the zeros exact): Taylor's series,
-    60 terms (pi^60/60! < 1e-52), pi from Newton's series of pi/6 = asin(1/2) (100 terms,
-    each a quarter of the one before)."""
+    """sin and cos of an angle in degrees (a float within +-180, taken exactly) to 50
+    digits, as Decimals (the zeros exact): Taylor's series, 60 terms (pi^60/60! < 1e-52),
+    pi from Newton's series of pi/6 = asin(1/2) (100 terms, each a quarter of the one
+    before)."""
     from decimal import Decimal, localcontext
 
     with localcontext() as ctx:
@@ -560,7 +560,7 @@ def _sin_cos_degrees(degrees):
             term = term * x / (n + 1)
         sin = sum(terms[1::4]) - sum(terms[3::4])
         cos = sum(terms[0::4]) - sum(terms[2::4])
-        return (0.0 if degrees % 180 == 0 else float(sin)), (0.0 if degrees % 180 == 90 else float(cos))
+        return (Decimal(0) if degrees % 180 == 0 else sin), (Decimal(0) if degrees % 180 == 90 else cos)
 
 
 def test_compiled_directions_are_the_sines_and_cosines_of_the_degrees_given():
@@ -580,8 +580,8 @@ def test_compiled_directions_are_the_sines_and_cosines_of_the_degrees_given():
     lon[8:16] = [179.5, -179.5, -0.5, 2.5, 179.999999, -180.0, 1e-300, -0.0]
     got = np.empty((n, 3))
     _kernels.unit_vectors(lat, lon, got)  # the compiled formula of every large batch
-    true = np.array([[c1 * c2, c1 * s2, s1] for (s1, c1), (s2, c2) in
-                     zip(map(_sin_cos_degrees, lat), map(_sin_cos_degrees, lon))])
+    true = np.array([[float(c1 * c2), float(c1 * s2), float(s1)] for (s1, c1), (s2, c2) in
+                     zip(map(_sin_cos_degrees, lat), map(_sin_cos_degrees, lon))])  # rounded once
     error = np.abs(got - true).max(axis=0)
     assert error[0] <= 2.8e-16 and error[1] <= 2.8e-16 and error[2] <= 1.12e-16, error
     assert np.abs(np.linalg.norm(got, axis=1) - 1.0).max() <= 4.5e-16
@@ -595,7 +595,7 @@ def test_compiled_directions_are_the_sines_and_cosines_of_the_degrees_given():
         out = np.empty((whole.size, 3))
         _kernels.unit_vectors(lat_w, lon_w, out)
         angle = lat_w if sin_col == 2 else lon_w
-        want = np.array([_sin_cos_degrees(a) for a in angle])
+        want = np.array([[float(v) for v in _sin_cos_degrees(a)] for a in angle])  # correctly rounded
         np.testing.assert_array_equal(out[:, sin_col], want[:, 0])
         np.testing.assert_array_equal(out[:, cos_col], want[:, 1])
 
