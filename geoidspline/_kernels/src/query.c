@@ -816,14 +816,15 @@ GS_INLINE gs_v4 v4_floor(gs_v4 x)
     return (gs_v4)(((gs_i4)t & ~sign) | ((gs_i4)x & sign)); /* floor(x) has the sign of x */
 }
 
-/* Longitudes outside [-180, 180) wrapped into it (lanes inside keep their bits; the
- * division and floor only when a lane needs them). */
-GS_INLINE gs_v4 wrapped_longitude4(gs_v4 longitude)
+/* Angles in degrees (longitudes; latitudes on directions4's checked path) outside
+ * [-180, 180) wrapped into it (lanes inside keep their bits; the division and floor only
+ * when a lane needs them; a huge angle wraps inexactly). */
+GS_INLINE gs_v4 wrapped_degrees4(gs_v4 degrees)
 {
-    gs_i4 outside = (longitude < -180.0) | (longitude >= 180.0);
+    gs_i4 outside = (degrees < -180.0) | (degrees >= 180.0);
     if (v4_any(outside))
-        longitude = v4_select(outside, longitude - 360.0 * v4_floor((longitude + 180.0) / 360.0), longitude);
-    return longitude;
+        degrees = v4_select(outside, degrees - 360.0 * v4_floor((degrees + 180.0) / 360.0), degrees);
+    return degrees;
 }
 
 /* sin and cos of n degrees, {sin, cos} in row n = 0 .. 180, each correctly rounded
@@ -976,8 +977,8 @@ GS_INLINE void directions4(const gs_v4 *latitude_, const gs_v4 *longitude_, gs_v
         sincos_degrees(latitude, 0, &sin_phi, &cos_phi);
         sincos_degrees(longitude, 0, &sin_lam, &cos_lam);
     } else {
-        sincos_degrees(wrapped_longitude4(latitude), 1, &sin_phi, &cos_phi);
-        sincos_degrees(wrapped_longitude4(longitude), 1, &sin_lam, &cos_lam);
+        sincos_degrees(wrapped_degrees4(latitude), 1, &sin_phi, &cos_phi);
+        sincos_degrees(wrapped_degrees4(longitude), 1, &sin_lam, &cos_lam);
     }
     *x = cos_phi * cos_lam;
     *y = cos_phi * sin_lam;
@@ -1012,7 +1013,7 @@ GS_INLINE gs_u4 latlon_code4(gs_v4 la, gs_v4 lo)
 {
     const double lat_cells = 1 << LL_LAT_BITS, lon_cells = 1 << LL_LON_BITS;
     gs_v4 fi = (la + 90.0) * (lat_cells / 180.0);
-    gs_v4 w = wrapped_longitude4(lo) + 180.0;
+    gs_v4 w = wrapped_degrees4(lo) + 180.0;
     gs_v4 fj = w * (lon_cells / 360.0);
     /* clamped to the grid (NaN to 0 here, its own bucket below), then truncated */
     fi = v4_select(fi >= lat_cells, v4_splat(lat_cells - 1.0), v4_select(fi >= 0.0, fi, v4_splat(0.0)));
@@ -1129,7 +1130,7 @@ GS_INLINE gs_u4 cell_code4(const latlon_job *J, gs_v4 la, gs_v4 lo)
 {
     const double d2r = 3.141592653589793 / 180.0;
     gs_v4 sin_phi, cos_phi, sin_half, cos_half;
-    lo = wrapped_longitude4(lo);
+    lo = wrapped_degrees4(lo);
     rough_sincos(la * d2r, &sin_phi, &cos_phi);
     rough_sincos(lo * (0.5 * d2r), &sin_half, &cos_half); /* half the longitude: within +-pi/2 */
     gs_v4 sin_lam = 2.0 * sin_half * cos_half, cos_lam = 1.0 - 2.0 * sin_half * sin_half;
